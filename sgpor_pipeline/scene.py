@@ -1,0 +1,93 @@
+"""Camera type shared by every stage.
+
+Convention (DESIGN.md section 5): OpenCV/COLMAP axes (x right, y down, z forward), a 4x4
+``cam_from_world`` matrix and a 3x3 intrinsic matrix ``K``. After undistortion every camera is
+PINHOLE; imported cameras may still carry a distortion model until the sfm stage undistorts.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+CAMERAS_FORMAT = "sgpor-cameras/1"
+
+
+@dataclass
+class Camera:
+    """One camera. ``image`` is the ingested image's view name, or None for a novel view."""
+
+    name: str
+    width: int
+    height: int
+    K: np.ndarray  # [3,3] float64
+    cam_from_world: np.ndarray  # [4,4] float64
+    image: str | None = None
+    model: str = "PINHOLE"  # COLMAP model name of the original camera
+    distortion: list[float] = field(default_factory=list)  # COLMAP extra params after fx,fy,cx,cy
+
+    def __post_init__(self) -> None:
+        self.K = np.asarray(self.K, dtype=np.float64).reshape(3, 3)
+        self.cam_from_world = np.asarray(self.cam_from_world, dtype=np.float64).reshape(4, 4)
+        self.width = int(self.width)
+        self.height = int(self.height)
+
+    @property
+    def world_from_cam(self) -> np.ndarray:
+        return np.linalg.inv(self.cam_from_world)
+
+    @property
+    def center(self) -> np.ndarray:
+        """Camera centre in world coordinates."""
+        R = self.cam_from_world[:3, :3]
+        t = self.cam_from_world[:3, 3]
+        return -R.T @ t
+
+    def scaled(self, width: int, height: int) -> Camera:
+        """The same camera for an image resized to ``width`` x ``height`` (pixel-corner convention)."""
+        sx, sy = width / self.width, height / self.height
+        K = self.K.copy()
+        K[0, :] *= sx
+        K[1, :] *= sy
+        return Camera(self.name, width, height, K, self.cam_from_world.copy(), self.image,
+                      self.model, list(self.distortion))
+
+    def to_dict(self) -> dict:
+        return {
+            "name": self.name,
+            "image": self.image,
+            "width": self.width,
+            "height": self.height,
+            "model": self.model,
+            "K": self.K.tolist(),
+            "distortion": list(self.distortion),
+            "cam_from_world": self.cam_from_world.tolist(),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Camera:
+        return cls(
+            name=d["name"],
+            width=d["width"],
+            height=d["height"],
+            K=np.array(d["K"]),
+            cam_from_world=np.array(d["cam_from_world"]),
+            image=d.get("image"),
+            model=d.get("model", "PINHOLE"),
+            distortion=list(d.get("distortion", [])),
+        )
+
+
+def save_cameras(path: Path, cameras: list[Camera]) -> None:
+    data = {"format": CAMERAS_FORMAT, "cameras": [c.to_dict() for c in cameras]}
+    Path(path).write_text(json.dumps(data, indent=1))
+
+
+def load_cameras(path: Path) -> list[Camera]:
+    data = json.loads(Path(path).read_text())
+    if data.get("format") != CAMERAS_FORMAT:
+        raise ValueError(f"{path}: not a {CAMERAS_FORMAT} file")
+    return [Camera.from_dict(d) for d in data["cameras"]]

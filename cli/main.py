@@ -1,0 +1,159 @@
+"""The ``sgpor-pipeline`` command line."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+from pathlib import Path
+
+from sgpor_pipeline import __version__
+from sgpor_pipeline.errors import PipelineError
+
+log = logging.getLogger("sgpor_pipeline")
+
+
+class _Formatter(logging.Formatter):
+    def format(self, record: logging.LogRecord) -> str:
+        msg = record.getMessage()
+        if record.levelno >= logging.WARNING:
+            return f"{record.levelname.lower()}: {msg}"
+        return msg
+
+
+def setup_logging(debug: bool) -> None:
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(_Formatter())
+    root = logging.getLogger("sgpor_pipeline")
+    root.handlers[:] = [handler]
+    root.setLevel(logging.DEBUG if debug else logging.INFO)
+    root.propagate = False
+
+
+def _add_run_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--until", metavar="STAGE", help="stop after this stage (runs it and what it needs)")
+    p.add_argument("--force", metavar="STAGE", action="append", default=[],
+                   help="recompute this stage and everything downstream even if cached (repeatable)")
+    p.add_argument("--config", metavar="FILE", type=Path, help="TOML file with one [stage] table of parameters each")
+    p.add_argument("--set", metavar="STAGE.PARAM=VALUE", dest="overrides", action="append", default=[],
+                   help="override one parameter, e.g. --set fit.iterations=3000 (repeatable)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="sgpor-pipeline",
+        description="Remove an object from a photographed 3D scene: SfM, Gaussian Splatting, semantic-guided "
+                    "inpainting, export to PLY/mesh/USD. Every stage is cached in the output folder, so "
+                    "running the same command again resumes.")
+    parser.add_argument("--version", action="version", version=f"sgpor-pipeline {__version__}")
+    parser.add_argument("--debug", action="store_true", help="show full tracebacks and library logs")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    p = sub.add_parser("run", help="run or resume the pipeline on a folder of photos",
+                       description="Run or resume the pipeline on a folder of photos.")
+    p.add_argument("images", type=Path, help="folder of photos (JPEG, PNG, TIFF)")
+    p.add_argument("--masks", type=Path, help="folder of object masks, same base names, non-zero = object; "
+                                              "for all views or only some")
+    p.add_argument("--cameras", type=Path, help="known cameras instead of SfM: a COLMAP model folder or a "
+                                                "transforms.json (cameras without a photo are novel views)")
+    p.add_argument("--out", type=Path, default=Path("runs/latest"), help="output folder (default: runs/latest)")
+    _add_run_options(p)
+
+    p = sub.add_parser("demo", help="generate a synthetic scene and run the pipeline on it",
+                       description="Generate a synthetic scene (with ground truth) and run the pipeline on it.")
+    p.add_argument("--out", type=Path, default=Path("runs/demo"), help="output folder (default: runs/demo)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the synthetic scene (default 0)")
+    p.add_argument("--rig", choices=["inward", "forward"], default="inward", help="camera rig (default inward)")
+    _add_run_options(p)
+
+    p = sub.add_parser("status", help="show each stage of a run folder: hit / missing / stale, time, size",
+                       description="Show each stage of a run folder: hit / missing / stale / damaged, time, size.")
+    p.add_argument("out", type=Path, help="the run's output folder")
+
+    p = sub.add_parser("clean", help="free disk: delete cached results the run no longer uses",
+                       description="Delete cached results that the run's current configuration does not use, "
+                                   "leftovers of interrupted runs and unused per-view results.")
+    p.add_argument("out", type=Path, help="the run's output folder")
+    p.add_argument("--keep-last", type=int, default=0, metavar="N",
+                   help="also keep the N most recent unused results of each stage (default 0)")
+    return parser
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from sgpor_pipeline.dag import RunInputs
+
+    inputs = RunInputs(images=args.images.resolve(), masks=args.masks.resolve() if args.masks else None,
+                       cameras=args.cameras.resolve() if args.cameras else None)
+    return _run(args, inputs)
+
+
+def _run(args: argparse.Namespace, inputs: object) -> int:
+    from sgpor_pipeline.runner import run_pipeline
+
+    t0 = time.perf_counter()
+    result = run_pipeline(args.out, inputs, config_file=args.config, overrides=args.overrides, until=args.until,
+                          force=args.force, debug=args.debug)
+    log.info(f"done in {time.perf_counter() - t0:.1f} s: {len(result.ran)} stage(s) ran, "
+             f"{len(result.hits)} cache hit(s); output in {result.out}")
+    return 0
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from sgpor_pipeline.synthetic import SceneParams
+
+    from sgpor_pipeline.dag import RunInputs
+    from sgpor_pipeline.demo import ensure_demo_scene
+
+    scene_dir = ensure_demo_scene(args.out.resolve() / "scene", SceneParams(seed=args.seed, rig=args.rig))
+    inputs = RunInputs(images=scene_dir / "images", masks=scene_dir / "masks",
+                       extra={"groundtruth": scene_dir / "groundtruth"})
+    return _run(args, inputs)
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    from sgpor_pipeline.runner import format_status, pipeline_status
+
+    print(format_status(pipeline_status(args.out)))
+    return 0
+
+
+def cmd_clean(args: argparse.Namespace) -> int:
+    from sgpor_pipeline.runner import clean
+
+    if args.keep_last < 0:
+        raise PipelineError("--keep-last must be 0 or more")
+    freed = clean(args.out, keep_last=args.keep_last)
+    log.info(f"freed {freed / 1e6:.1f} MB in {args.out}")
+    return 0
+
+
+COMMANDS = {"run": cmd_run, "demo": cmd_demo, "status": cmd_status, "clean": cmd_clean}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 2
+    setup_logging(args.debug)
+    try:
+        return COMMANDS[args.command](args)
+    except PipelineError as e:
+        if args.debug:
+            log.exception("error")
+        print(f"error: {e.one_line()}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("interrupted: finished stages are kept; run the same command to resume", file=sys.stderr)
+        return 130
+    except Exception as e:  # an unexpected failure: one line, the traceback on request
+        if args.debug:
+            raise
+        print(f"error: {type(e).__name__}: {e} (run with --debug for the traceback)", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

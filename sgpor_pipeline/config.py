@@ -1,0 +1,176 @@
+"""Pipeline configuration: one parameter dataclass per stage, a TOML file, ``--set`` overrides.
+
+The resolved configuration maps a stage name to an instance of that stage's ``Params``. TOML files
+have one table per stage (``[fit]`` ``iterations = 3000``); overrides are ``stage.field=value`` with
+the value parsed as a TOML literal (``3000``, ``0.5``, ``true``, ``"text"``, ``[1, 2]``; bare words
+are strings). Unknown stages or fields are errors listing the valid names.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+import types
+import typing
+from pathlib import Path
+from typing import Any, Literal, get_args, get_origin, get_type_hints
+
+import tomli_w
+
+from .errors import PipelineError
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+
+@dataclasses.dataclass
+class NoParams:
+    """Parameters of a stage that has none."""
+
+
+def params_to_dict(params: Any) -> dict[str, Any]:
+    out = {}
+    for f in dataclasses.fields(params):
+        value = getattr(params, f.name)
+        if isinstance(value, tuple):
+            value = list(value)
+        if isinstance(value, Path):
+            value = str(value)
+        out[f.name] = value
+    return out
+
+
+def _type_name(tp: Any) -> str:
+    return getattr(tp, "__name__", None) or str(tp).replace("typing.", "")
+
+
+def coerce(value: Any, tp: Any, where: str) -> Any:
+    """Check ``value`` against the annotation ``tp`` and convert where lossless (int -> float, list -> tuple)."""
+    origin = get_origin(tp)
+    if origin is typing.Union or origin is types.UnionType:
+        if value is None and type(None) in get_args(tp):
+            return None
+        errors = []
+        for arg in get_args(tp):
+            if arg is type(None):
+                continue
+            try:
+                return coerce(value, arg, where)
+            except PipelineError as e:
+                errors.append(e.message)
+        raise PipelineError(f"{where}: {value!r} is not a {_type_name(tp)}")
+    if origin is Literal:
+        if value in get_args(tp):
+            return value
+        choices = ", ".join(repr(a) for a in get_args(tp))
+        raise PipelineError(f"{where}: {value!r} is not one of {choices}")
+    if origin in (list, tuple):
+        if isinstance(value, str):
+            value = [v.strip() for v in value.split(",") if v.strip()]
+        if not isinstance(value, (list, tuple)):
+            raise PipelineError(f"{where}: expected a list, got {value!r}")
+        args = get_args(tp)
+        item_tp = args[0] if args else Any
+        items = [coerce(v, item_tp, where) for v in value] if item_tp is not Any else list(value)
+        return tuple(items) if origin is tuple else items
+    if tp is Any:
+        return value
+    if tp is bool:
+        if isinstance(value, bool):
+            return value
+        raise PipelineError(f"{where}: expected true or false, got {value!r}")
+    if tp is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        raise PipelineError(f"{where}: expected an integer, got {value!r}")
+    if tp is float:
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+        raise PipelineError(f"{where}: expected a number, got {value!r}")
+    if tp is str:
+        if isinstance(value, str):
+            return value
+        raise PipelineError(f"{where}: expected a string, got {value!r}")
+    if tp is Path:
+        if isinstance(value, (str, Path)):
+            return Path(value)
+        raise PipelineError(f"{where}: expected a path, got {value!r}")
+    return value
+
+
+def parse_literal(text: str) -> Any:
+    """A command-line value as a TOML literal; anything that is not one is a plain string."""
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def _apply(params: Any, stage: str, updates: dict[str, Any], source: str) -> Any:
+    hints = get_type_hints(type(params))
+    fields = {f.name for f in dataclasses.fields(params)}
+    changes = {}
+    for key, value in updates.items():
+        if key not in fields:
+            valid = ", ".join(sorted(fields)) or "(this stage has no parameters)"
+            raise PipelineError(f"unknown parameter '{stage}.{key}'", path=source,
+                                fix=f"valid parameters of '{stage}': {valid}")
+        changes[key] = coerce(value, hints[key], f"{stage}.{key}")
+    return dataclasses.replace(params, **changes)
+
+
+def resolve_config(
+    param_types: dict[str, type],
+    config_file: Path | None = None,
+    overrides: list[str] | tuple[str, ...] = (),
+) -> dict[str, Any]:
+    """Defaults, then the TOML file, then ``stage.field=value`` overrides."""
+    config = {name: tp() for name, tp in param_types.items()}
+    valid_stages = ", ".join(sorted(param_types))
+
+    def check_stage(stage: str, source: str) -> None:
+        if stage not in config:
+            raise PipelineError(f"unknown stage '{stage}'", path=source, fix=f"valid stages: {valid_stages}")
+
+    if config_file is not None:
+        config_file = Path(config_file)
+        try:
+            data = tomllib.loads(config_file.read_text())
+        except FileNotFoundError:
+            raise PipelineError("configuration file not found", path=config_file,
+                                fix="check the --config path") from None
+        except tomllib.TOMLDecodeError as e:
+            raise PipelineError(f"not valid TOML ({e})", path=config_file,
+                                fix="fix the syntax; see the saved config.toml of a run") from None
+        for stage, table in data.items():
+            check_stage(stage, str(config_file))
+            if not isinstance(table, dict):
+                raise PipelineError(f"'{stage}' must be a table ([{stage}])", path=config_file,
+                                    fix=f"write the parameters under a [{stage}] header")
+            config[stage] = _apply(config[stage], stage, table, str(config_file))
+    for item in overrides:
+        key, sep, text = item.partition("=")
+        stage, dot, field = key.strip().partition(".")
+        if not sep or not dot:
+            raise PipelineError(f"--set expects STAGE.PARAM=VALUE, got '{item}'",
+                                fix="for example --set fit.iterations=3000")
+        check_stage(stage, "--set")
+        config[stage] = _apply(config[stage], stage, {field: parse_literal(text.strip())}, "--set")
+    return config
+
+
+def config_to_toml(config: dict[str, Any]) -> str:
+    tables = {}
+    for stage, params in config.items():
+        values = {k: v for k, v in params_to_dict(params).items() if v is not None}
+        tables[stage] = values
+    return tomli_w.dumps(tables)
+
+
+def save_config(path: Path, config: dict[str, Any]) -> None:
+    Path(path).write_text(
+        "# Fully resolved configuration of this run (defaults + --config + --set).\n"
+        "# Pass it back with --config to repeat the run.\n" + config_to_toml(config)
+    )

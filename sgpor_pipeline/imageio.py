@@ -1,0 +1,96 @@
+"""Image and mask I/O with OpenCV.
+
+Reading normalises what cameras and editors produce: EXIF orientation is applied, 16-bit and
+float images are scaled to 8 bits, grey is expanded to RGB and an alpha channel is dropped.
+Masks: any channel count and bit depth, non-zero in any channel = object.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp")
+
+
+class UnreadableImageError(Exception):
+    """The file exists but no image could be decoded from it."""
+
+
+def _decode(path: Path, flags: int) -> np.ndarray:
+    try:
+        data = np.fromfile(path, dtype=np.uint8)  # works for non-ASCII paths, unlike cv2.imread
+    except OSError as e:
+        raise UnreadableImageError(f"{path}: {e}") from None
+    img = cv2.imdecode(data, flags) if data.size else None
+    if img is None or img.size == 0:
+        raise UnreadableImageError(f"{path}: not a readable image")
+    return img
+
+
+def to_uint8(img: np.ndarray) -> np.ndarray:
+    if img.dtype == np.uint8:
+        return img
+    if img.dtype == np.uint16:
+        return ((img.astype(np.uint32) * 255 + 32767) // 65535).astype(np.uint8)
+    if np.issubdtype(img.dtype, np.floating):
+        img = np.nan_to_num(img.astype(np.float32), nan=0.0, posinf=1.0, neginf=0.0)
+        return (np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    info = np.iinfo(img.dtype)
+    scaled = (img.astype(np.float64) - info.min) / (info.max - info.min)
+    return (scaled * 255.0 + 0.5).astype(np.uint8)
+
+
+def read_rgb8(path: Path) -> np.ndarray:
+    """An image file as uint8 RGB HxWx3, EXIF orientation applied, alpha dropped."""
+    # ANYDEPTH|ANYCOLOR keeps 16 bits and grey, applies the EXIF orientation and drops alpha.
+    img = _decode(Path(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
+    img = to_uint8(img)
+    if img.ndim == 2:
+        return np.repeat(img[:, :, None], 3, axis=2)
+    if img.shape[2] == 4:  # some decoders keep alpha anyway
+        img = img[:, :, :3]
+    return np.ascontiguousarray(img[:, :, ::-1])
+
+
+def read_image(path: Path) -> np.ndarray:
+    """An image as float32 RGB in [0, 1], HxWx3."""
+    return read_rgb8(path).astype(np.float32) / 255.0
+
+
+def read_mask(path: Path) -> np.ndarray:
+    """A mask file as bool HxW: non-zero in any channel = object (EXIF orientation applied)."""
+    img = _decode(Path(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
+    if img.ndim == 3:
+        return np.any(img != 0, axis=2)
+    return img != 0
+
+
+def write_png(path: Path, rgb: np.ndarray) -> None:
+    """Write RGB (uint8, or float in [0, 1]) or a grey/bool array as PNG."""
+    arr = np.asarray(rgb)
+    if arr.dtype == bool:
+        arr = arr.astype(np.uint8) * 255
+    arr = to_uint8(arr)
+    if arr.ndim == 3:
+        arr = arr[:, :, ::-1]
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(arr))
+    if not ok:
+        raise OSError(f"{path}: PNG encoding failed")
+    Path(path).write_bytes(buf.tobytes())
+
+
+def write_mask01(path: Path, mask: np.ndarray) -> None:
+    """A mask as a 0/1 single-channel PNG (the cache format)."""
+    ok, buf = cv2.imencode(".png", np.asarray(mask, dtype=bool).astype(np.uint8))
+    if not ok:
+        raise OSError(f"{path}: PNG encoding failed")
+    Path(path).write_bytes(buf.tobytes())
+
+
+def resize_mask_nearest(mask: np.ndarray, width: int, height: int) -> np.ndarray:
+    if mask.shape == (height, width):
+        return mask
+    return cv2.resize(mask.astype(np.uint8), (width, height), interpolation=cv2.INTER_NEAREST).astype(bool)

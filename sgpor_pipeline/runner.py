@@ -1,0 +1,345 @@
+"""Executes the stage graph against the cache: keys, hits, builds, status and clean-up."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import platform
+import shutil
+import time
+from dataclasses import dataclass, field
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+from typing import Any
+
+from . import __version__
+from .cache import CHECKPOINT, ITEMS, RunLock, StageCache, folder_size, publish, read_manifest, verify
+from .config import params_to_dict, resolve_config, save_config
+from .dag import RunInputs, Stage, StageContext, ancestors, descendants, discover_stages, topological_order
+from .errors import PipelineError
+from .hashing import DigestMemo, hash_obj
+
+CACHE_FORMAT = 1
+RUN_FILE = "run.json"
+CONFIG_FILE = "config.toml"
+
+log = logging.getLogger("sgpor_pipeline")
+
+
+def library_version(name: str) -> str | None:
+    try:
+        return version(name)
+    except PackageNotFoundError:
+        return None
+
+
+def raw_input_digest(run_inputs: RunInputs, name: str, memo: DigestMemo) -> str | None:
+    path = run_inputs.get(name)
+    if path is None:
+        return None
+    if not Path(path).exists():
+        raise PipelineError(f"input '{name}' does not exist", path=path, fix="check the path you passed")
+    return memo.tree(Path(path))
+
+
+def compute_keys(stages: dict[str, type[Stage]], order: list[str], config: dict[str, Any],
+                 run_inputs: RunInputs, memo: DigestMemo, names: set[str] | None = None) -> dict[str, str]:
+    """Content-addressed keys: stage, VERSION, params, raw input digests, upstream keys, library versions."""
+    keys: dict[str, str] = {}
+    for name in order:
+        if names is not None and name not in names:
+            continue
+        cls = stages[name]
+        ups = cls.upstream(config[name])
+        if any(u not in keys for u in ups):
+            continue  # an upstream stage is not part of this computation
+        keys[name] = hash_obj({
+            "cache_format": CACHE_FORMAT,
+            "stage": name,
+            "version": cls.VERSION,
+            "params": params_to_dict(config[name]),
+            "inputs": {u: keys[u] for u in ups},
+            "raw": {r: raw_input_digest(run_inputs, r, memo) for r in cls.raw_inputs},
+            "libraries": {lib: library_version(lib) for lib in cls.libraries},
+        })
+    return keys
+
+
+@dataclass
+class StageOutcome:
+    name: str
+    key: str
+    path: Path
+    hit: bool
+    seconds: float
+    reason: str = ""
+
+
+@dataclass
+class RunResult:
+    out: Path
+    outcomes: dict[str, StageOutcome] = field(default_factory=dict)
+
+    @property
+    def ran(self) -> list[str]:
+        return [n for n, o in self.outcomes.items() if not o.hit]
+
+    @property
+    def hits(self) -> list[str]:
+        return [n for n, o in self.outcomes.items() if o.hit]
+
+    def path(self, stage: str) -> Path:
+        return self.outcomes[stage].path
+
+
+def select_stages(stages: dict[str, type[Stage]], order: list[str], config: dict[str, Any],
+                  run_inputs: RunInputs, until: str | None) -> list[str]:
+    if until is not None:
+        if until not in stages:
+            raise PipelineError(f"unknown stage '{until}' for --until",
+                                fix=f"choose one of: {', '.join(order)}")
+        wanted = ancestors(stages, config, until)
+    else:
+        wanted = set()
+        for name in order:
+            if stages[name].wanted(config[name], run_inputs):
+                wanted |= ancestors(stages, config, name)
+    return [n for n in order if n in wanted]
+
+
+def _format_size(n: int) -> str:
+    for unit in ("B", "KB", "MB", "GB"):
+        if n < 1024 or unit == "GB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return f"{n} B"
+
+
+def run_pipeline(
+    out: Path,
+    run_inputs: RunInputs,
+    config_file: Path | None = None,
+    overrides: list[str] | tuple[str, ...] = (),
+    until: str | None = None,
+    force: list[str] | tuple[str, ...] = (),
+    debug: bool = False,
+    stages: dict[str, type[Stage]] | None = None,
+) -> RunResult:
+    """Run (or resume) the pipeline into ``out``; returns what each stage did."""
+    out = Path(out).resolve()
+    stages = discover_stages() if stages is None else stages
+    config = resolve_config({n: c.Params for n, c in stages.items()}, config_file, overrides)
+    order = topological_order(stages, config)
+    for f in force:
+        if f not in stages:
+            raise PipelineError(f"unknown stage '{f}' for --force", fix=f"choose one of: {', '.join(order)}")
+    if not Path(run_inputs.images).is_dir():
+        raise PipelineError("image folder not found", path=run_inputs.images,
+                            fix="pass the folder that holds your photos")
+    selected = select_stages(stages, order, config, run_inputs, until)
+    forced: set[str] = set()
+    for f in force:
+        forced |= descendants(stages, config, f)
+
+    cache = StageCache(out / "cache")
+    result = RunResult(out)
+    with RunLock(out):
+        memo = DigestMemo(out / "cache" / "digests.json")
+        keys = compute_keys(stages, order, config, run_inputs, memo)
+        memo.save()
+        removed = cache.remove_leftovers(keys)
+        if removed:
+            log.info(f"removed {len(removed)} leftover build folder(s) of an interrupted run")
+        save_config(out / CONFIG_FILE, config)
+        run_record = {
+            "sgpor_pipeline": __version__,
+            "run_inputs": run_inputs.to_dict(),
+            "stages": selected,
+            "keys": {n: keys[n] for n in selected},
+            "started": time.time(),
+        }
+        (out / RUN_FILE).write_text(json.dumps(run_record, indent=1))
+
+        for name in selected:
+            result.outcomes[name] = _run_stage(stages[name], name, keys[name], config, cache, run_inputs,
+                                               {u: result.outcomes[u].path for u in stages[name].upstream(
+                                                   config[name])},
+                                               force=name in forced, debug=debug)
+        run_record["finished"] = time.time()
+        (out / RUN_FILE).write_text(json.dumps(run_record, indent=1))
+    return result
+
+
+def _run_stage(cls: type[Stage], name: str, key: str, config: dict[str, Any], cache: StageCache,
+               run_inputs: RunInputs, inputs: dict[str, Path], force: bool, debug: bool) -> StageOutcome:
+    params = config[name]
+    if not force:
+        folder, why = cache.lookup(name, key)
+        if folder is not None:
+            manifest = read_manifest(folder) or {}
+            built = manifest.get("seconds", 0.0)
+            log.info(f"{name:<10} cache hit  (built in {built:.1f} s)  key {key[:10]}")
+            return StageOutcome(name, key, folder, True, built)
+        if why not in ("missing", ""):
+            log.warning(f"{name:<10} cached result is damaged ({why}): recomputing")
+    tmp = cache.new_build(name, key)
+    resumed = (tmp / CHECKPOINT).is_dir()
+    used_items: list[str] = []
+    item_hits = [0, 0]
+
+    def item_cache(item_key: Any, build: Any) -> Path:
+        ikey = hash_obj({"stage": name, "version": cls.VERSION, "params": params_to_dict(params),
+                         "item": item_key})
+        folder, hit = cache.item(name, ikey, build, {"stage": name, "version": cls.VERSION})
+        used_items.append(ikey)
+        item_hits[0 if hit else 1] += 1
+        return folder
+
+    ctx = StageContext(stage=name, params=params, out_dir=tmp, inputs=inputs, run_inputs=run_inputs,
+                       log=logging.getLogger(f"sgpor_pipeline.{name}"), seed_key=key, debug=debug,
+                       _item_cache=item_cache, _stage_config=config)
+    t0 = time.perf_counter()
+    try:
+        cls().run(ctx)
+    except BaseException:
+        if not (tmp / CHECKPOINT).is_dir():  # keep a checkpoint for the next run to resume
+            shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    seconds = time.perf_counter() - t0
+    manifest = {
+        "stage": name,
+        "version": cls.VERSION,
+        "key": key,
+        "params": params_to_dict(params),
+        "inputs": {u: p.name for u, p in inputs.items()},
+        "items": used_items,
+        "notes": ctx.notes,
+        "seconds": seconds,
+        "created": time.time(),
+        "resumed_from_checkpoint": resumed,
+        "versions": {"sgpor_pipeline": __version__, "python": platform.python_version(),
+                     **{lib: library_version(lib) for lib in cls.libraries}},
+    }
+    final = publish(tmp, cache.final_dir(name, key), manifest)
+    extra = []
+    if used_items:
+        extra.append(f"{len(used_items)} items, {item_hits[1]} built")
+    if resumed:
+        extra.append("resumed from checkpoint")
+    if force:
+        extra.append("forced")
+    note = f"  ({'; '.join(extra)})" if extra else ""
+    log.info(f"{name:<10} ran in {seconds:.1f} s  key {key[:10]}{note}")
+    return StageOutcome(name, key, final, False, seconds)
+
+
+# Status and clean-up -----------------------------------------------------------------------------
+
+@dataclass
+class StageStatus:
+    name: str
+    state: str  # hit | missing | stale | damaged
+    key: str | None
+    seconds: float | None
+    size: int
+    detail: str = ""
+
+
+def load_run(out: Path, stages: dict[str, type[Stage]]) -> tuple[RunInputs, dict[str, Any]]:
+    out = Path(out)
+    run_file = out / RUN_FILE
+    if not run_file.is_file():
+        raise PipelineError("not a run folder (no run.json)", path=out,
+                            fix="pass the --out folder of a previous 'sgpor-pipeline run'")
+    record = json.loads(run_file.read_text())
+    run_inputs = RunInputs.from_dict(record["run_inputs"])
+    config = resolve_config({n: c.Params for n, c in stages.items()}, out / CONFIG_FILE)
+    return run_inputs, config
+
+
+def pipeline_status(out: Path, stages: dict[str, type[Stage]] | None = None) -> list[StageStatus]:
+    """Per stage: hit (a verified result for the run's configuration), stale (only results of other
+    configurations or inputs), damaged (the result fails verification) or missing."""
+    out = Path(out)
+    stages = discover_stages() if stages is None else stages
+    run_inputs, config = load_run(out, stages)
+    order = topological_order(stages, config)
+    memo = DigestMemo(out / "cache" / "digests.json")
+    try:
+        keys = compute_keys(stages, order, config, run_inputs, memo)
+        inputs_note = ""
+    except PipelineError as e:  # the inputs moved or vanished: results can only be stale
+        keys, inputs_note = {}, e.one_line()
+    cache = StageCache(out / "cache")
+    rows = []
+    for name in order:
+        key = keys.get(name)
+        entries = cache.entries(name)
+        current = [e for e in entries if e.key == key]
+        others = [e for e in entries if e.key != key]
+        if current:
+            ok, why = verify(current[0].path, key)
+            manifest = current[0].manifest or {}
+            rows.append(StageStatus(name, "hit" if ok else "damaged", key, manifest.get("seconds"),
+                                    folder_size(current[0].path), "" if ok else why))
+        elif others:
+            last = others[-1]
+            rows.append(StageStatus(name, "stale", key, (last.manifest or {}).get("seconds"),
+                                    sum(folder_size(e.path) for e in others),
+                                    inputs_note or f"{len(others)} result(s) of another configuration"))
+        else:
+            rows.append(StageStatus(name, "missing", key, None, 0, inputs_note))
+    return rows
+
+
+def clean(out: Path, keep_last: int = 0, stages: dict[str, type[Stage]] | None = None) -> int:
+    """Delete results that the run's current configuration does not use, except the ``keep_last``
+    most recent ones per stage, leftover build folders and unused per-item results. Returns bytes freed."""
+    out = Path(out)
+    stages = discover_stages() if stages is None else stages
+    try:
+        run_inputs, config = load_run(out, stages)
+        order = topological_order(stages, config)
+        keys = compute_keys(stages, order, config, run_inputs, DigestMemo(out / "cache" / "digests.json"))
+    except PipelineError:
+        keys = {}
+    cache = StageCache(out / "cache")
+    with RunLock(out):
+        before = folder_size(cache.root)
+        cache.remove_leftovers({})
+        for stage in cache.stages():
+            others = [e for e in cache.entries(stage) if e.key != keys.get(stage)]
+            for e in others[: max(0, len(others) - keep_last)]:
+                shutil.rmtree(e.path, ignore_errors=True)
+            used = cache.items_in_use(stage)
+            idir = cache.stage_dir(stage) / ITEMS
+            if idir.is_dir():
+                for item in idir.iterdir():
+                    if item.name not in used:
+                        shutil.rmtree(item, ignore_errors=True)
+        return before - folder_size(cache.root)
+
+
+def format_status(rows: list[StageStatus]) -> str:
+    lines = [f"{'stage':<10} {'state':<8} {'time':>8} {'size':>9}  key"]
+    for r in rows:
+        t = "-" if r.seconds is None else f"{r.seconds:.1f} s"
+        k = (r.key or "-")[:10]
+        detail = f"  {r.detail}" if r.detail else ""
+        lines.append(f"{r.name:<10} {r.state:<8} {t:>8} {_format_size(r.size):>9}  {k}{detail}")
+    return "\n".join(lines)
+
+
+def materialize(src: Path, dst: Path) -> None:
+    """Copy a published stage folder to a user-facing folder (e.g. <out>/export), atomically."""
+    tmp = dst.parent / f".{dst.name}.tmp-{os.getpid()}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    shutil.copytree(src, tmp, ignore=shutil.ignore_patterns("manifest.json"))
+    if dst.exists():
+        old = dst.parent / f".{dst.name}.old-{os.getpid()}"
+        os.replace(dst, old)
+        os.replace(tmp, dst)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(tmp, dst)

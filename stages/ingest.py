@@ -1,0 +1,211 @@
+"""ingest: normalise photos and masks, and import known cameras.
+
+Out: ``images/<view>.png`` (8-bit RGB, EXIF orientation applied, optionally downscaled),
+``masks/<view>.png`` (0/1) for the views that have a mask, ``views.json``, and ``cameras.json``
+when ``--cameras`` was given (cameras without an image are kept as novel views).
+Each photo is a cached item: adding a photo to the folder processes only that photo.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from sgpor_pipeline.dag import Stage, StageContext
+from sgpor_pipeline.errors import PipelineError
+from sgpor_pipeline.hashing import DigestMemo
+from sgpor_pipeline.imageio import (
+    IMAGE_EXTENSIONS,
+    UnreadableImageError,
+    read_mask,
+    read_rgb8,
+    resize_mask_nearest,
+    write_mask01,
+    write_png,
+)
+from sgpor_pipeline.scene import Camera, save_cameras
+from sgpor_pipeline.views import View, save_views
+
+MIN_IMAGES = 3
+# Relative tolerance on aspect ratios: sizes rounded to whole pixels differ by up to one pixel.
+ASPECT_TOLERANCE = 0.01
+
+
+@dataclass
+class IngestParams:
+    max_size: int = 0  # longest image side after downscaling, in pixels; 0 keeps the original size
+
+
+def list_images(folder: Path) -> list[Path]:
+    return sorted(p for p in Path(folder).iterdir()
+                  if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in IMAGE_EXTENSIONS)
+
+
+def _by_stem(paths: list[Path], what: str) -> dict[str, Path]:
+    out: dict[str, Path] = {}
+    for p in paths:
+        if p.stem in out:
+            raise PipelineError(f"two {what} share the base name '{p.stem}': {out[p.stem].name} and {p.name}",
+                                path=p.parent, fix="rename or remove one of them")
+        out[p.stem] = p
+    return out
+
+
+def target_size(width: int, height: int, max_size: int) -> tuple[int, int]:
+    if max_size <= 0 or max(width, height) <= max_size:
+        return width, height
+    s = max_size / max(width, height)
+    return max(1, round(width * s)), max(1, round(height * s))
+
+
+def same_aspect(w0: int, h0: int, w1: int, h1: int) -> bool:
+    return abs(w0 * h1 - w1 * h0) <= ASPECT_TOLERANCE * max(w0 * h1, w1 * h0)
+
+
+def _link_or_copy(src: Path, dst: Path) -> None:
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
+
+
+def build_view_item(image_path: Path, mask_path: Path | None, max_size: int, folder: Path) -> None:
+    """Normalise one photo (and its mask) into ``folder``: image.png, mask.png, info.json."""
+    rgb = read_rgb8(image_path)
+    h0, w0 = rgb.shape[:2]
+    w, h = target_size(w0, h0, max_size)
+    if (w, h) != (w0, h0):
+        rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
+    info = {"width": w, "height": h, "source_width": w0, "source_height": h0, "mask_pixels": None}
+    if mask_path is not None:
+        mask = read_mask(mask_path)
+        mh, mw = mask.shape
+        if not same_aspect(mw, mh, w0, h0):
+            raise PipelineError(
+                f"mask is {mw}x{mh} but its image {image_path.name} is {w0}x{h0} (another aspect ratio)",
+                path=mask_path, fix="export the mask at the image's size (or a scaled copy of it)")
+        mask = resize_mask_nearest(mask, w, h)
+        write_mask01(folder / "mask.png", mask)
+        info["mask_pixels"] = int(mask.sum())
+    write_png(folder / "image.png", rgb)
+    (folder / "info.json").write_text(json.dumps(info))
+
+
+def import_cameras(path: Path, views: list[View]) -> list[Camera]:
+    """Known cameras matched to the views by base name, scaled to the ingested image size."""
+    from sgpor_pipeline.camera_io import load_cameras_any
+
+    cameras = load_cameras_any(path)
+    by_name = {v.name: v for v in views}
+    cam_names = {c.name for c in cameras}
+    missing = [v.name for v in views if v.name not in cam_names]
+    if missing:
+        shown = ", ".join(missing[:8]) + (" ..." if len(missing) > 8 else "")
+        raise PipelineError(f"{len(missing)} image(s) have no camera in the cameras file: {shown}",
+                            path=path, fix="add cameras for them, remove those images, or omit --cameras to "
+                                           "estimate all cameras with SfM")
+    out: list[Camera] = []
+    view_scale: tuple[float, float] | None = None
+    for cam in cameras:
+        view = by_name.get(cam.name)
+        if view is None:
+            continue
+        if not same_aspect(cam.width, cam.height, view.source_width, view.source_height):
+            raise PipelineError(
+                f"camera '{cam.name}' is {cam.width}x{cam.height} but its image is "
+                f"{view.source_width}x{view.source_height} (another aspect ratio)",
+                path=path, fix="give cameras for these images (EXIF rotation is applied to images)")
+        scaled = cam.scaled(view.width, view.height)
+        scaled.image = view.name
+        view_scale = (view.width / cam.width, view.height / cam.height)
+        out.append(scaled)
+    for cam in cameras:  # novel views: no image; scaled like the photos so they share the frame's pixels
+        if cam.name in by_name:
+            continue
+        sx, sy = view_scale or (1.0, 1.0)
+        novel = cam.scaled(max(1, round(cam.width * sx)), max(1, round(cam.height * sy)))
+        novel.image = None
+        out.append(novel)
+    return out
+
+
+class IngestStage(Stage):
+    name = "ingest"
+    VERSION = 1
+    Params = IngestParams
+    raw_inputs = ("images", "masks", "cameras")
+
+    def run(self, ctx: StageContext) -> None:
+        image_dir = Path(ctx.run_inputs.images)
+        images = _by_stem(list_images(image_dir), "images")
+        if not images:
+            raise PipelineError("no images found (JPEG, PNG, TIFF, BMP, WebP)", path=image_dir,
+                                fix="point the command at the folder that holds your photos")
+        masks: dict[str, Path] = {}
+        mask_dir = ctx.run_inputs.masks
+        if mask_dir is not None:
+            if not Path(mask_dir).is_dir():
+                raise PipelineError("mask folder not found", path=mask_dir, fix="check the --masks path")
+            masks = _by_stem(list_images(mask_dir), "masks")
+            orphans = sorted(set(masks) - set(images))
+            if orphans:
+                ctx.log.warning(f"{len(orphans)} mask(s) have no image of the same base name and are ignored: "
+                                f"{', '.join(orphans)}")
+            if not set(masks) & set(images):
+                raise PipelineError("no mask has the base name of an image", path=mask_dir,
+                                    fix="name each mask like its photo (IMG_01.jpg -> IMG_01.png)")
+
+        memo = DigestMemo()
+        (ctx.out_dir / "images").mkdir()
+        (ctx.out_dir / "masks").mkdir()
+        views: list[View] = []
+        unreadable: list[str] = []
+        empty_masks: list[str] = []
+        for stem, path in ctx.progress(sorted(images.items()), total=len(images), desc="ingest"):
+            mask_path = masks.get(stem)
+            key = {"image": memo.file(path), "mask": None if mask_path is None else memo.file(mask_path)}
+            try:
+                item = ctx.cached_item(key, lambda folder, p=path, m=mask_path:
+                                       build_view_item(p, m, ctx.params.max_size, folder))
+            except UnreadableImageError as e:
+                unreadable.append(str(e).split(": ", 1)[0])
+                continue
+            info = json.loads((item / "info.json").read_text())
+            _link_or_copy(item / "image.png", ctx.out_dir / "images" / f"{stem}.png")
+            mask_rel = None
+            if (item / "mask.png").exists():
+                mask_rel = f"masks/{stem}.png"
+                _link_or_copy(item / "mask.png", ctx.out_dir / mask_rel)
+                if info["mask_pixels"] == 0:
+                    empty_masks.append(stem)
+            views.append(View(stem, f"images/{stem}.png", mask_rel, info["width"], info["height"], path.name,
+                              info["source_width"], info["source_height"]))
+
+        if unreadable:
+            ctx.log.warning(f"skipped {len(unreadable)} unreadable file(s): {', '.join(unreadable)}")
+        if len(views) < MIN_IMAGES:
+            raise PipelineError(f"only {len(views)} usable image(s); at least {MIN_IMAGES} are needed",
+                                path=image_dir, fix="add more overlapping photos of the scene"
+                                + (" or replace the unreadable ones" if unreadable else ""))
+        masked = [v for v in views if v.mask is not None]
+        if masks and masked and len(empty_masks) == len(masked):
+            raise PipelineError("every mask is empty (no non-zero pixel): there is no object to remove",
+                                path=mask_dir, fix="paint the object non-zero (white) in at least one mask")
+        if empty_masks:
+            ctx.log.warning(f"{len(empty_masks)} mask(s) are empty; the object is taken as not visible there: "
+                            f"{', '.join(empty_masks)}")
+        save_views(ctx.out_dir, views)
+        if ctx.run_inputs.cameras is not None:
+            cameras = import_cameras(Path(ctx.run_inputs.cameras), views)
+            save_cameras(ctx.out_dir / "cameras.json", cameras)
+            ctx.notes["cameras_imported"] = len(cameras)
+            ctx.notes["novel_cameras"] = sum(c.image is None for c in cameras)
+        sizes = np.array([[v.width, v.height] for v in views])
+        ctx.notes.update(images=len(views), masks=len(masked), unreadable=unreadable,
+                         size=[int(sizes[:, 0].max()), int(sizes[:, 1].max())])

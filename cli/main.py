@@ -6,6 +6,7 @@ import argparse
 import logging
 import sys
 import time
+import traceback
 from pathlib import Path
 
 from sgpor_pipeline import __version__
@@ -38,6 +39,8 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", metavar="FILE", type=Path, help="TOML file with one [stage] table of parameters each")
     p.add_argument("--set", metavar="STAGE.PARAM=VALUE", dest="overrides", action="append", default=[],
                    help="override one parameter, e.g. --set fit.iterations=3000 (repeatable)")
+    p.add_argument("--export", metavar="LIST", help="comma-separated export formats (default: all installed), "
+                                                    "same as --set export.formats=[...]")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -91,8 +94,12 @@ def cmd_run(args: argparse.Namespace) -> int:
 def _run(args: argparse.Namespace, inputs: object) -> int:
     from sgpor_pipeline.runner import run_pipeline
 
+    overrides = list(args.overrides)
+    if args.export:
+        names = [n.strip() for n in args.export.split(",") if n.strip()]
+        overrides.append(f"export.formats={names!r}".replace("'", '"'))
     t0 = time.perf_counter()
-    result = run_pipeline(args.out, inputs, config_file=args.config, overrides=args.overrides, until=args.until,
+    result = run_pipeline(args.out, inputs, config_file=args.config, overrides=overrides, until=args.until,
                           force=args.force, debug=args.debug)
     log.info(f"done in {time.perf_counter() - t0:.1f} s: {len(result.ran)} stage(s) ran, "
              f"{len(result.hits)} cache hit(s); output in {result.out}")
@@ -100,10 +107,9 @@ def _run(args: argparse.Namespace, inputs: object) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from sgpor_pipeline.synthetic import SceneParams
-
     from sgpor_pipeline.dag import RunInputs
     from sgpor_pipeline.demo import ensure_demo_scene
+    from sgpor_pipeline.synthetic import SceneParams
 
     scene_dir = ensure_demo_scene(args.out.resolve() / "scene", SceneParams(seed=args.seed, rig=args.rig))
     inputs = RunInputs(images=scene_dir / "images", masks=scene_dir / "masks",
@@ -142,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
         return COMMANDS[args.command](args)
     except PipelineError as e:
         if args.debug:
-            log.exception("error")
+            traceback.print_exc()
         print(f"error: {e.one_line()}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:

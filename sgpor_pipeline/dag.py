@@ -117,6 +117,13 @@ class Stage:
     libraries: ClassVar[tuple[str, ...]] = ()
     # Optional stages run only when asked for (--until NAME) or when the run has what they need.
     optional: ClassVar[bool] = False
+    # When set, the published result is also copied to <out>/<materialize_to> for the user.
+    materialize_to: ClassVar[str | None] = None
+
+    @classmethod
+    def key_extra(cls, params: Any) -> dict[str, Any]:
+        """More facts the result depends on (e.g. the versions of the exporters a stage runs)."""
+        return {}
 
     @classmethod
     def upstream(cls, params: Any) -> tuple[str, ...]:

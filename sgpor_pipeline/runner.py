@@ -62,6 +62,7 @@ def compute_keys(stages: dict[str, type[Stage]], order: list[str], config: dict[
             "inputs": {u: keys[u] for u in ups},
             "raw": {r: raw_input_digest(run_inputs, r, memo) for r in cls.raw_inputs},
             "libraries": {lib: library_version(lib) for lib in cls.libraries},
+            "extra": cls.key_extra(config[name]),
         })
     return keys
 
@@ -162,10 +163,13 @@ def run_pipeline(
         (out / RUN_FILE).write_text(json.dumps(run_record, indent=1))
 
         for name in selected:
-            result.outcomes[name] = _run_stage(stages[name], name, keys[name], config, cache, run_inputs,
-                                               {u: result.outcomes[u].path for u in stages[name].upstream(
-                                                   config[name])},
-                                               force=name in forced, debug=debug)
+            cls = stages[name]
+            upstream = {u: result.outcomes[u].path for u in cls.upstream(config[name])}
+            outcome = _run_stage(cls, name, keys[name], config, cache, run_inputs, upstream,
+                                 force=name in forced, debug=debug)
+            result.outcomes[name] = outcome
+            if cls.materialize_to:
+                materialize(outcome.path, out / cls.materialize_to, outcome.key)
         run_record["finished"] = time.time()
         (out / RUN_FILE).write_text(json.dumps(run_record, indent=1))
     return result
@@ -331,11 +335,19 @@ def format_status(rows: list[StageStatus]) -> str:
     return "\n".join(lines)
 
 
-def materialize(src: Path, dst: Path) -> None:
-    """Copy a published stage folder to a user-facing folder (e.g. <out>/export), atomically."""
+STAMP = ".sgpor-source"
+
+
+def materialize(src: Path, dst: Path, key: str) -> None:
+    """Copy a published stage folder to a user-facing folder (e.g. <out>/export), atomically;
+    nothing to do when it already holds that result."""
+    stamp = dst / STAMP
+    if stamp.is_file() and stamp.read_text() == key:
+        return
     tmp = dst.parent / f".{dst.name}.tmp-{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
     shutil.copytree(src, tmp, ignore=shutil.ignore_patterns("manifest.json"))
+    (tmp / STAMP).write_text(key)
     if dst.exists():
         old = dst.parent / f".{dst.name}.old-{os.getpid()}"
         os.replace(dst, old)

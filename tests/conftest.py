@@ -1,0 +1,84 @@
+"""Shared fixtures: small generated inputs and the toy plugin (tests never read ../shared)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sgpor_pipeline.imageio import write_png
+
+TESTS = Path(__file__).resolve().parent
+PLUGIN_SRC = TESTS / "plugin_pkg"
+
+
+def make_images(folder: Path, n: int = 4, width: int = 40, height: int = 30, seed: int = 0) -> list[Path]:
+    """Random-texture RGB PNGs named view_00.png ..."""
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    paths = []
+    for i in range(n):
+        img = rng.integers(0, 256, size=(height, width, 3), dtype=np.uint8)
+        path = folder / f"view_{i:02d}.png"
+        write_png(path, img)
+        paths.append(path)
+    return paths
+
+
+def make_masks(folder: Path, names: list[str], width: int = 40, height: int = 30) -> None:
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        mask = np.zeros((height, width), dtype=bool)
+        mask[height // 3: 2 * height // 3, width // 3: 2 * width // 3] = True
+        write_png(folder / f"{name}.png", mask)
+
+
+@pytest.fixture
+def image_dir(tmp_path: Path) -> Path:
+    make_images(tmp_path / "images")
+    return tmp_path / "images"
+
+
+@pytest.fixture(scope="session")
+def toy_module():
+    """The toy plugin's module, imported from source (its entry points stay invisible in-process)."""
+    sys.path.insert(0, str(PLUGIN_SRC))
+    import sgpor_toy_plugin
+
+    return sgpor_toy_plugin
+
+
+@pytest.fixture
+def toy_stages(toy_module):
+    from sgpor_pipeline.stages.ingest import IngestStage
+
+    return {"ingest": IngestStage, "toy_stats": toy_module.ToyStats, "toy_slow": toy_module.ToySlow,
+            "toy_report": toy_module.ToyReport}
+
+
+@pytest.fixture(scope="session")
+def plugin_site(tmp_path_factory) -> Path:
+    """The toy plugin really installed (pip, entry points in its dist-info) into a private folder."""
+    site = tmp_path_factory.mktemp("plugin_site")
+    subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation", "--no-index",
+                    "--target", str(site), str(PLUGIN_SRC)], check=True, capture_output=True)
+    return site
+
+
+def cli_env(plugin_site: Path | None = None) -> dict[str, str]:
+    env = dict(os.environ)
+    if plugin_site is not None:
+        env["PYTHONPATH"] = str(plugin_site) + os.pathsep + env.get("PYTHONPATH", "")
+    env["TQDM_DISABLE"] = "1"
+    return env
+
+
+def run_cli(args: list[str], env: dict[str, str] | None = None, **kw) -> subprocess.CompletedProcess:
+    # cwd outside the source tree: a stale *.egg-info there would shadow the installed entry points.
+    kw.setdefault("cwd", TESTS.parent.parent)
+    return subprocess.run([sys.executable, "-m", "sgpor_pipeline.cli.main", *args], capture_output=True, text=True,
+                          env=env or cli_env(), **kw)

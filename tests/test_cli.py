@@ -1,0 +1,142 @@
+"""The command line as a user runs it: real subprocesses, a real plugin package, SIGKILL, the lock."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from conftest import cli_env, make_images, run_cli
+
+COMMANDS = ["run", "demo", "status", "clean"]
+
+
+def test_version_and_help():
+    r = run_cli(["--version"])
+    assert r.returncode == 0 and r.stdout.startswith("sgpor-pipeline ")
+    for cmd in COMMANDS:
+        r = run_cli([cmd, "--help"])
+        assert r.returncode == 0, r.stderr
+        assert "usage: sgpor-pipeline " + cmd in r.stdout
+
+
+def test_console_script_is_installed():
+    script = Path(sys.executable).parent / "sgpor-pipeline"
+    r = subprocess.run([str(script), "--help"], capture_output=True, text=True)
+    assert r.returncode == 0 and "status" in r.stdout
+
+
+def test_errors_are_one_line_with_the_file_and_fix(tmp_path):
+    r = run_cli(["run", str(tmp_path / "nope"), "--out", str(tmp_path / "out")])
+    assert r.returncode == 1
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and str(tmp_path / "nope") in lines[0] and "fix:" in lines[0]
+    assert "Traceback" not in r.stderr
+
+    images = tmp_path / "images"
+    make_images(images)
+    r = run_cli(["run", str(images), "--out", str(tmp_path / "out"), "--set", "ingest.max_sise=10"])
+    assert r.returncode == 1
+    assert "unknown parameter 'ingest.max_sise'" in r.stderr and "max_size" in r.stderr
+
+    r = run_cli(["run", str(images), "--out", str(tmp_path / "out"), "--set", "nosuchstage.x=1"])
+    assert r.returncode == 1 and "valid stages:" in r.stderr and "ingest" in r.stderr
+
+    r = run_cli(["--debug", "run", str(tmp_path / "nope"), "--out", str(tmp_path / "out")])
+    assert r.returncode == 1 and "Traceback" in r.stderr
+
+    r = run_cli(["status", str(tmp_path)])
+    assert r.returncode == 1 and "not a run folder" in r.stderr
+
+
+def test_config_file_and_saved_config(tmp_path):
+    images = tmp_path / "images"
+    make_images(images, width=80, height=60)
+    cfg = tmp_path / "my.toml"
+    cfg.write_text("[ingest]\nmax_size = 40\n")
+    out = tmp_path / "out"
+    r = run_cli(["run", str(images), "--out", str(out), "--config", str(cfg), "--until", "ingest"])
+    assert r.returncode == 0, r.stderr
+    assert "max_size = 40" in (out / "config.toml").read_text()
+    views = json.loads(next((out / "cache" / "ingest").glob("[0-9a-f]*/views.json")).read_text())
+    assert views[0]["width"] == 40 and views[0]["height"] == 30
+    # The saved configuration reproduces the run: all hits.
+    r = run_cli(["run", str(images), "--out", str(out), "--config", str(out / "config.toml"), "--until", "ingest"])
+    assert r.returncode == 0 and "cache hit" in r.stderr and "ran in" not in r.stderr
+    # --set wins over the file.
+    r = run_cli(["run", str(images), "--out", str(out), "--config", str(cfg), "--set", "ingest.max_size=20",
+                 "--until", "ingest"])
+    assert r.returncode == 0 and "max_size = 20" in (out / "config.toml").read_text()
+
+
+def test_plugin_stage_and_exporter_from_an_installed_package(tmp_path, plugin_site):
+    images = tmp_path / "images"
+    make_images(images)
+    out = tmp_path / "out"
+    env = cli_env(plugin_site)
+    r = run_cli(["run", str(images), "--out", str(out), "--until", "export", "--export", "toy_csv"], env=env)
+    assert r.returncode == 0, r.stderr
+    csv = (out / "export" / "toy_stats.csv").read_text().splitlines()
+    assert csv[0] == "view,r,g,b" and len(csv) == 5
+    r = run_cli(["status", str(out)], env=env)
+    assert r.returncode == 0
+    states = {line.split()[0]: line.split()[1] for line in r.stdout.splitlines()[1:]}
+    assert states["toy_stats"] == "hit" and states["export"] == "hit" and states["toy_report"] == "missing"
+    # Without the plugin on the path its stages simply do not exist.
+    r = run_cli(["run", str(images), "--out", str(tmp_path / "o2"), "--export", "toy_csv"])
+    assert r.returncode == 1 and "unknown export format 'toy_csv'" in r.stderr
+
+
+def _wait_for(path: Path, proc: subprocess.Popen, timeout: float = 60.0) -> None:
+    t0 = time.monotonic()
+    while not path.exists():
+        if proc.poll() is not None:
+            raise AssertionError(f"process ended early: {proc.communicate()}")
+        if time.monotonic() - t0 > timeout:
+            proc.kill()
+            raise AssertionError("timed out waiting for the stage to start")
+        time.sleep(0.05)
+
+
+def test_sigkill_mid_stage_resumes_and_concurrent_run_is_refused(tmp_path, plugin_site):
+    images = tmp_path / "images"
+    make_images(images)
+    out = tmp_path / "out"
+    wait_file = tmp_path / "go"
+    env = cli_env(plugin_site)
+    args = [sys.executable, "-m", "sgpor_pipeline.cli.main", "run", str(images), "--out", str(out),
+            "--until", "toy_report"]
+    proc = subprocess.Popen(args, env=dict(env, SGPOR_TOY_WAIT=str(wait_file)), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True, cwd=tmp_path)
+    try:
+        _wait_for(Path(str(wait_file) + ".started"), proc)
+        # While the first run is inside toy_slow, a second run on the same folder is refused cleanly.
+        second = subprocess.run(args, env=env, capture_output=True, text=True, timeout=60, cwd=tmp_path)
+        assert second.returncode == 1
+        assert "another sgpor-pipeline run" in second.stderr and "--out" in second.stderr
+        assert len(second.stderr.strip().splitlines()) == 1
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == -signal.SIGKILL
+    assert list((out / "cache" / "toy_slow").glob(".tmp-*/_checkpoint/state.json"))
+
+    again = subprocess.run(args, env=env, capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert again.returncode == 0, again.stderr
+    log = again.stderr
+    assert "ingest     cache hit" in log and "toy_stats  cache hit" in log
+    assert "toy_slow   ran in" in log and "resumed from checkpoint" in log
+    assert "toy_report ran in" in log
+    slow = next(p for p in (out / "cache" / "toy_slow").iterdir() if not p.name.startswith("."))
+    result = json.loads((slow / "result.json").read_text())
+    assert result == {"step": 4, "total": pytest.approx(result["total"]), "resumed_from": 2}
+    assert not list((out / "cache").glob("*/.tmp-*"))
+    third = subprocess.run(args, env=env, capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    assert third.returncode == 0 and "ran in" not in third.stderr

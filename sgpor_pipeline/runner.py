@@ -39,7 +39,8 @@ def raw_input_digest(run_inputs: RunInputs, name: str, memo: DigestMemo) -> str 
     if path is None:
         return None
     if not Path(path).exists():
-        raise PipelineError(f"input '{name}' does not exist", path=path, fix="check the path you passed")
+        what = "image folder" if name == "images" else f"--{name} path" if name in ("masks", "cameras") else name
+        raise PipelineError(f"{what} not found", path=path, fix="check the path you passed")
     return memo.tree(Path(path))
 
 

@@ -1,0 +1,76 @@
+"""Parameter resolution: defaults, TOML, --set, type checks, unknown names, the saved file."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import pytest
+
+from sgpor_pipeline.config import NoParams, config_to_toml, resolve_config
+from sgpor_pipeline.errors import PipelineError
+
+
+@dataclass
+class FitLike:
+    iterations: int = 1000
+    lr: float = 0.01
+    sh_degree: int = 3
+    mode: Literal["mcmc", "classic"] = "mcmc"
+    budget: int | None = None
+    enabled: bool = True
+    views: list[str] = field(default_factory=list)
+    path: Path = Path("x")
+
+
+TYPES = {"fit": FitLike, "ingest": NoParams}
+
+
+def test_defaults_file_and_overrides(tmp_path):
+    cfg = tmp_path / "c.toml"
+    cfg.write_text('[fit]\niterations = 3000\nmode = "classic"\nviews = ["a", "b"]\n')
+    config = resolve_config(TYPES, cfg, ["fit.lr=0.5", "fit.budget=20000", "fit.enabled=false", "fit.path=/tmp/p"])
+    f = config["fit"]
+    assert (f.iterations, f.lr, f.mode, f.budget, f.enabled, f.views) == (3000, 0.5, "classic", 20000, False,
+                                                                           ["a", "b"])
+    assert f.path == Path("/tmp/p") and isinstance(config["ingest"], NoParams)
+    assert resolve_config(TYPES, None, ["fit.lr=1"])["fit"].lr == 1.0  # int accepted for float
+    assert resolve_config(TYPES, None, ["fit.views=a,b"])["fit"].views == ["a", "b"]
+
+
+def test_round_trip_of_the_saved_file(tmp_path):
+    config = resolve_config(TYPES, None, ["fit.iterations=7", "fit.views=[\"v1\"]"])
+    path = tmp_path / "saved.toml"
+    path.write_text(config_to_toml(config))
+    assert resolve_config(TYPES, path) == config
+
+
+@pytest.mark.parametrize("override, message", [
+    ("fit.iterashuns=3", "unknown parameter 'fit.iterashuns'.*valid parameters of 'fit': budget, enabled"),
+    ("fitt.iterations=3", "unknown stage 'fitt'.*valid stages: fit, ingest"),
+    ("fit.iterations=3.5", "fit.iterations: expected an integer"),
+    ("fit.mode=fast", "fit.mode: 'fast' is not one of 'mcmc', 'classic'"),
+    ("fit.enabled=yes", "fit.enabled: expected true or false"),
+    ("fit.budget=lots", "fit.budget: 'lots' is not a"),
+    ("iterations=3", "--set expects STAGE.PARAM=VALUE"),
+])
+def test_bad_overrides(override, message):
+    with pytest.raises(PipelineError, match=message):
+        resolve_config(TYPES, None, [override])
+
+
+def test_bad_files(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[fit\n")
+    with pytest.raises(PipelineError, match="not valid TOML") as e:
+        resolve_config(TYPES, bad)
+    assert str(bad) in str(e.value)
+    bad.write_text("[ingest]\nmax_size = 3\n")
+    with pytest.raises(PipelineError, match="unknown parameter 'ingest.max_size'.*no parameters"):
+        resolve_config(TYPES, bad)
+    bad.write_text("fit = 3\n")
+    with pytest.raises(PipelineError, match="must be a table"):
+        resolve_config(TYPES, bad)
+    with pytest.raises(PipelineError, match="not found"):
+        resolve_config(TYPES, tmp_path / "missing.toml")

@@ -1,0 +1,192 @@
+"""The ingest stage: image normalisation, masks, camera import and every bad input's message."""
+
+from __future__ import annotations
+
+import json
+import logging
+
+import cv2
+import numpy as np
+import pytest
+from conftest import make_images
+from PIL import Image
+
+from sgpor_pipeline.dag import RunInputs
+from sgpor_pipeline.errors import PipelineError
+from sgpor_pipeline.imageio import read_mask, read_rgb8, write_png
+from sgpor_pipeline.runner import run_pipeline
+from sgpor_pipeline.scene import Camera, load_cameras
+from sgpor_pipeline.stages.ingest import IngestStage
+from sgpor_pipeline.views import load_views
+
+STAGES = {"ingest": IngestStage}
+
+
+def ingest(tmp_path, images, masks=None, cameras=None, overrides=()):
+    result = run_pipeline(tmp_path / "out", RunInputs(images=images, masks=masks, cameras=cameras),
+                          overrides=list(overrides), stages=STAGES)
+    return result.path("ingest")
+
+
+def test_formats_exif_depth_grey_alpha(tmp_path):
+    folder = tmp_path / "images"
+    folder.mkdir()
+    rng = np.random.default_rng(1)
+    base = rng.integers(0, 256, size=(30, 40, 3), dtype=np.uint8)
+    # JPEG with EXIF orientation 6 (rotate 90 clockwise to display): stored 40x30, shown 30x40.
+    yy, xx = np.mgrid[0:30, 0:40]
+    smooth = np.stack([xx * 6, yy * 8, 100 + 0 * xx], axis=2).astype(np.uint8)  # JPEG-friendly, asymmetric
+    im = Image.fromarray(smooth)
+    exif = im.getexif()
+    exif[0x0112] = 6
+    im.save(folder / "a_exif.jpg", exif=exif, quality=95)
+    # 16-bit RGBA PNG, grey PNG, TIFF.
+    rgba16 = np.concatenate([base.astype(np.uint16) * 257, np.full((30, 40, 1), 1000, np.uint16)], axis=2)
+    cv2.imwrite(str(folder / "b_rgba16.png"), rgba16[:, :, [2, 1, 0, 3]])
+    cv2.imwrite(str(folder / "c_grey.png"), base[:, :, 0])
+    Image.fromarray(base).save(folder / "d_tiff.tiff")
+    out = ingest(tmp_path, folder)
+    views = {v.name: v for v in load_views(out)}
+    assert sorted(views) == ["a_exif", "b_rgba16", "c_grey", "d_tiff"]
+    assert (views["a_exif"].width, views["a_exif"].height) == (30, 40)  # EXIF rotation applied
+    b = read_rgb8(out / views["b_rgba16"].image)
+    assert b.shape == (30, 40, 3) and np.array_equal(b, base)  # 16 -> 8 bits exactly, alpha dropped
+    c = read_rgb8(out / views["c_grey"].image)
+    assert np.array_equal(c, np.repeat(base[:, :, :1], 3, axis=2))
+    assert np.array_equal(read_rgb8(out / views["d_tiff"].image), base)
+    rotated = read_rgb8(out / views["a_exif"].image).astype(int)
+    expected = np.rot90(smooth, k=-1).astype(int)  # orientation 6 = rotate 90 degrees clockwise
+    assert np.abs(rotated - expected).mean() < 3  # JPEG loss only
+    assert np.abs(rotated - np.rot90(smooth, k=1).astype(int)).mean() > 30  # not the other way round
+
+
+def test_downscale_and_masks(tmp_path):
+    images = tmp_path / "images"
+    make_images(images, n=4, width=80, height=60)
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    full = np.zeros((60, 80), bool)
+    full[20:40, 30:50] = True
+    # 3-channel mask with several grey levels, at the image's size.
+    m3 = np.zeros((60, 80, 3), np.uint8)
+    m3[full] = (7, 0, 200)
+    cv2.imwrite(str(masks / "view_00.png"), m3)
+    # Half-resolution single-channel mask: same aspect, resized with nearest neighbour.
+    write_png(masks / "view_01.png", full[::2, ::2])
+    out = ingest(tmp_path, images, masks, overrides=["ingest.max_size=40"])
+    views = {v.name: v for v in load_views(out)}
+    assert all((v.width, v.height) == (40, 30) for v in views.values())
+    assert views["view_02"].mask is None and views["view_03"].mask is None  # masks may cover some views
+    m0 = read_mask(out / views["view_00"].mask)
+    m1 = read_mask(out / views["view_01"].mask)
+    assert m0.shape == (30, 40) and np.array_equal(m0, full[::2, ::2]) and np.array_equal(m1, m0)
+    raw = cv2.imread(str(out / views["view_00"].mask), cv2.IMREAD_UNCHANGED)
+    assert set(np.unique(raw)) == {0, 1}  # stored as 0/1
+
+
+def test_mask_of_another_aspect_is_an_error_naming_it(tmp_path):
+    images = tmp_path / "images"
+    make_images(images)
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    write_png(masks / "view_02.png", np.ones((30, 30), bool))
+    with pytest.raises(PipelineError) as e:
+        ingest(tmp_path, images, masks)
+    assert "view_02.png" in str(e.value) and "aspect" in str(e.value) and "fix:" in str(e.value)
+
+
+def test_unreadable_files_are_skipped_with_one_warning(tmp_path, caplog):
+    images = tmp_path / "images"
+    make_images(images, n=4)
+    (images / "broken.jpg").write_bytes(b"\xff\xd8 not really a jpeg")
+    (images / "empty.png").write_bytes(b"")
+    (images / "notes.txt").write_text("ignored: not an image extension")
+    caplog.set_level(logging.WARNING, logger="sgpor_pipeline")
+    out = ingest(tmp_path, images)
+    assert len(load_views(out)) == 4
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1 and "broken.jpg" in warnings[0] and "empty.png" in warnings[0]
+
+
+def test_fewer_than_three_usable_images(tmp_path):
+    images = tmp_path / "images"
+    make_images(images, n=2)
+    (images / "broken.png").write_bytes(b"garbage")
+    with pytest.raises(PipelineError, match="only 2 usable image.*at least 3"):
+        ingest(tmp_path, images)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(PipelineError, match="no images found"):
+        ingest(tmp_path, empty)
+
+
+def test_mask_errors(tmp_path, caplog):
+    images = tmp_path / "images"
+    make_images(images)
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    write_png(masks / "other_name.png", np.ones((30, 40), bool))
+    with pytest.raises(PipelineError, match="no mask has the base name of an image"):
+        ingest(tmp_path, images, masks)
+    write_png(masks / "view_00.png", np.zeros((30, 40), bool))
+    with pytest.raises(PipelineError, match="every mask is empty"):
+        ingest(tmp_path, images, masks)
+    full = np.zeros((30, 40), bool)
+    full[5:10, 5:10] = True
+    write_png(masks / "view_01.png", full)
+    caplog.set_level(logging.WARNING, logger="sgpor_pipeline")
+    out = ingest(tmp_path, images, masks)
+    assert "other_name" in caplog.text and "empty" in caplog.text
+    assert sum(v.mask is not None for v in load_views(out)) == 2
+    with pytest.raises(PipelineError, match="--masks path not found"):
+        ingest(tmp_path, images, tmp_path / "nomasks")
+
+
+def test_duplicate_base_names(tmp_path):
+    images = tmp_path / "images"
+    make_images(images)
+    write_png(images / "view_00.jpg", np.zeros((30, 40, 3), np.uint8))
+    with pytest.raises(PipelineError, match="share the base name 'view_00'"):
+        ingest(tmp_path, images)
+
+
+def _camera(name: str, w: int, h: int, x: float) -> Camera:
+    K = np.array([[50.0, 0, w / 2], [0, 50.0, h / 2], [0, 0, 1]])
+    T = np.eye(4)
+    T[0, 3] = -x
+    return Camera(name, w, h, K, T)
+
+
+def test_camera_import_with_novel_views_and_scaling(tmp_path):
+    from sgpor_pipeline.camera_io import write_transforms_json
+
+    images = tmp_path / "images"
+    make_images(images, n=4, width=80, height=60)
+    cams = [_camera(f"view_{i:02d}", 80, 60, 0.1 * i) for i in range(4)] + [_camera("novel_0", 80, 60, 0.5)]
+    write_transforms_json(cams, tmp_path / "transforms.json")
+    out = ingest(tmp_path, images, cameras=tmp_path / "transforms.json", overrides=["ingest.max_size=40"])
+    loaded = {c.name: c for c in load_cameras(out / "cameras.json")}
+    assert sorted(loaded) == ["novel_0", "view_00", "view_01", "view_02", "view_03"]
+    assert loaded["novel_0"].image is None and loaded["view_02"].image == "view_02"
+    c = loaded["view_02"]
+    assert (c.width, c.height) == (40, 30)
+    assert c.K[0, 0] == pytest.approx(25.0) and c.K[0, 2] == pytest.approx(20.0)
+    assert np.allclose(c.center, [0.2, 0, 0], atol=1e-9)
+    assert (loaded["novel_0"].width, loaded["novel_0"].height) == (40, 30)
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["notes"]["novel_cameras"] == 1
+
+
+def test_camera_import_errors(tmp_path):
+    from sgpor_pipeline.camera_io import write_transforms_json
+
+    images = tmp_path / "images"
+    make_images(images, n=4, width=80, height=60)
+    write_transforms_json([_camera(f"view_{i:02d}", 80, 60, 0.1 * i) for i in range(3)], tmp_path / "t.json")
+    with pytest.raises(PipelineError, match="1 image.*no camera.*view_03"):
+        ingest(tmp_path, images, cameras=tmp_path / "t.json")
+    write_transforms_json([_camera(f"view_{i:02d}", 60, 60, 0.1 * i) for i in range(4)], tmp_path / "sq.json")
+    with pytest.raises(PipelineError, match="another aspect ratio"):
+        ingest(tmp_path, images, cameras=tmp_path / "sq.json")
+    with pytest.raises(PipelineError, match="--cameras path not found"):
+        ingest(tmp_path, images, cameras=tmp_path / "missing.json")

@@ -263,6 +263,13 @@ def load_run(out: Path, stages: dict[str, type[Stage]]) -> tuple[RunInputs, dict
     return run_inputs, config
 
 
+def last_run_stages(out: Path) -> list[str]:
+    try:
+        return list(json.loads((Path(out) / RUN_FILE).read_text()).get("stages", []))
+    except (OSError, ValueError):
+        return []
+
+
 def pipeline_status(out: Path, stages: dict[str, type[Stage]] | None = None) -> list[StageStatus]:
     """Per stage: hit (a verified result for the run's configuration), stale (only results of other
     configurations or inputs), damaged (the result fails verification) or missing."""
@@ -277,6 +284,7 @@ def pipeline_status(out: Path, stages: dict[str, type[Stage]] | None = None) -> 
     except PipelineError as e:  # the inputs moved or vanished: results can only be stale
         keys, inputs_note = {}, e.one_line()
     cache = StageCache(out / "cache")
+    last = set(last_run_stages(out))
     rows = []
     for name in order:
         key = keys.get(name)
@@ -294,7 +302,8 @@ def pipeline_status(out: Path, stages: dict[str, type[Stage]] | None = None) -> 
                                     sum(folder_size(e.path) for e in others),
                                     inputs_note or f"{len(others)} result(s) of another configuration"))
         else:
-            rows.append(StageStatus(name, "missing", key, None, 0, inputs_note))
+            why = inputs_note or ("" if name in last else "not part of the last run")
+            rows.append(StageStatus(name, "missing", key, None, 0, why))
     return rows
 
 

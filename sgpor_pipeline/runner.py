@@ -284,7 +284,7 @@ def pipeline_status(out: Path, stages: dict[str, type[Stage]] | None = None) -> 
     except PipelineError as e:  # the inputs moved or vanished: results can only be stale
         keys, inputs_note = {}, e.one_line()
     cache = StageCache(out / "cache")
-    last = set(last_run_stages(out))
+    in_last_run = set(last_run_stages(out))
     rows = []
     for name in order:
         key = keys.get(name)
@@ -302,7 +302,7 @@ def pipeline_status(out: Path, stages: dict[str, type[Stage]] | None = None) -> 
                                     sum(folder_size(e.path) for e in others),
                                     inputs_note or f"{len(others)} result(s) of another configuration"))
         else:
-            why = inputs_note or ("" if name in last else "not part of the last run")
+            why = inputs_note or ("" if name in in_last_run else "not part of the last run")
             rows.append(StageStatus(name, "missing", key, None, 0, why))
     return rows
 

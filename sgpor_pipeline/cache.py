@@ -211,12 +211,12 @@ class StageCache:
     # Per-item cache ----------------------------------------------------------------------------
 
     def item(self, stage: str, item_key: str, build: Callable[[Path], None],
-             manifest: dict[str, Any]) -> tuple[Path, bool]:
-        """The folder of a per-item result, built with ``build(tmp)`` when missing or corrupt.
+             manifest: dict[str, Any], force: bool = False) -> tuple[Path, bool]:
+        """The folder of a per-item result, built with ``build(tmp)`` when missing, corrupt or forced.
         Returns (folder, was_hit)."""
         idir = self.stage_dir(stage) / ITEMS
         final = idir / item_key
-        if final.exists() and verify(final, item_key)[0]:
+        if not force and final.exists() and verify(final, item_key)[0]:
             return final, True
         idir.mkdir(parents=True, exist_ok=True)
         tmp = idir / f"{TMP_PREFIX}{item_key}-{secrets.token_hex(4)}"

@@ -28,6 +28,7 @@ from tqdm import tqdm
 
 from .config import NoParams
 from .errors import PipelineError
+from .hashing import DigestMemo
 
 STAGE_GROUP = "sgpor_pipeline.stages"
 EXPORTER_GROUP = "sgpor_pipeline.exporters"
@@ -78,6 +79,7 @@ class StageContext:
     notes: dict[str, Any] = field(default_factory=dict)  # stage facts stored in the manifest
     _item_cache: Callable[..., Path] | None = None
     _stage_config: dict[str, Any] = field(default_factory=dict)
+    _memo: DigestMemo = field(default_factory=DigestMemo)
 
     @property
     def checkpoint_dir(self) -> Path:
@@ -94,6 +96,10 @@ class StageContext:
         """
         assert self._item_cache is not None
         return self._item_cache(item_key, build)
+
+    def file_digest(self, path: Path) -> str:
+        """Content digest of a raw input file, memoised across runs (by size and mtime)."""
+        return self._memo.file(path)
 
     def config_of(self, stage: str) -> Any:
         """Parameters of another stage in this run (read-only), e.g. for shared conventions."""

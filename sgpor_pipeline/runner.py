@@ -167,17 +167,19 @@ def run_pipeline(
             cls = stages[name]
             upstream = {u: result.outcomes[u].path for u in cls.upstream(config[name])}
             outcome = _run_stage(cls, name, keys[name], config, cache, run_inputs, upstream,
-                                 force=name in forced, debug=debug)
+                                 force=name in forced, debug=debug, memo=memo)
             result.outcomes[name] = outcome
             if cls.materialize_to:
                 materialize(outcome.path, out / cls.materialize_to, outcome.key)
+        memo.save()
         run_record["finished"] = time.time()
         (out / RUN_FILE).write_text(json.dumps(run_record, indent=1))
     return result
 
 
 def _run_stage(cls: type[Stage], name: str, key: str, config: dict[str, Any], cache: StageCache,
-               run_inputs: RunInputs, inputs: dict[str, Path], force: bool, debug: bool) -> StageOutcome:
+               run_inputs: RunInputs, inputs: dict[str, Path], force: bool, debug: bool,
+               memo: DigestMemo) -> StageOutcome:
     params = config[name]
     if not force:
         folder, why = cache.lookup(name, key)
@@ -196,14 +198,14 @@ def _run_stage(cls: type[Stage], name: str, key: str, config: dict[str, Any], ca
     def item_cache(item_key: Any, build: Any) -> Path:
         ikey = hash_obj({"stage": name, "version": cls.VERSION, "params": params_to_dict(params),
                          "item": item_key})
-        folder, hit = cache.item(name, ikey, build, {"stage": name, "version": cls.VERSION})
+        folder, hit = cache.item(name, ikey, build, {"stage": name, "version": cls.VERSION}, force=force)
         used_items.append(ikey)
         item_hits[0 if hit else 1] += 1
         return folder
 
     ctx = StageContext(stage=name, params=params, out_dir=tmp, inputs=inputs, run_inputs=run_inputs,
                        log=logging.getLogger(f"sgpor_pipeline.{name}"), seed_key=key, debug=debug,
-                       _item_cache=item_cache, _stage_config=config)
+                       _item_cache=item_cache, _stage_config=config, _memo=memo)
     t0 = time.perf_counter()
     try:
         cls().run(ctx)

@@ -19,7 +19,6 @@ import numpy as np
 
 from sgpor_pipeline.dag import Stage, StageContext
 from sgpor_pipeline.errors import PipelineError
-from sgpor_pipeline.hashing import DigestMemo
 from sgpor_pipeline.imageio import (
     IMAGE_EXTENSIONS,
     UnreadableImageError,
@@ -161,7 +160,6 @@ class IngestStage(Stage):
                 raise PipelineError("no mask has the base name of an image", path=mask_dir,
                                     fix="name each mask like its photo (IMG_01.jpg -> IMG_01.png)")
 
-        memo = DigestMemo()
         (ctx.out_dir / "images").mkdir()
         (ctx.out_dir / "masks").mkdir()
         views: list[View] = []
@@ -169,7 +167,7 @@ class IngestStage(Stage):
         empty_masks: list[str] = []
         for stem, path in ctx.progress(sorted(images.items()), total=len(images), desc="ingest"):
             mask_path = masks.get(stem)
-            key = {"image": memo.file(path), "mask": None if mask_path is None else memo.file(mask_path)}
+            key = {"image": ctx.file_digest(path), "mask": None if mask_path is None else ctx.file_digest(mask_path)}
             try:
                 item = ctx.cached_item(key, lambda folder, p=path, m=mask_path:
                                        build_view_item(p, m, ctx.params.max_size, folder))

@@ -91,7 +91,7 @@ def test_damaged_artifact_and_manifest_are_recomputed(tmp_path, image_dir, toy_s
     assert run(out, image_dir, toy_stages).ran == ["toy_report"]
 
 
-def test_until_and_force(tmp_path, image_dir, toy_stages):
+def test_until_and_force(tmp_path, image_dir, toy_stages, caplog):
     out = tmp_path / "out"
     partial = run(out, image_dir, toy_stages, until="toy_stats")
     assert partial.ran == ["ingest", "toy_stats"]
@@ -99,6 +99,9 @@ def test_until_and_force(tmp_path, image_dir, toy_stages):
     assert rest.ran == ["toy_slow", "toy_report"]
     forced = run(out, image_dir, toy_stages, force=["toy_slow"])
     assert forced.ran == ["toy_slow", "toy_report"] and forced.hits == ["ingest", "toy_stats"]
+    caplog.set_level(logging.INFO, logger="sgpor_pipeline")
+    everything = run(out, image_dir, toy_stages, force=["ingest"])
+    assert everything.hits == [] and "4 items, 4 built" in caplog.text  # forcing rebuilds per-item results too
     with pytest.raises(PipelineError, match="unknown stage 'nope'.*toy_stats"):
         run(out, image_dir, toy_stages, until="nope")
 

@@ -1,0 +1,652 @@
+"""Structure from motion with pycolmap, and the import of known cameras (the core of the ``sfm`` stage).
+
+Two paths write the same output folder (the layout is documented in :mod:`sgpor_pipeline.stages.sfm`):
+
+- :func:`estimate_cameras`: SIFT extraction, matching (exhaustive or sequential), incremental (or
+  global) mapping, the largest model kept, undistortion to PINHOLE with ``pycolmap.undistort_images``.
+- :func:`import_known_cameras`: the user's cameras (ingest's ``cameras.json``) are kept as they are;
+  distorted images are undistorted, and 3D points for the Gaussian initialisation are triangulated
+  from matched SIFT features with the poses held fixed (``pycolmap.triangulate_points``).
+
+Masks are undistorted with exactly the mapping of their images (``pycolmap.undistort_image`` with the
+same options: it is the function ``undistort_images`` applies per image), bilinear then threshold 0.5,
+so they stay aligned with the undistorted images.
+
+Pixel convention everywhere (COLMAP's, and our :class:`~sgpor_pipeline.scene.Camera`'s): the image's
+top-left corner is (0, 0), the centre of the top-left pixel is (0.5, 0.5).
+
+pycolmap quirks handled here (DESIGN.md section 9): failures do not raise (mapping returns ``{}``),
+so an empty result is turned into our :class:`PipelineError`; ``max_image_size`` -1 means full size.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import shutil
+import time
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from .errors import PipelineError
+from .imageio import read_mask, read_rgb8, write_mask01, write_png
+from .scene import Camera, load_cameras, save_cameras
+from .views import View
+
+log = logging.getLogger(__name__)
+
+# Output layout of the sfm stage (relative to its folder).
+SPARSE_DIR = "sparse"
+IMAGES_DIR = "images"
+MASKS_DIR = "masks"
+CAMERAS_FILE = "cameras.json"
+POINTS_FILE = "points.npz"
+SUMMARY_FILE = "sfm.json"
+COLMAP_DIR = "colmap"  # database and raw (distorted) models; removed unless keep_database
+
+# With up to this many images, exhaustive matching (every pair) is affordable and the most robust;
+# beyond it the pair count grows quadratically and sequential matching is the sane default.
+EXHAUSTIVE_MAX_IMAGES = 50
+# COLMAP's default minimum of verified inlier matches for an image pair to count as connected.
+MIN_PAIR_INLIERS = 15
+
+Progress = Callable[..., Iterable]
+
+
+@dataclass
+class SfmParams:
+    """Parameters of the ``sfm`` stage (``--set sfm.<name>=<value>``)."""
+
+    # "exhaustive" matches every image pair; "sequential" only neighbours in file-name order (for
+    # videos / ordered walks); "auto" = exhaustive up to 50 images, sequential beyond.
+    matcher: Literal["auto", "exhaustive", "sequential"] = "auto"
+    sequential_overlap: int = 10  # sequential matcher: how many following images each image is matched to
+    # "incremental" (COLMAP, robust) or "global" (GLOMAP-style, faster on large sets).
+    mapper: Literal["incremental", "global"] = "incremental"
+    # COLMAP camera model estimated by SfM (SIMPLE_RADIAL: one focal + one radial term, COLMAP's default;
+    # OPENCV for strong wide-angle distortion). Images are undistorted to PINHOLE either way.
+    camera_model: str = "SIMPLE_RADIAL"
+    # "single": one camera shared by all photos; "per_image": one each (zoom changed, mixed devices);
+    # "auto": single when all images have the same size, per_image otherwise.
+    camera_mode: Literal["auto", "single", "per_image"] = "auto"
+    # SIFT runs on images downscaled so their longer side is at most this (keypoints are scaled back);
+    # -1 = full size (pycolmap's default, slow on large photos).
+    max_image_size: int = 1600
+    max_num_features: int = 8192  # SIFT features per image (matching time grows with its square)
+    min_registered_fraction: float = 0.8  # warn when fewer images than this register
+    seed: int = 0  # pycolmap's random seed (RANSAC, mapper)
+    num_threads: int = -1  # feature extraction, matching, undistortion; -1 = all cores
+    # Mapping on one thread: multi-threaded bundle adjustment sums in a varying order, so poses differ
+    # run to run; single-threaded mapping with a fixed seed gives the same model every time (it is a
+    # small share of the time: extraction and matching dominate).
+    deterministic: bool = True
+    keep_database: bool = False  # keep colmap/ (database.db, raw models) for inspection in COLMAP's GUI
+
+
+@dataclass
+class SfmPoints:
+    """Sparse 3D points with their observations (flat arrays, one row per observation)."""
+
+    xyz: np.ndarray  # [P,3] float64, world frame
+    rgb: np.ndarray  # [P,3] uint8
+    error: np.ndarray  # [P] float64, mean reprojection error in pixels
+    obs_point: np.ndarray  # [M] int64, index into xyz
+    obs_view: np.ndarray  # [M] int64, index into the cameras list of cameras.json
+    obs_xy: np.ndarray  # [M,2] float64, pixel coordinates in the undistorted image
+
+    def __len__(self) -> int:
+        return len(self.xyz)
+
+    def seen_in(self, view_index: int) -> tuple[np.ndarray, np.ndarray]:
+        """(point indices, pixel coordinates [K,2]) of the points observed in one view."""
+        sel = self.obs_view == view_index
+        return self.obs_point[sel], self.obs_xy[sel]
+
+    def save(self, path: Path) -> None:
+        np.savez(path, xyz=self.xyz, rgb=self.rgb, error=self.error, obs_point=self.obs_point,
+                 obs_view=self.obs_view, obs_xy=self.obs_xy)
+
+    @classmethod
+    def load(cls, path: Path) -> SfmPoints:
+        # Tolerant of files without observations (e.g. fit's write_known_sfm for synthetic inputs):
+        # missing arrays read as "no observations" / zero error rather than failing later stages.
+        with np.load(path) as d:
+            xyz = np.asarray(d["xyz"], np.float64).reshape(-1, 3)
+            n = len(xyz)
+            rgb = np.asarray(d["rgb"], np.uint8).reshape(-1, 3) if "rgb" in d.files else np.full((n, 3), 128, np.uint8)
+            error = np.asarray(d["error"], np.float64) if "error" in d.files else np.zeros(n)
+            if "obs_point" in d.files:
+                return cls(xyz, rgb, error, np.asarray(d["obs_point"], np.int64), np.asarray(d["obs_view"], np.int64),
+                           np.asarray(d["obs_xy"], np.float64).reshape(-1, 2))
+            return cls(xyz, rgb, error, np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 2)))
+
+    @classmethod
+    def empty(cls) -> SfmPoints:
+        return cls(np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0), np.zeros(0, np.int64),
+                   np.zeros(0, np.int64), np.zeros((0, 2)))
+
+
+@dataclass
+class SfmResult:
+    """The output of the sfm stage, as later stages read it (see :func:`load_sfm`)."""
+
+    folder: Path
+    cameras: list[Camera]  # registered views (PINHOLE, image = view name), then novel cameras (image None)
+    points: SfmPoints
+    summary: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def sparse_dir(self) -> Path:
+        return self.folder / SPARSE_DIR
+
+    @property
+    def posed(self) -> list[Camera]:
+        """The cameras that have an undistorted image."""
+        return [c for c in self.cameras if c.image is not None]
+
+    def index(self, view: str) -> int:
+        """Index in ``cameras`` (the ``obs_view`` numbering) of a view's camera."""
+        for i, c in enumerate(self.cameras):
+            if c.image == view:
+                return i
+        raise KeyError(view)
+
+    def image_path(self, view: str) -> Path:
+        return self.folder / IMAGES_DIR / f"{view}.png"
+
+    def mask_path(self, view: str) -> Path | None:
+        """The undistorted 0/1 mask of a view, or None when ingest had no mask for it."""
+        path = self.folder / MASKS_DIR / f"{view}.png"
+        return path if path.is_file() else None
+
+
+def load_sfm(folder: Path) -> SfmResult:
+    """Read the sfm stage's output folder."""
+    folder = Path(folder)
+    summary_path = folder / SUMMARY_FILE
+    summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
+    return SfmResult(folder, load_cameras(folder / CAMERAS_FILE), SfmPoints.load(folder / POINTS_FILE), summary)
+
+
+# --------------------------------------------------------------------------------------------------
+# small helpers
+
+
+@contextlib.contextmanager
+def pycolmap_logging(debug: bool) -> Iterator[None]:
+    """Silence pycolmap's INFO/WARNING chatter (our own log says what happens) unless debugging.
+
+    The level is process-global state in glog, so it is restored afterwards.
+    """
+    import pycolmap
+
+    old = pycolmap.logging.minloglevel
+    # 2 = ERROR: its warnings ("Failed to create any sparse model") become our own, clearer errors.
+    pycolmap.logging.minloglevel = 0 if debug else 2
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = old
+
+
+class Timings:
+    """Seconds per sub-step, logged as each starts so long work shows progress."""
+
+    def __init__(self, logger: logging.Logger):
+        self.log = logger
+        self.seconds: dict[str, float] = {}
+
+    @contextlib.contextmanager
+    def step(self, name: str, message: str) -> Iterator[None]:
+        self.log.info(message)
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[name] = round(self.seconds.get(name, 0.0) + time.perf_counter() - t0, 3)
+
+
+def _no_progress(iterable: Iterable, total: int | None = None, desc: str | None = None) -> Iterable:
+    return iterable
+
+
+def _link_or_copy(src: Path, dst: Path) -> None:
+    # Hard links save disk between cache folders; published cache files are never modified in place.
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copyfile(src, dst)
+
+
+def colmap_image_name(view: View) -> str:
+    """The image's file name inside ingest's images/ (= its name in the COLMAP database)."""
+    return Path(view.image).name
+
+
+def choose_matcher(params: SfmParams, n_images: int) -> str:
+    if params.matcher != "auto":
+        return params.matcher
+    return "exhaustive" if n_images <= EXHAUSTIVE_MAX_IMAGES else "sequential"
+
+
+def _check_camera_model(name: str) -> None:
+    import pycolmap
+
+    if name not in pycolmap.CameraModelId.__members__:
+        names = ", ".join(n for n in pycolmap.CameraModelId.__members__ if n != "INVALID")
+        raise PipelineError(f"unknown camera model {name!r} in sfm.camera_model",
+                            fix=f"use one of {names} (e.g. --set sfm.camera_model=OPENCV)")
+
+
+def to_colmap_camera(cam: Camera, camera_id: int = 1) -> Any:
+    """A pycolmap.Camera for one of our cameras (model, K and the distortion list)."""
+    import pycolmap
+
+    model = cam.model if cam.model in pycolmap.CameraModelId.__members__ else "PINHOLE"
+    pc = pycolmap.Camera.create_from_model_name(camera_id, model, float(cam.K[0, 0]), cam.width, cam.height)
+    params = np.array(pc.params, np.float64)
+    fi = list(pc.focal_length_idxs())
+    if len(fi) == 2:
+        params[fi[0]], params[fi[1]] = cam.K[0, 0], cam.K[1, 1]
+    else:  # one focal length: COLMAP's single-focal models; the mean is exact when fx == fy
+        params[fi[0]] = 0.5 * (cam.K[0, 0] + cam.K[1, 1])
+    pi = list(pc.principal_point_idxs())
+    params[pi[0]], params[pi[1]] = cam.K[0, 2], cam.K[1, 2]
+    ei = list(pc.extra_params_idxs())
+    if len(cam.distortion) != len(ei):
+        raise PipelineError(f"camera {cam.name}: model {model} needs {len(ei)} distortion parameters, got "
+                            f"{len(cam.distortion)}", fix="fix the camera's distortion list in the cameras file")
+    for j, v in zip(ei, cam.distortion):
+        params[j] = v
+    pc.params = params
+    return pc
+
+
+def has_distortion(cam: Camera) -> bool:
+    """Whether the camera needs undistortion (a model with non-zero distortion terms)."""
+    return cam.model not in ("PINHOLE", "SIMPLE_PINHOLE") and any(float(d) != 0.0 for d in cam.distortion)
+
+
+def undistort_options() -> Any:
+    import pycolmap
+
+    # COLMAP's defaults: the PINHOLE image is cropped to valid pixels only (blank_pixels=0), so no
+    # black borders from the undistortion enter the Gaussian fit.
+    return pycolmap.UndistortCameraOptions()
+
+
+def undistort_array(image: np.ndarray, camera: Any, options: Any) -> tuple[np.ndarray, Any]:
+    """Undistort a uint8 HxW or HxWx3 array of a pycolmap camera; returns (array, PINHOLE camera)."""
+    import pycolmap
+
+    bitmap = pycolmap.Bitmap.from_array(np.ascontiguousarray(image))
+    out, cam = pycolmap.undistort_image(options, bitmap, camera)
+    arr = np.asarray(out.to_array())
+    if arr.ndim == 3 and image.ndim == 2:
+        arr = arr[:, :, 0]
+    return arr, cam
+
+
+def undistort_mask(mask: np.ndarray, camera: Any, options: Any) -> np.ndarray:
+    """A bool mask through the same mapping as its image (bilinear, then threshold 0.5)."""
+    arr, _ = undistort_array(np.asarray(mask, bool).astype(np.uint8) * 255, camera, options)
+    return arr >= 128
+
+
+def pinhole_K(camera: Any) -> np.ndarray:
+    return np.asarray(camera.calibration_matrix(), np.float64)
+
+
+# --------------------------------------------------------------------------------------------------
+# COLMAP steps
+
+
+def _extract(db: Path, image_dir: Path, names: list[str], camera_mode: str, camera_model: str,
+             params: SfmParams) -> None:
+    import pycolmap
+
+    mode = {"single": pycolmap.CameraMode.SINGLE, "per_image": pycolmap.CameraMode.PER_IMAGE}[camera_mode]
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.max_image_size = params.max_image_size if params.max_image_size > 0 else -1
+    extraction.num_threads = params.num_threads
+    extraction.sift.max_num_features = params.max_num_features
+    reader = pycolmap.ImageReaderOptions(camera_model=camera_model)
+    # Import the images first (one thread, in name order): extract_features alone numbers images in the
+    # order its threads finish, and image ids decide pair order and so the matches and the model.
+    pycolmap.Database.open(db).close()
+    pycolmap.import_images(db, image_dir, camera_mode=mode, image_names=names, options=reader)
+    pycolmap.extract_features(db, image_dir, image_names=names, camera_mode=mode, reader_options=reader,
+                              extraction_options=extraction, device=pycolmap.Device.cpu)
+
+
+def _match(db: Path, matcher: str, params: SfmParams) -> None:
+    import pycolmap
+
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = params.num_threads
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = params.seed
+    if matcher == "exhaustive":
+        pycolmap.match_exhaustive(db, matching_options=matching, verification_options=verification,
+                                  device=pycolmap.Device.cpu)
+    else:
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = params.sequential_overlap
+        pairing.num_threads = params.num_threads
+        pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing,
+                                  verification_options=verification, device=pycolmap.Device.cpu)
+
+
+def _map(db: Path, image_dir: Path, out: Path, params: SfmParams) -> dict[int, Any]:
+    import pycolmap
+
+    out.mkdir(parents=True, exist_ok=True)
+    if params.mapper == "global":
+        options = pycolmap.GlobalPipelineOptions()
+        threads = 1 if params.deterministic else params.num_threads
+        options.num_threads = threads
+        options.random_seed = params.seed
+        options.mapper.random_seed = params.seed
+        options.mapper.num_threads = threads
+        return pycolmap.global_mapping(db, image_dir, out, options=options)
+    options = incremental_options(params)
+    return pycolmap.incremental_mapping(db, image_dir, out, options=options)
+
+
+def incremental_options(params: SfmParams) -> Any:
+    import pycolmap
+
+    options = pycolmap.IncrementalPipelineOptions()
+    threads = 1 if params.deterministic else params.num_threads
+    options.num_threads = threads
+    options.random_seed = params.seed
+    options.mapper.random_seed = params.seed
+    options.mapper.num_threads = threads
+    options.triangulation.random_seed = params.seed
+    # COLMAP drops models of fewer than 10 images; a small capture (3-9 photos) would then always fail.
+    options.min_model_size = 3
+    return options
+
+
+@dataclass
+class DatabaseStats:
+    images: int
+    with_features: int
+    with_matches: int  # images in at least one verified pair with MIN_PAIR_INLIERS inliers
+    verified_pairs: int
+
+
+def database_stats(db: Path) -> DatabaseStats:
+    """How many images were usable at all: the numbers a failure message needs."""
+    import pycolmap
+
+    database = pycolmap.Database.open(db)
+    try:
+        ids = [im.image_id for im in database.read_all_images()]
+        with_features = sum(database.num_keypoints_for_image(i) > 0 for i in ids)
+        pair_ids, geometries = database.read_two_view_geometries()
+        matched: set[int] = set()
+        verified = 0
+        for pair_id, geometry in zip(pair_ids, geometries):
+            if len(geometry.inlier_matches) >= MIN_PAIR_INLIERS:
+                verified += 1
+                matched.update(pycolmap.pair_id_to_image_pair(pair_id))
+        return DatabaseStats(len(ids), int(with_features), len(matched), verified)
+    finally:
+        database.close()
+
+
+def points_from_reconstruction(rec: Any, cameras: Sequence[Camera]) -> SfmPoints:
+    """Points and flat observation arrays; ``obs_view`` indexes ``cameras`` (matched by image name)."""
+    index = {f"{c.image}.png": i for i, c in enumerate(cameras) if c.image is not None}
+    view_of_image = {image_id: index.get(im.name, -1) for image_id, im in rec.images.items()}
+    xyz, rgb, err = [], [], []
+    obs_p: list[int] = []
+    obs_v: list[int] = []
+    obs_xy: list[np.ndarray] = []
+    # sorted ids: the same model always gives the same arrays
+    for p_idx, (_, point) in enumerate(sorted(rec.points3D.items())):
+        xyz.append(point.xyz)
+        rgb.append(point.color)
+        err.append(point.error)
+        for el in point.track.elements:
+            v = view_of_image[el.image_id]
+            if v < 0:
+                continue
+            obs_p.append(p_idx)
+            obs_v.append(v)
+            obs_xy.append(rec.images[el.image_id].points2D[el.point2D_idx].xy)
+    if not xyz:
+        return SfmPoints.empty()
+    return SfmPoints(np.asarray(xyz, np.float64).reshape(-1, 3), np.asarray(rgb, np.uint8).reshape(-1, 3),
+                     np.asarray(err, np.float64), np.asarray(obs_p, np.int64), np.asarray(obs_v, np.int64),
+                     np.asarray(obs_xy, np.float64).reshape(-1, 2))
+
+
+def _write_outputs(out_dir: Path, cameras: list[Camera], rec: Any, summary: dict[str, Any]) -> SfmPoints:
+    points = points_from_reconstruction(rec, cameras)
+    save_cameras(out_dir / CAMERAS_FILE, cameras)
+    points.save(out_dir / POINTS_FILE)
+    summary["points"] = len(points)
+    summary["mean_reprojection_error"] = float(points.error.mean()) if len(points) else None
+    (out_dir / SUMMARY_FILE).write_text(json.dumps(summary, indent=1))
+    return points
+
+
+def _finish_colmap_dir(work: Path, params: SfmParams) -> None:
+    if not params.keep_database:
+        # The database (features, matches: tens of MB for a few dozen photos) is not read by any later
+        # stage; sparse/ and points.npz hold what they need.
+        shutil.rmtree(work, ignore_errors=True)
+
+
+# --------------------------------------------------------------------------------------------------
+# the two paths
+
+
+def estimate_cameras(ingest_dir: Path, views: Sequence[View], out_dir: Path, params: SfmParams,
+                     logger: logging.Logger = log, progress: Progress = _no_progress, debug: bool = False,
+                     user_images: Path | None = None) -> dict[str, Any]:
+    """SfM on ingest's images; writes the stage outputs into ``out_dir`` and returns the summary."""
+    import pycolmap
+
+    _check_camera_model(params.camera_model)
+    image_dir = Path(ingest_dir) / IMAGES_DIR
+    work = out_dir / COLMAP_DIR
+    work.mkdir(parents=True, exist_ok=True)
+    db = work / "database.db"
+    names = [colmap_image_name(v) for v in views]
+    sizes = {(v.width, v.height) for v in views}
+    camera_mode = params.camera_mode
+    if camera_mode == "auto":
+        camera_mode = "single" if len(sizes) == 1 else "per_image"
+    elif camera_mode == "single" and len(sizes) > 1:
+        raise PipelineError(f"sfm.camera_mode=single but the images have {len(sizes)} different sizes",
+                            path=user_images, fix="use --set sfm.camera_mode=per_image (or auto)")
+    matcher = choose_matcher(params, len(views))
+    timings = Timings(logger)
+    n = len(views)
+    with pycolmap_logging(debug):
+        pycolmap.set_random_seed(params.seed)
+        size_note = "full size" if params.max_image_size <= 0 else f"max {params.max_image_size} px"
+        with timings.step("extract", f"sfm: SIFT features of {n} images ({size_note}, {camera_mode} camera)"):
+            _extract(db, image_dir, names, camera_mode, params.camera_model, params)
+        pairs = n * (n - 1) // 2 if matcher == "exhaustive" else None
+        with timings.step("match", f"sfm: {matcher} matching" + (f" ({pairs} pairs)" if pairs else "")):
+            _match(db, matcher, params)
+        with timings.step("map", f"sfm: {params.mapper} mapping"):
+            models = _map(db, image_dir, work / "models", params)
+        if not models:
+            stats = database_stats(db)
+            raise PipelineError(
+                f"SfM could not reconstruct the scene: of {n} images, {stats.with_features} had features and "
+                f"{stats.with_matches} had verified matches with another image ({stats.verified_pairs} pairs)",
+                path=user_images,
+                fix="photograph with more overlap (every spot in 3+ photos) and textured surfaces in view; "
+                    "for an ordered capture try --set sfm.matcher=sequential; or pass known cameras with "
+                    "--cameras")
+        # keys sorted: a tie between models resolves the same way every run
+        best = max((models[k] for k in sorted(models)), key=lambda r: r.num_reg_images())
+        raw = work / "best"
+        raw.mkdir()
+        best.write_binary(raw)
+        registered_names = {best.images[i].name for i in best.reg_image_ids()}
+        with timings.step("undistort", f"sfm: undistorting {len(registered_names)} registered images"):
+            options = undistort_options()
+            pycolmap.undistort_images(out_dir, raw, image_dir, undistort_options=options,
+                                      num_threads=params.num_threads)
+            # stereo/ and the run-colmap-*.sh scripts are for COLMAP's dense MVS, which we do not run
+            shutil.rmtree(out_dir / "stereo", ignore_errors=True)
+            for script in out_dir.glob("run-colmap-*.sh"):
+                script.unlink()
+            masked = [v for v in views if v.mask is not None and colmap_image_name(v) in registered_names]
+            if masked:
+                (out_dir / MASKS_DIR).mkdir(exist_ok=True)
+                by_name = {im.name: im for im in best.images.values()}
+                for view in progress(masked, total=len(masked), desc="sfm: masks"):
+                    image = by_name[colmap_image_name(view)]
+                    mask = read_mask(Path(ingest_dir) / view.mask)
+                    write_mask01(out_dir / MASKS_DIR / f"{view.name}.png",
+                                 undistort_mask(mask, best.cameras[image.camera_id], options))
+    _finish_colmap_dir(work, params)
+
+    rec = pycolmap.Reconstruction(out_dir / SPARSE_DIR)
+    by_name = {im.name: im for im in rec.images.values()}
+    cameras: list[Camera] = []
+    for view in views:  # ingest's order (sorted names), so indices are stable and readable
+        image = by_name.get(colmap_image_name(view))
+        if image is None or not image.has_pose:
+            continue
+        cam = rec.cameras[image.camera_id]
+        T = np.eye(4)
+        T[:3, :] = np.asarray(image.cam_from_world().matrix(), np.float64)
+        cameras.append(Camera(name=view.name, width=cam.width, height=cam.height, K=pinhole_K(cam),
+                              cam_from_world=T, image=view.name, model="PINHOLE"))
+    unregistered = [v.name for v in views if colmap_image_name(v) not in registered_names]
+    summary = {
+        "mode": "sfm",
+        "matcher": matcher,
+        "mapper": params.mapper,
+        "camera_mode": camera_mode,
+        "images": n,
+        "registered": len(cameras),
+        "unregistered": unregistered,
+        "models": len(models),
+        "seconds": timings.seconds,
+    }
+    _write_outputs(out_dir, cameras, rec, summary)
+    return summary
+
+
+def import_known_cameras(ingest_dir: Path, views: Sequence[View], cameras: Sequence[Camera], out_dir: Path,
+                         params: SfmParams, logger: logging.Logger = log, progress: Progress = _no_progress,
+                         debug: bool = False) -> dict[str, Any]:
+    """Keep the user's cameras: undistort where needed and triangulate points with fixed poses."""
+    import pycolmap
+
+    ingest_dir = Path(ingest_dir)
+    by_view = {v.name: v for v in views}
+    timings = Timings(logger)
+    (out_dir / IMAGES_DIR).mkdir(parents=True, exist_ok=True)
+    options = undistort_options()
+    out_cams: list[Camera] = []
+    posed = [c for c in cameras if c.image is not None]
+    undistorted = 0
+    with timings.step("undistort", f"sfm: importing {len(posed)} known cameras (no pose estimation)"):
+        for cam in progress(cameras, total=len(cameras), desc="sfm: known cameras"):
+            if cam.image is None:  # a novel camera: carried through untouched
+                out_cams.append(cam)
+                continue
+            view = by_view[cam.image]
+            img_out = out_dir / IMAGES_DIR / f"{view.name}.png"
+            mask_out = out_dir / MASKS_DIR / f"{view.name}.png"
+            if view.mask is not None:
+                mask_out.parent.mkdir(exist_ok=True)
+            if has_distortion(cam):
+                pc = to_colmap_camera(cam)
+                rgb, ucam = undistort_array(read_rgb8(ingest_dir / view.image), pc, options)
+                write_png(img_out, rgb)
+                if view.mask is not None:
+                    write_mask01(mask_out, undistort_mask(read_mask(ingest_dir / view.mask), pc, options))
+                K, width, height = pinhole_K(ucam), ucam.width, ucam.height
+                undistorted += 1
+            else:  # PINHOLE (or zero distortion): the ingested pixels are already what we want
+                _link_or_copy(ingest_dir / view.image, img_out)
+                if view.mask is not None:
+                    _link_or_copy(ingest_dir / view.mask, mask_out)
+                K, width, height = cam.K, view.width, view.height
+            out_cams.append(Camera(name=cam.name, width=width, height=height, K=K,
+                                   cam_from_world=cam.cam_from_world, image=cam.image, model="PINHOLE"))
+
+    work = out_dir / COLMAP_DIR
+    work.mkdir(parents=True, exist_ok=True)
+    db = work / "database.db"
+    posed_out = [c for c in out_cams if c.image is not None]
+    names = [f"{c.image}.png" for c in posed_out]
+    matcher = choose_matcher(params, len(names))
+    image_dir = out_dir / IMAGES_DIR
+    n = len(names)
+    with pycolmap_logging(debug):
+        pycolmap.set_random_seed(params.seed)
+        with timings.step("extract", f"sfm: SIFT features of {n} images for triangulation"):
+            # PER_IMAGE with PINHOLE: each image's database camera is overwritten with the known one below
+            _extract(db, image_dir, names, "per_image", "PINHOLE", params)
+        pairs = n * (n - 1) // 2 if matcher == "exhaustive" else None
+        with timings.step("match", f"sfm: {matcher} matching" + (f" ({pairs} pairs)" if pairs else "")):
+            _match(db, matcher, params)
+        with timings.step("triangulate", "sfm: triangulating points with the known poses"):
+            rec = _known_reconstruction(db, posed_out)
+            tri_dir = work / "triangulated"
+            tri_dir.mkdir()
+            rec = pycolmap.triangulate_points(rec, db, image_dir, tri_dir, clear_points=True,
+                                              options=incremental_options(params), refine_intrinsics=False)
+    stats = database_stats(db)
+    _finish_colmap_dir(work, params)
+    (out_dir / SPARSE_DIR).mkdir()
+    rec.write_binary(out_dir / SPARSE_DIR)
+    summary = {
+        "mode": "known_cameras",
+        "matcher": matcher,
+        "images": len(views),
+        "registered": len(posed_out),
+        "unregistered": [],
+        "undistorted": undistorted,
+        "novel_cameras": len(out_cams) - len(posed_out),
+        "seconds": timings.seconds,
+    }
+    points = _write_outputs(out_dir, out_cams, rec, summary)
+    if len(points) == 0:
+        logger.warning(f"sfm: no 3D point could be triangulated with the known cameras ({stats.with_features} of "
+                       f"{n} images had features, {stats.verified_pairs} image pairs matched); if pairs matched, "
+                       "the cameras may not fit the images (check the file's convention and image names)")
+    return summary
+
+
+def _known_reconstruction(db: Path, cameras: Sequence[Camera]) -> Any:
+    """A pycolmap Reconstruction of the known PINHOLE cameras, with the database's camera/image ids."""
+    import pycolmap
+
+    by_name = {f"{c.image}.png": c for c in cameras}
+    database = pycolmap.Database.open(db)
+    rec = pycolmap.Reconstruction()
+    try:
+        for image in sorted(database.read_all_images(), key=lambda im: im.image_id):
+            cam = by_name[image.name]
+            pc = database.read_camera(image.camera_id)
+            pc.params = [cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2]]
+            # the triangulator reads intrinsics from the reconstruction, the database copy keeps them
+            # consistent for anyone opening colmap/database.db (keep_database)
+            database.update_camera(pc)
+            rec.add_camera_with_trivial_rig(pc)
+            rec.add_image_with_trivial_frame(
+                pycolmap.Image(name=image.name, camera_id=image.camera_id, image_id=image.image_id),
+                pycolmap.Rigid3d(np.asarray(cam.cam_from_world[:3, :4], np.float64)))
+    finally:
+        database.close()
+    return rec

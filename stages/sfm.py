@@ -1,0 +1,68 @@
+"""sfm: camera poses and sparse 3D points, by structure from motion (pycolmap) or from known cameras.
+
+Without ``--cameras``: SIFT features, exhaustive or sequential matching, incremental (or global)
+mapping; the largest model is kept and undistorted to PINHOLE. With ``--cameras`` (ingest wrote
+``cameras.json``): no pose estimation; distorted images are undistorted and points are triangulated
+from matched features with the known poses held fixed. The work is in :mod:`sgpor_pipeline.sfm`.
+
+Out (read them with :func:`sgpor_pipeline.sfm.load_sfm`):
+
+- ``sparse/``: the undistorted COLMAP model (binary: cameras, images, points3D, rigs, frames).
+- ``images/<view>.png``: undistorted PINHOLE images of the registered views (ingest's view names;
+  their size is the camera's in cameras.json, which may differ from ingest's by the undistortion crop).
+- ``masks/<view>.png``: 0/1 masks undistorted with their image's mapping, for registered views that
+  had a mask in ingest.
+- ``cameras.json``: :class:`~sgpor_pipeline.scene.Camera` list: registered views (PINHOLE,
+  ``image`` = view name, in ingest's order), then novel cameras (``image`` None) untouched.
+- ``points.npz``: ``xyz`` [P,3] float64, ``rgb`` [P,3] uint8, ``error`` [P] (pixels); observations as
+  flat arrays ``obs_point`` [M], ``obs_view`` [M] (index into cameras.json's list), ``obs_xy`` [M,2]
+  (pixels of the undistorted image, (0.5, 0.5) = centre of the top-left pixel).
+- ``sfm.json``: mode (sfm / known_cameras), matcher, registered count, unregistered views, seconds
+  per sub-step, point count, mean reprojection error (also in the manifest's notes).
+- ``colmap/`` (only with ``keep_database = true``): database.db and the raw (distorted) models. The
+  database lives in this build folder, so changed options never reuse a stale one.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from sgpor_pipeline.dag import Stage, StageContext
+from sgpor_pipeline.scene import load_cameras
+from sgpor_pipeline.sfm import SfmParams, estimate_cameras, import_known_cameras
+from sgpor_pipeline.views import load_views
+
+__all__ = ["SfmParams", "SfmStage"]
+
+
+class SfmStage(Stage):
+    name = "sfm"
+    VERSION = 1
+    Params = SfmParams
+    inputs = ("ingest",)
+    libraries = ("pycolmap",)
+
+    def run(self, ctx: StageContext) -> None:
+        params: SfmParams = ctx.params
+        ingest = ctx.inputs["ingest"]
+        views = load_views(ingest)
+        known = ingest / "cameras.json"
+        if known.is_file():
+            summary = import_known_cameras(ingest, views, load_cameras(known), ctx.out_dir, params,
+                                           logger=ctx.log, progress=ctx.progress, debug=ctx.debug)
+        else:
+            summary = estimate_cameras(ingest, views, ctx.out_dir, params, logger=ctx.log,
+                                       progress=ctx.progress, debug=ctx.debug,
+                                       user_images=Path(ctx.run_inputs.images))
+        registered, total = summary["registered"], summary["images"]
+        missing = summary["unregistered"]
+        ctx.log.info(f"sfm: {registered}/{total} images registered, {summary['points']} points"
+                     + (f", reprojection error {summary['mean_reprojection_error']:.2f} px"
+                        if summary["mean_reprojection_error"] is not None else ""))
+        if registered < params.min_registered_fraction * total:
+            hint = "photos overlapping the registered ones help"
+            if summary.get("matcher") == "sequential":
+                hint += "; for an unordered set use --set sfm.matcher=exhaustive"
+            ctx.log.warning(f"sfm: only {registered} of {total} images registered; later stages ignore the "
+                            f"others: {', '.join(missing)} ({hint})")
+        ctx.notes.update(summary)

@@ -1,0 +1,374 @@
+"""The sfm stage through the real pipeline runner, on synthetic scenes with exact ground truth.
+
+Scenes: ``sgpor_pipeline.synthetic`` forward-facing rig (LLFF-like), 16 views at 256x192. The inward
+360-degree rig is not used here: its room repeats each wall texture several times, and at this
+resolution SfM matches the repeats and registers some views flipped (a property of that test scene,
+not of the stage; forward-facing views reconstruct reliably).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from sgpor_pipeline.dag import RunInputs
+from sgpor_pipeline.errors import PipelineError
+from sgpor_pipeline.imageio import read_mask, read_rgb8
+from sgpor_pipeline.runner import run_pipeline
+from sgpor_pipeline.scene import Camera, load_cameras, save_cameras
+from sgpor_pipeline.sfm import (
+    SfmParams,
+    choose_matcher,
+    has_distortion,
+    load_sfm,
+    to_colmap_camera,
+    undistort_mask,
+    undistort_options,
+)
+from sgpor_pipeline.synthetic import SceneParams, generate_scene, save_scene
+
+# seed 1: a forward rig whose views all register; any seed works, a fixed one keeps the test exact
+SCENE = SceneParams(seed=1, rig="forward", n_views=16, width=256, height=192)
+
+
+# --------------------------------------------------------------------------------------------------
+# helpers
+
+
+def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Similarity (s, R, t) minimising |s R src + t - dst|^2 (Umeyama 1991)."""
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    xs, xd = src - mu_s, dst - mu_d
+    U, S, Vt = np.linalg.svd(xd.T @ xs / len(src))
+    D = np.eye(3)
+    D[2, 2] = np.sign(np.linalg.det(U @ Vt))
+    R = U @ D @ Vt
+    s = float((S * np.diag(D)).sum() / ((xs ** 2).sum() / len(src)))
+    return s, R, mu_d - s * R @ mu_s
+
+
+def scene_extent(scene) -> float:
+    """Diameter of the true camera centres together with the object the cameras look at.
+
+    Why not the camera centres alone: a forward-facing rig spans ~1 m while it looks at content ~2 m
+    away, and SfM's position error grows with the scene depth (depth error ~ z^2 / (f * baseline)), so
+    the camera spread alone would judge the reconstruction against the rig's width rather than the
+    scene's size. Including the observed object makes the extent the size of the captured scene.
+    """
+    pts = np.vstack([[c.center for c in scene.cameras], scene.object_bounds.mean(0)])
+    return float(np.max(np.linalg.norm(pts[:, None] - pts[None], axis=-1)))
+
+
+def distance_to_geometry(scene, xyz: np.ndarray) -> np.ndarray:
+    """Unsigned distance of points to the true surfaces (background and object meshes)."""
+    import open3d as o3d
+
+    rs = o3d.t.geometry.RaycastingScene()
+    for mesh in (scene.background_mesh, scene.object_mesh):
+        rs.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    return rs.compute_distance(o3d.core.Tensor(np.asarray(xyz, np.float32))).numpy()
+
+
+def render_object_mask(scene, cam: Camera) -> np.ndarray:
+    """Exact object mask of ``cam`` (world frame of the scene) by ray casting the true meshes."""
+    import open3d as o3d
+
+    rs = o3d.t.geometry.RaycastingScene()
+    rs.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(scene.background_mesh))
+    obj_id = rs.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(scene.object_mesh))
+    u, v = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)  # pixel centres
+    d = np.stack([u.ravel(), v.ravel(), np.ones(u.size)], 1) @ np.linalg.inv(cam.K).T
+    d = d @ cam.cam_from_world[:3, :3]  # camera -> world directions
+    rays = np.hstack([np.broadcast_to(cam.center, d.shape), d]).astype(np.float32)
+    ids = rs.cast_rays(o3d.core.Tensor(rays))["geometry_ids"].numpy()
+    return (ids == obj_id).reshape(cam.height, cam.width)
+
+
+def aligned_camera(cam: Camera, s: float, R: np.ndarray, t: np.ndarray) -> Camera:
+    """An SfM camera moved into the true world frame by the similarity world_true = s R x + t."""
+    T = np.eye(4)
+    Rc = cam.cam_from_world[:3, :3] @ R.T
+    T[:3, :3] = Rc
+    T[:3, 3] = -Rc @ (s * R @ cam.center + t)
+    return Camera(cam.name, cam.width, cam.height, cam.K, T, cam.image)
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    return float((a & b).sum() / max(1, (a | b).sum()))
+
+
+def run_sfm(out: Path, **inputs) -> tuple:
+    result = run_pipeline(out, RunInputs(**inputs), until="sfm")
+    return result, load_sfm(result.path("sfm"))
+
+
+# --------------------------------------------------------------------------------------------------
+# fixtures (module scope: each scene is generated and reconstructed once)
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory):
+    scene = generate_scene(SCENE)
+    folder = save_scene(scene, tmp_path_factory.mktemp("scene"))
+    return scene, folder
+
+
+@pytest.fixture(scope="module")
+def sfm_run(scene_dir, tmp_path_factory):
+    scene, folder = scene_dir
+    out = tmp_path_factory.mktemp("run")
+    result, sfm = run_sfm(out, images=folder / "images", masks=folder / "masks")
+    return scene, folder, out, result, sfm
+
+
+# --------------------------------------------------------------------------------------------------
+# SfM path
+
+
+def test_sfm_recovers_cameras(sfm_run):
+    scene, _, _, result, sfm = sfm_run
+    assert result.ran == ["ingest", "sfm"]
+    assert sfm.summary["mode"] == "sfm" and sfm.summary["matcher"] == "exhaustive"
+    assert sfm.summary["registered"] == len(scene.cameras) and sfm.summary["unregistered"] == []
+    assert [c.image for c in sfm.cameras] == scene.names  # ingest's order, view names
+    true = {c.name: c for c in scene.cameras}
+    est = np.array([c.center for c in sfm.cameras])
+    gt = np.array([true[c.image].center for c in sfm.cameras])
+    s, R, t = umeyama(est, gt)
+    err = np.linalg.norm(s * est @ R.T + t - gt, axis=1)
+    assert err.max() < 0.01 * scene_extent(scene), (err.max(), scene_extent(scene))
+    # orientations too: R_est R^T should equal the true rotation (angle of the difference)
+    for cam in sfm.cameras:
+        Rd = (cam.cam_from_world[:3, :3] @ R.T) @ true[cam.image].cam_from_world[:3, :3].T
+        assert np.degrees(np.arccos(np.clip((np.trace(Rd) - 1) / 2, -1, 1))) < 1.0
+    # intrinsics: PINHOLE, focal within 2 % of the true one
+    for cam in sfm.cameras:
+        assert cam.model == "PINHOLE" and cam.distortion == []
+        assert abs(cam.K[0, 0] / true[cam.image].K[0, 0] - 1) < 0.02
+
+
+def test_sfm_outputs_layout_and_points(sfm_run):
+    scene, _, _, result, sfm = sfm_run
+    folder = result.path("sfm")
+    for name in ("sparse/cameras.bin", "sparse/images.bin", "sparse/points3D.bin", "cameras.json",
+                 "points.npz", "sfm.json"):
+        assert (folder / name).is_file(), name
+    assert not (folder / "colmap").exists() and not (folder / "stereo").exists()
+    notes = json.loads((folder / "manifest.json").read_text())["notes"]
+    assert notes["registered"] == len(scene.cameras) and set(notes["seconds"]) >= {"extract", "match", "map"}
+    for cam in sfm.cameras:
+        img = read_rgb8(sfm.image_path(cam.image))
+        assert img.shape == (cam.height, cam.width, 3)
+    p = sfm.points
+    assert len(p) > 300 and p.xyz.dtype == np.float64 and p.rgb.dtype == np.uint8
+    assert p.xyz.shape == (len(p), 3) and p.rgb.shape == (len(p), 3) and p.error.shape == (len(p),)
+    assert p.obs_point.shape == p.obs_view.shape == (len(p.obs_xy),) and p.obs_xy.shape[1] == 2
+    assert p.obs_point.max() < len(p) and 0 <= p.obs_view.min() and p.obs_view.max() < len(sfm.cameras)
+    # observations reproject onto their pixels: checks the obs arrays, K, poses and pixel convention
+    K = np.stack([sfm.cameras[v].K for v in p.obs_view])
+    T = np.stack([sfm.cameras[v].cam_from_world for v in p.obs_view])
+    Xc = np.einsum("mij,mj->mi", T[:, :3, :3], p.xyz[p.obs_point]) + T[:, :3, 3]
+    uv = np.einsum("mij,mj->mi", K, Xc)
+    uv = uv[:, :2] / uv[:, 2:]
+    reproj = np.linalg.norm(uv - p.obs_xy, axis=1)
+    assert np.median(reproj) < 1.0 and reproj.max() < 8.0
+
+
+def test_sfm_masks_undistorted_and_aligned(sfm_run):
+    scene, _, _, _, sfm = sfm_run
+    true = {c.name: c for c in scene.cameras}
+    est = np.array([c.center for c in sfm.cameras])
+    s, R, t = umeyama(est, np.array([true[c.image].center for c in sfm.cameras]))
+    ious = []
+    for cam in sfm.cameras:
+        path = sfm.mask_path(cam.image)
+        assert path is not None, cam.image  # every synthetic view has a mask
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        assert raw.shape == (cam.height, cam.width) and set(np.unique(raw)) <= {0, 1}
+        mask = raw.astype(bool)
+        # ground truth: the true object seen by the estimated (aligned) camera. Agreement means mask,
+        # image, K and pose all describe the same pixels.
+        expect = render_object_mask(scene, aligned_camera(cam, s, R, t))
+        if expect.sum() < 200:  # the object barely in view: IoU is dominated by its outline
+            continue
+        # 0.9 tolerates the SfM pose error (a 1 px shift of this ~85 px object costs ~0.025); the exact
+        # undistortion mapping of masks is checked in test_known_distorted_cameras_are_undistorted
+        ious.append(iou(mask, expect))
+        assert ious[-1] > 0.9, (cam.image, ious[-1])
+    assert len(ious) >= len(sfm.cameras) // 2 and np.mean(ious) > 0.95
+
+
+def test_rerun_is_cache_hit(sfm_run):
+    scene, folder, out, result, _ = sfm_run
+    again = run_pipeline(out, RunInputs(images=folder / "images", masks=folder / "masks"), until="sfm")
+    assert again.hits == ["ingest", "sfm"] and again.ran == []
+    assert again.path("sfm") == result.path("sfm")
+    # a changed sfm option is a new key (its database lives in the new build folder); ingest stays a hit
+    changed = run_pipeline(out, RunInputs(images=folder / "images", masks=folder / "masks"), until="sfm",
+                           overrides=["sfm.matcher=sequential"])
+    assert changed.hits == ["ingest"] and changed.ran == ["sfm"]
+    assert load_sfm(changed.path("sfm")).summary["matcher"] == "sequential"
+
+
+def test_blank_images_raise_clear_error(tmp_path):
+    images = tmp_path / "blank"
+    images.mkdir()
+    for i, grey in enumerate((40, 90, 140, 200)):
+        cv2.imwrite(str(images / f"b{i}.png"), np.full((192, 256, 3), grey, np.uint8))
+    with pytest.raises(PipelineError) as info:
+        run_pipeline(tmp_path / "out", RunInputs(images=images), until="sfm")
+    err = info.value
+    assert "could not reconstruct" in err.message and "0 had features" in err.message
+    assert err.path == str(images) and "--cameras" in err.fix and "sfm.matcher=sequential" in err.fix
+    assert not list((tmp_path / "out" / "cache" / "sfm").glob("*/manifest.json"))  # nothing published
+
+
+def test_warns_when_few_images_register(scene_dir, tmp_path, caplog):
+    scene, folder = scene_dir
+    images = tmp_path / "images"
+    images.mkdir()
+    for name in scene.names[:12]:
+        (images / f"{name}.png").write_bytes((folder / "images" / f"{name}.png").read_bytes())
+    for i in range(4):  # textureless photos cannot register: 12 of 16 = 75 % < 80 %
+        cv2.imwrite(str(images / f"zz_blank{i}.png"), np.full((192, 256, 3), 60 + 40 * i, np.uint8))
+    with caplog.at_level(logging.WARNING, logger="sgpor_pipeline"):
+        _, sfm = run_sfm(tmp_path / "out", images=images)
+    assert sfm.summary["registered"] == 12
+    assert sfm.summary["unregistered"] == [f"zz_blank{i}" for i in range(4)]
+    assert all(not sfm.image_path(f"zz_blank{i}").exists() for i in range(4))
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert any("only 12 of 16 images registered" in w and "zz_blank3" in w for w in warnings), warnings
+
+
+# --------------------------------------------------------------------------------------------------
+# known cameras
+
+
+def test_known_cameras_imported_and_triangulated(scene_dir, tmp_path):
+    scene, folder = scene_dir
+    cams = load_cameras(folder / "cameras.json")
+    novel = Camera("novel_000", 256, 192, cams[0].K, cams[3].cam_from_world, image=None)
+    save_cameras(tmp_path / "cameras.json", [*cams, novel])
+    result, sfm = run_sfm(tmp_path / "out", images=folder / "images", masks=folder / "masks",
+                          cameras=tmp_path / "cameras.json")
+    assert sfm.summary["mode"] == "known_cameras" and "map" not in sfm.summary["seconds"]
+    # poses and intrinsics exactly as given (no pose estimation), novel camera carried through
+    assert [c.name for c in sfm.cameras] == [*scene.names, "novel_000"]
+    for got, want in zip(sfm.cameras, cams):
+        assert got.image == want.name and got.model == "PINHOLE"
+        np.testing.assert_allclose(got.cam_from_world, want.cam_from_world, atol=1e-12)
+        np.testing.assert_allclose(got.K, want.K, atol=1e-12)
+        assert sfm.mask_path(got.image) is not None
+    assert sfm.cameras[-1].image is None
+    np.testing.assert_allclose(sfm.cameras[-1].cam_from_world, novel.cam_from_world)
+    assert sfm.points.obs_view.max() < len(scene.names)  # the novel camera has no observations
+    # triangulated points lie on the true surfaces (no similarity alignment: same world frame)
+    d = distance_to_geometry(scene, sfm.points.xyz)
+    extent = scene_extent(scene)
+    assert len(d) > 300
+    assert np.median(d) < 0.01 * extent and np.mean(d < 0.05 * extent) > 0.85, (np.median(d), extent)
+
+
+def test_known_cameras_from_transforms_json(scene_dir, tmp_path):
+    scene, folder = scene_dir
+    _, sfm = run_sfm(tmp_path / "out", images=folder / "images", cameras=folder / "transforms.json")
+    assert sfm.summary["mode"] == "known_cameras" and len(sfm.cameras) == len(scene.cameras)
+    for got, want in zip(sfm.cameras, scene.cameras):
+        np.testing.assert_allclose(got.cam_from_world, want.cam_from_world, atol=1e-9)
+    assert np.median(distance_to_geometry(scene, sfm.points.xyz)) < 0.01 * scene_extent(scene)
+
+
+def _distort(img: np.ndarray, K: np.ndarray, dist: np.ndarray, interpolation: int) -> np.ndarray:
+    """Render what an OPENCV-distorted camera with the same K sees, from an undistorted image."""
+    h, w = img.shape[:2]
+    u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)  # pixel centres, corner convention
+    pts = np.stack([u.ravel(), v.ravel()], 1).reshape(-1, 1, 2)
+    und = cv2.undistortPoints(pts, K, dist, criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10))
+    und = und.reshape(-1, 2)
+    src = und @ K[:2, :2].T + K[:2, 2] - 0.5  # cv2.remap: integer = pixel centre
+    mx, my = src[:, 0].reshape(h, w).astype(np.float32), src[:, 1].reshape(h, w).astype(np.float32)
+    return cv2.remap(img, mx, my, interpolation, borderMode=cv2.BORDER_REFLECT)
+
+
+def test_known_distorted_cameras_are_undistorted(scene_dir, tmp_path):
+    """Distorted photos + an OPENCV camera file: images and masks come out PINHOLE and aligned."""
+    scene, folder = scene_dir
+    dist = np.array([-0.12, 0.02, 0.001, -0.001])
+    (tmp_path / "images").mkdir()
+    (tmp_path / "masks").mkdir()
+    cams = []
+    names = scene.names[:10]
+    for cam in scene.cameras[:10]:
+        rgb = read_rgb8(folder / "images" / f"{cam.name}.png")
+        mask = read_mask(folder / "masks" / f"{cam.name}.png").astype(np.uint8) * 255
+        distorted = _distort(rgb, cam.K, dist, cv2.INTER_CUBIC)
+        cv2.imwrite(str(tmp_path / "images" / f"{cam.name}.png"), distorted[..., ::-1])
+        cv2.imwrite(str(tmp_path / "masks" / f"{cam.name}.png"), _distort(mask, cam.K, dist, cv2.INTER_NEAREST))
+        cams.append(Camera(cam.name, cam.width, cam.height, cam.K, cam.cam_from_world, cam.name,
+                           model="OPENCV", distortion=dist.tolist()))
+    save_cameras(tmp_path / "cameras.json", cams)
+    _, sfm = run_sfm(tmp_path / "out", images=tmp_path / "images", masks=tmp_path / "masks",
+                     cameras=tmp_path / "cameras.json")
+    assert sfm.summary["undistorted"] == 10
+    for cam, name in zip(sfm.cameras, names):
+        assert cam.model == "PINHOLE" and cam.distortion == [] and cam.image == name
+        true = scene.cameras[scene.names.index(name)]
+        np.testing.assert_allclose(cam.cam_from_world, true.cam_from_world)
+        # where each output pixel's ray lands in the original (undistorted) render
+        u, v = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
+        rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(cam.K).T
+        src = rays[..., :2] / rays[..., 2:] @ true.K[:2, :2].T + true.K[:2, 2] - 0.5
+        mx, my = src[..., 0].astype(np.float32), src[..., 1].astype(np.float32)
+        inside = (mx > 2) & (my > 2) & (mx < true.width - 3) & (my < true.height - 3)
+        assert inside.mean() > 0.8
+        want = cv2.remap(scene.images[scene.names.index(name)], mx, my, cv2.INTER_LINEAR)
+        got = read_rgb8(sfm.image_path(name)).astype(np.float32) / 255
+        assert got.shape == want.shape
+        assert np.abs(got - want)[inside].mean() < 0.03
+        want_mask = cv2.remap(scene.masks[scene.names.index(name)].astype(np.uint8), mx, my,
+                              cv2.INTER_NEAREST).astype(bool)
+        got_mask = read_mask(sfm.mask_path(name))
+        if want_mask[inside].sum() > 200:
+            assert iou(got_mask & inside, want_mask & inside) > 0.95
+    assert np.median(distance_to_geometry(scene, sfm.points.xyz)) < 0.01 * scene_extent(scene)
+
+
+# --------------------------------------------------------------------------------------------------
+# small units
+
+
+def test_choose_matcher_and_params():
+    p = SfmParams()
+    assert (p.matcher, p.mapper, p.max_image_size, p.min_registered_fraction) == ("auto", "incremental", 1600, 0.8)
+    assert choose_matcher(p, 50) == "exhaustive" and choose_matcher(p, 51) == "sequential"
+    assert choose_matcher(SfmParams(matcher="sequential"), 10) == "sequential"
+
+
+def test_colmap_camera_conversion_and_mask_undistortion():
+    K = np.array([[200.0, 0, 128], [0, 200.0, 96], [0, 0, 1]])
+    cam = Camera("a", 256, 192, K, np.eye(4), "a", model="SIMPLE_RADIAL", distortion=[-0.2])
+    assert has_distortion(cam) and not has_distortion(Camera("b", 256, 192, K, np.eye(4), model="OPENCV",
+                                                             distortion=[0, 0, 0, 0]))
+    pc = to_colmap_camera(cam)
+    assert pc.model.name == "SIMPLE_RADIAL" and np.allclose(pc.params, [200, 128, 96, -0.2])
+    with pytest.raises(PipelineError):
+        to_colmap_camera(Camera("c", 256, 192, K, np.eye(4), model="OPENCV", distortion=[0.1]))
+    mask = np.zeros((192, 256), bool)
+    mask[80:112, 110:146] = True  # near the centre, where radial distortion is small
+    out = undistort_mask(mask, pc, undistort_options())
+    assert out.dtype == bool and 0.8 < out.sum() / mask.sum() < 1.3
+
+
+def test_points_load_without_observations(tmp_path):
+    """points.npz written by other tools (e.g. fit's write_known_sfm) may lack the observation arrays."""
+    from sgpor_pipeline.sfm import SfmPoints
+
+    np.savez(tmp_path / "points.npz", xyz=np.ones((5, 3)), rgb=np.zeros((5, 3), np.uint8))
+    p = SfmPoints.load(tmp_path / "points.npz")
+    assert len(p) == 5 and p.error.shape == (5,) and p.obs_xy.shape == (0, 2)
+    assert p.seen_in(0)[0].size == 0

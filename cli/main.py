@@ -68,6 +68,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, default=Path("runs/demo"), help="output folder (default: runs/demo)")
     p.add_argument("--seed", type=int, default=0, help="seed of the synthetic scene (default 0)")
     p.add_argument("--rig", choices=["inward", "forward"], default="inward", help="camera rig (default inward)")
+    p.add_argument("--estimate-cameras", action="store_true",
+                   help="estimate the cameras with SfM instead of importing the generator's exact ones "
+                        "(reliable with --rig forward; the inward room repeats its wall textures)")
     _add_run_options(p)
 
     p = sub.add_parser("status", help="show each stage of a run folder: hit / missing / stale, time, size",
@@ -112,7 +115,10 @@ def cmd_demo(args: argparse.Namespace) -> int:
     from sgpor_pipeline.synthetic import SceneParams
 
     scene_dir = ensure_demo_scene(args.out.resolve() / "scene", SceneParams(seed=args.seed, rig=args.rig))
+    # The generator's exact cameras by default: the ground truth then matches the views pixel for
+    # pixel (SfM's undistortion crops the images) and the demo measures removal, not SfM.
     inputs = RunInputs(images=scene_dir / "images", masks=scene_dir / "masks",
+                       cameras=None if args.estimate_cameras else scene_dir / "cameras.json",
                        extra={"groundtruth": scene_dir / "groundtruth"})
     return _run(args, inputs)
 

@@ -41,6 +41,10 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    help="override one parameter, e.g. --set fit.iterations=3000 (repeatable)")
     p.add_argument("--export", metavar="LIST", help="comma-separated export formats (default: all installed), "
                                                     "same as --set export.formats=[...]")
+    p.add_argument("--up", metavar="AXIS", help="up axis of the export frame: auto (from the cameras), ring, "
+                                                "cameras, or an SfM axis such as -y (same as --set export.up=...)")
+    p.add_argument("--scale", metavar="S", type=float,
+                   help="metres per SfM unit for the export (otherwise units are arbitrary and the files say so)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -101,6 +105,10 @@ def _run(args: argparse.Namespace, inputs: object) -> int:
     if args.export:
         names = [n.strip() for n in args.export.split(",") if n.strip()]
         overrides.append(f"export.formats={names!r}".replace("'", '"'))
+    if args.up:
+        overrides.append(f'export.up="{args.up}"')
+    if args.scale is not None:
+        overrides.append(f"export.scale={args.scale!r}")
     t0 = time.perf_counter()
     result = run_pipeline(args.out, inputs, config_file=args.config, overrides=overrides, until=args.until,
                           force=args.force, debug=args.debug)

@@ -17,6 +17,18 @@ from sgpor_pipeline.errors import PipelineError
 @dataclass
 class ExportParams:
     formats: list[str] = field(default_factory=lambda: ["all"])  # exporter names, or "all"
+    # The export frame (sgpor_pipeline.orientation): Z up, metres when a scale is known.
+    up: str = "auto"  # auto, cameras, ring, +x, -x, +y, -y, +z, -z
+    scale: float | None = None  # metres per SfM unit; None (and no known_distance): arbitrary units
+    known_distance: list | None = None  # [camera_a, camera_b, metres between their centres]
+    origin: str = "floor"  # floor, center, none
+    # The mesh (sgpor_pipeline.meshing.MeshSettings, fields prefixed "mesh_").
+    mesh_target_faces: int = 200_000
+    mesh_voxel_rel: float = 1.0 / 128.0  # TSDF voxel relative to the scene radius
+    mesh_alpha_min: float = 0.5  # fuse depth only where the Gaussians are this opaque
+    mesh_max_size: int = 640  # longest side of the depth renders fused
+    mesh_depth_mode: str = "planar"  # planar (unbiased) or expected (the rasterizer's ED)
+    mesh_extra_views: int = 0  # views interpolated between neighbouring cameras where coverage is thin
 
 
 def selected_exporters(params: ExportParams) -> dict[str, type[Exporter]]:
@@ -42,6 +54,7 @@ class ExportStage(Stage):
     VERSION = 1
     Params = ExportParams
     materialize_to = "export"
+    libraries = ("open3d", "usd-core", "trimesh")  # mesh and USD bytes are not stable across versions
 
     @classmethod
     def upstream(cls, params: ExportParams) -> tuple[str, ...]:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -64,8 +65,12 @@ def toy_stages(toy_module):
 def plugin_site(tmp_path_factory) -> Path:
     """The toy plugin really installed (pip, entry points in its dist-info) into a private folder."""
     site = tmp_path_factory.mktemp("plugin_site")
+    # Build from a copy: setuptools leaves build/ and *.egg-info beside the sources, and an egg-info
+    # inside tests/ would make the plugin visible to every test process.
+    src = tmp_path_factory.mktemp("plugin_src") / "plugin"
+    shutil.copytree(PLUGIN_SRC, src, ignore=shutil.ignore_patterns("build", "*.egg-info", "__pycache__"))
     subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation", "--no-index",
-                    "--target", str(site), str(PLUGIN_SRC)], check=True, capture_output=True)
+                    "--target", str(site), str(src)], check=True, capture_output=True)
     return site
 
 

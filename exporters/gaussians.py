@@ -1,0 +1,242 @@
+"""Gaussians: ``scene.ply`` (INRIA 3DGS layout, read by SuperSplat and most splat viewers) and
+``scene.splat`` (antimatter15's 32-byte records), both in the export frame (Z up, metres when a
+scale is known; see :mod:`sgpor_pipeline.orientation`), plus ``export_frame.json`` with the similarity
+from the SfM frame (the frame of ``cameras/`` and of the stage cache) to the export frame.
+
+This module is also the one place that says where the exporters read the scene from
+(:data:`SCENE_STAGE`), and holds the writers of the removed object's own asset
+(:func:`write_object_assets`), which the ``remove`` stage or a future ``object`` exporter calls.
+
+A user can bring Gaussians from another trainer: :func:`sgpor_pipeline.gaussians.ply.read_ply`
+reads any INRIA-layout PLY (SH degree 0..3), and what it reads writes back bit-exactly.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sgpor_pipeline.dag import Exporter, StageContext
+from sgpor_pipeline.orientation import ExportFrame, FrameSettings, compute_export_frame, transform_model
+from sgpor_pipeline.scene import Camera, load_cameras
+
+#: The stage whose cache folder holds the scene's Gaussians (``gaussians.ply``) that every exporter
+#: reads. ``finetune`` (the cleaned scene) replaces ``fit`` here once it exists.
+SCENE_STAGE = "finetune"
+#: File name of the Gaussians in the :data:`SCENE_STAGE` folder (INRIA 3DGS PLY layout).
+SCENE_FILE = "gaussians.ply"
+#: The stage whose folder holds ``cameras.json`` and ``images/<view>.png``.
+CAMERAS_STAGE = "sfm"
+FRAME_FILE = "export_frame.json"
+
+log = logging.getLogger(__name__)
+
+
+def scene_path(ctx: StageContext) -> Path:
+    return ctx.inputs[SCENE_STAGE] / SCENE_FILE
+
+
+def load_scene(ctx: StageContext) -> Any:
+    """The scene's GaussianModel in the SfM frame."""
+    from sgpor_pipeline.gaussians.ply import read_ply
+
+    return read_ply(scene_path(ctx))
+
+
+def load_run_cameras(ctx: StageContext) -> list[Camera]:
+    """All cameras of the run (registered views with ``image`` set, novel cameras with None), SfM frame."""
+    return load_cameras(ctx.inputs[CAMERAS_STAGE] / "cameras.json")
+
+
+def registered(cameras: list[Camera]) -> list[Camera]:
+    return [c for c in cameras if c.image is not None]
+
+
+def scene_background(ctx: StageContext) -> list[float] | None:
+    """The background colour the scene was fitted with (``fit.json`` "background"), if recorded."""
+    path = ctx.inputs.get("fit", ctx.inputs[SCENE_STAGE]) / "fit.json"
+    try:
+        bg = json.loads(path.read_text()).get("background")
+    except (OSError, ValueError, AttributeError):
+        return None
+    if isinstance(bg, (list, tuple)) and len(bg) == 3 and all(isinstance(v, (int, float)) for v in bg):
+        return [float(v) for v in bg]
+    return None
+
+
+def export_frame(ctx: StageContext, model: Any, cameras: list[Camera], out_dir: Path | None = None) -> ExportFrame:
+    """The export frame of this run; written to ``export_frame.json`` (and logged) the first time."""
+    import torch
+
+    settings = FrameSettings.from_params(ctx.params)
+    with torch.no_grad():
+        opac = model.opacities_activated().numpy()
+    frame = compute_export_frame(registered(cameras) or cameras, settings, model.numpy()["means"], opac)
+    if out_dir is not None and not (out_dir / FRAME_FILE).exists():
+        (out_dir / FRAME_FILE).write_text(json.dumps(frame.to_dict(), indent=1))
+        ctx.log.info(frame.describe())
+        if not frame.metric:
+            ctx.log.warning("export: no scale given, the exported scene is in arbitrary units (recorded as "
+                            "sgpor:units = 'arbitrary' in the USD and in export_frame.json)")
+    return frame
+
+
+def scene_in_export_frame(ctx: StageContext, out_dir: Path) -> tuple[Any, ExportFrame, list[Camera]]:
+    """(GaussianModel in the export frame, the frame, the run's cameras in the SfM frame)."""
+    model = load_scene(ctx)
+    cameras = load_run_cameras(ctx)
+    frame = export_frame(ctx, model, cameras, out_dir)
+    return transform_model(model, frame.transform), frame, cameras
+
+
+def _mb(path: Path) -> str:
+    return f"{path.stat().st_size / 1e6:.1f} MB"
+
+
+class PlyExporter(Exporter):
+    name = "ply"
+    VERSION = 1
+    needs = (CAMERAS_STAGE, SCENE_STAGE)
+    description = "the Gaussians as scene.ply (INRIA 3DGS layout, export frame) and export_frame.json"
+
+    def export(self, ctx: StageContext, out_dir: Path) -> None:
+        from sgpor_pipeline.gaussians.ply import write_ply
+
+        t0 = time.perf_counter()
+        model, _, _ = scene_in_export_frame(ctx, out_dir)
+        path = write_ply(out_dir / "scene.ply", model)
+        ctx.log.info(f"ply: {len(model)} Gaussians -> {path.name} ({_mb(path)}) in {time.perf_counter() - t0:.1f} s")
+
+
+class SplatExporter(Exporter):
+    name = "splat"
+    VERSION = 1
+    needs = (CAMERAS_STAGE, SCENE_STAGE)
+    description = "the Gaussians as scene.splat (antimatter15 format, export frame, DC colour only)"
+
+    def export(self, ctx: StageContext, out_dir: Path) -> None:
+        from sgpor_pipeline.splat_io import write_splat
+
+        t0 = time.perf_counter()
+        model, _, _ = scene_in_export_frame(ctx, out_dir)
+        path = write_splat(out_dir / "scene.splat", model)
+        ctx.log.info(f"splat: {len(model)} Gaussians -> {path.name} ({_mb(path)}) in "
+                     f"{time.perf_counter() - t0:.1f} s")
+
+
+# --------------------------------------------------------------------------------------------------
+# the removed object as its own asset
+
+
+def write_object_assets(folder: Path, object_model: Any, cameras: list[Camera], frame: ExportFrame,
+                        mesh_settings: Any = None, background: list[float] | None = None,
+                        mesh: bool = True) -> list[Path]:
+    """Write the removed object's Gaussians and mesh as ``folder/object/object.ply`` and ``object.glb``.
+
+    ``object_model``: a GaussianModel of the object alone, in the SfM frame (the frame of
+    ``cameras``); ``frame``: the run's export frame (:func:`export_frame`), so the object lands where
+    it stood in the exported scene. The mesh is fused from renders of the object alone at the
+    registered ``cameras`` (see :func:`sgpor_pipeline.meshing.mesh_from_gaussians`); its components
+    are not filtered (the object may be small) and its faces are limited to a quarter of the scene
+    mesh's. Returns the files written.
+    """
+    from dataclasses import replace
+
+    from sgpor_pipeline.gaussians.ply import write_ply
+    from sgpor_pipeline.meshing import MeshSettings, mesh_from_gaussians
+    from sgpor_pipeline.orientation import scene_center_radius
+
+    from .mesh import write_mesh
+
+    out = Path(folder) / "object"
+    out.mkdir(parents=True, exist_ok=True)
+    written = [write_ply(out / "object.ply", transform_model(object_model, frame.transform))]
+    if mesh and len(object_model):
+        s = mesh_settings or MeshSettings()
+        s = replace(s, min_component_rel=0.0, target_faces=max(1000, s.target_faces // 4))
+        cams = registered(cameras) or cameras
+        _, radius = scene_center_radius(cams)
+        m = mesh_from_gaussians(object_model, cams, s, scene_radius=radius, background=background)
+        if len(m):
+            written += write_mesh(m.transformed(frame.transform), out, "object", formats=("glb",))
+    return written
+
+
+class ObjectExporter(Exporter):
+    """The removed object as its own asset (``object/object.ply`` + ``object/object.glb``).
+
+    NOT registered yet: it needs the ``remove`` stage, which does not exist. Expected contract
+    (to confirm with the remove stage): ``<remove folder>/object.ply``, the object's Gaussians in the
+    INRIA layout, SfM frame. Register with
+    ``object = "sgpor_pipeline.exporters.gaussians:ObjectExporter"`` once it does.
+    """
+
+    name = "object"
+    VERSION = 1
+    needs = (CAMERAS_STAGE, SCENE_STAGE, "remove")
+    description = "the removed object as object/object.ply and object/object.glb (export frame)"
+    OBJECT_FILE = "object.ply"
+
+    def export(self, ctx: StageContext, out_dir: Path) -> None:
+        from sgpor_pipeline.gaussians.ply import read_ply
+        from sgpor_pipeline.meshing import MeshSettings
+
+        t0 = time.perf_counter()
+        scene = load_scene(ctx)
+        cameras = load_run_cameras(ctx)
+        frame = export_frame(ctx, scene, cameras, out_dir)
+        obj = read_ply(ctx.inputs["remove"] / self.OBJECT_FILE)
+        files = write_object_assets(out_dir, obj, cameras, frame, MeshSettings.from_params(ctx.params),
+                                    scene_background(ctx))
+        ctx.log.info(f"object: {len(obj)} Gaussians -> {', '.join(p.name for p in files)} in "
+                     f"{time.perf_counter() - t0:.1f} s")
+
+
+def frame_matrix(out_dir: Path) -> np.ndarray | None:
+    """The 4x4 export_from_sfm matrix recorded in ``export_frame.json`` of an export folder, if any."""
+    path = Path(out_dir) / FRAME_FILE
+    if not path.is_file():
+        return None
+    return np.array(json.loads(path.read_text())["export_from_sfm"]["matrix"])
+
+
+def export_external(ply: Path, cameras_json: Path, out_dir: Path,
+                    formats: tuple[str, ...] = ("ply", "splat", "mesh", "usd", "renders"), params: Any = None) -> Path:
+    """Run exporters on Gaussians from another trainer: an INRIA-layout PLY (any SH degree) and the
+    cameras it was trained with (a ``cameras.json`` of :mod:`sgpor_pipeline.scene`, same frame).
+
+    The PLY is read with :func:`sgpor_pipeline.gaussians.ply.read_ply` (exact). ``params``: the
+    export stage's parameters (default ``ExportParams()``). Returns ``out_dir``.
+    """
+    import shutil
+    import tempfile
+
+    from sgpor_pipeline.dag import RunInputs, discover_exporters
+    from sgpor_pipeline.gaussians.ply import read_ply, write_ply
+    from sgpor_pipeline.stages.export import ExportParams
+
+    exporters = discover_exporters()
+    unknown = [f for f in formats if f not in exporters]
+    if unknown:
+        from sgpor_pipeline.errors import PipelineError
+
+        raise PipelineError(f"unknown export format(s) {unknown}", fix=f"choose from {', '.join(sorted(exporters))}")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix="sgpor-export-") as tmp:
+        scene_dir, cam_dir = Path(tmp) / SCENE_STAGE, Path(tmp) / CAMERAS_STAGE
+        scene_dir.mkdir()
+        cam_dir.mkdir()
+        write_ply(scene_dir / SCENE_FILE, read_ply(ply))  # validates the file
+        shutil.copyfile(cameras_json, cam_dir / "cameras.json")
+        ctx = StageContext(stage="export", params=params or ExportParams(), out_dir=out_dir,
+                           inputs={SCENE_STAGE: scene_dir, CAMERAS_STAGE: cam_dir},
+                           run_inputs=RunInputs(images=Path(tmp)), log=log, seed_key="external")
+        for name in formats:
+            exporters[name]().export(ctx, out_dir)
+    return out_dir

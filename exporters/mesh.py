@@ -1,0 +1,114 @@
+"""mesh: a coloured triangle mesh of the scene, fused from depth rendered from the Gaussians.
+
+``mesh.glb`` (glTF: Y up, as glTF requires), ``mesh.obj`` and ``mesh.ply`` (export frame: Z up),
+all with vertex colours. How the mesh is made: :mod:`sgpor_pipeline.meshing`.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sgpor_pipeline.dag import Exporter, StageContext
+from sgpor_pipeline.meshing import MeshData, MeshSettings, mesh_from_gaussians
+from sgpor_pipeline.orientation import ExportFrame, scene_center_radius
+from sgpor_pipeline.scene import Camera
+
+from .gaussians import (
+    CAMERAS_STAGE,
+    SCENE_STAGE,
+    export_frame,
+    load_run_cameras,
+    load_scene,
+    registered,
+    scene_background,
+)
+
+#: glTF is Y up: (x, y, z) in the Z-up export frame -> (x, z, -y)
+GLTF_FROM_ZUP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+MESH_FILE = "mesh.ply"
+
+
+def _trimesh(mesh: MeshData, rotation: np.ndarray | None = None):
+    import trimesh
+
+    v = np.asarray(mesh.vertices, np.float64)
+    n = None if mesh.normals is None else np.asarray(mesh.normals, np.float64)
+    if rotation is not None:
+        v = v @ rotation.T
+        n = None if n is None else n @ rotation.T
+    rgba = np.concatenate([np.clip(np.round(mesh.colors * 255), 0, 255).astype(np.uint8),
+                           np.full((len(v), 1), 255, np.uint8)], axis=1)
+    return trimesh.Trimesh(v, np.asarray(mesh.faces, np.int64), vertex_normals=n, vertex_colors=rgba, process=False)
+
+
+def write_mesh(mesh: MeshData, folder: Path, stem: str = "mesh",
+               formats: Sequence[str] = ("glb", "obj", "ply")) -> list[Path]:
+    """Write a mesh given in the Z-up export frame: ``.glb`` rotated to Y up, ``.obj``/``.ply`` as is."""
+    written = []
+    for fmt in formats:
+        path = Path(folder) / f"{stem}.{fmt}"
+        tm = _trimesh(mesh, GLTF_FROM_ZUP if fmt in ("glb", "gltf") else None)
+        if fmt == "obj":
+            data = tm.export(file_type="obj", include_color=True, include_normals=True)
+            path.write_text(data)
+        else:
+            tm.export(path, file_type=fmt)
+        written.append(path)
+    return written
+
+
+def read_mesh_ply(path: Path) -> MeshData:
+    """A mesh written by :func:`write_mesh` as ``.ply`` (export frame)."""
+    import trimesh
+
+    tm = trimesh.load(path, process=False, force="mesh")
+    colors = np.asarray(tm.visual.vertex_colors)[:, :3].astype(np.float32) / 255.0 if tm.visual.kind == "vertex" \
+        else np.full((len(tm.vertices), 3), 0.5, np.float32)
+    return MeshData(np.asarray(tm.vertices, np.float64), np.asarray(tm.faces, np.int64), colors,
+                    np.asarray(tm.vertex_normals, np.float64))
+
+
+def scene_mesh(ctx: StageContext, out_dir: Path, model: Any = None, cameras: list[Camera] | None = None,
+               frame: ExportFrame | None = None) -> MeshData:
+    """The scene mesh in the export frame: ``mesh.ply`` of this export run when the mesh exporter
+    already wrote it, else made now (not written)."""
+    path = out_dir / MESH_FILE
+    if path.is_file():
+        return read_mesh_ply(path)
+    model = model if model is not None else load_scene(ctx)
+    cameras = cameras if cameras is not None else load_run_cameras(ctx)
+    frame = frame or export_frame(ctx, model, cameras, out_dir)
+    return _make_mesh(ctx, model, cameras).transformed(frame.transform)
+
+
+def _make_mesh(ctx: StageContext, model, cameras) -> MeshData:
+    cams = registered(cameras) or cameras
+    _, radius = scene_center_radius(cams)
+    return mesh_from_gaussians(model, cams, MeshSettings.from_params(ctx.params), scene_radius=radius,
+                               background=scene_background(ctx))
+
+
+class MeshExporter(Exporter):
+    name = "mesh"
+    VERSION = 1
+    needs = (CAMERAS_STAGE, SCENE_STAGE)
+    description = "a coloured mesh (TSDF of rendered depth) as mesh.glb (Y up), mesh.obj and mesh.ply (Z up)"
+
+    def export(self, ctx: StageContext, out_dir: Path) -> None:
+        t0 = time.perf_counter()
+        model = load_scene(ctx)
+        cameras = load_run_cameras(ctx)
+        frame = export_frame(ctx, model, cameras, out_dir)
+        mesh = _make_mesh(ctx, model, cameras)
+        if len(mesh) == 0:
+            ctx.log.warning("mesh: the fused mesh is empty (no opaque surface seen by the cameras): "
+                            "no mesh files written")
+            return
+        files = write_mesh(mesh.transformed(frame.transform), out_dir, "mesh")
+        ctx.log.info(f"mesh: {len(mesh)} faces, {len(mesh.vertices)} vertices -> "
+                     f"{', '.join(p.name for p in files)} in {time.perf_counter() - t0:.1f} s")

@@ -1,0 +1,180 @@
+// C ABI of the CPU rasterizer (loaded with ctypes by sgpor_pipeline/gaussians/_raster_cpu.py).
+//
+// Every function exists for float ("_f32") and double ("_f64"); arrays are contiguous, row-major,
+// with the shapes given in raster.h. Scalars that are floating point are passed as double.
+#include "raster.h"
+
+using namespace sgpor;
+
+namespace {
+
+template <typename T, int TS, int CH>
+void fwd_impl(int C, int N, int W, int H, const T* means2d, const T* conics, const T* feats,
+              const T* opac, const int32_t* rect, const int64_t* tile_off, const Isect* isect,
+              const int64_t* goff, const uint8_t* cmask, T* out, T* alpha,
+              T* tfinal, int32_t* last, T* contrib, void* packed, int nthreads) {
+  // the packed Gaussians are kept by the caller for the backward
+  GaussPix<T, CH>* gp = static_cast<GaussPix<T, CH>*>(packed);
+  pack_gaussians<T, CH>(C, N, means2d, conics, feats, opac, rect, gp, nthreads);
+  raster_fwd<T, TS, CH>(C, N, W, H, gp, tile_off, isect, goff, cmask, out, alpha, tfinal, last,
+                        contrib, nthreads);
+}
+
+template <typename T, int TS, int CH>
+void bwd_impl(int C, int N, int W, int H, const void* packed, const int64_t* tile_off,
+              const Isect* isect, const int64_t* goff, const T* tfinal,
+              const int32_t* last, const T* g_out, const T* g_alpha, T* g_means2d, T* g_conics,
+              T* g_feats, T* g_opac, int nthreads) {
+  const GaussPix<T, CH>* gp = static_cast<const GaussPix<T, CH>*>(packed);
+  raster_bwd<T, TS, CH>(C, N, W, H, gp, tile_off, isect, goff, tfinal, last, g_out, g_alpha,
+                        g_means2d, g_conics, g_feats, g_opac, nthreads);
+}
+
+template <typename T, int TS>
+int fwd_ch(int CH, int C, int N, int W, int H, const T* m2, const T* con, const T* f, const T* o,
+           const int32_t* rect, const int64_t* to, const Isect* isect, const int64_t* goff, const uint8_t* cm, T* out, T* al, T* tf, int32_t* last, T* contrib,
+           void* pk, int nt) {
+  switch (CH) {
+    case 1: fwd_impl<T, TS, 1>(C, N, W, H, m2, con, f, o, rect, to, isect, goff, cm, out, al, tf, last, contrib, pk, nt); return 0;
+    case 2: fwd_impl<T, TS, 2>(C, N, W, H, m2, con, f, o, rect, to, isect, goff, cm, out, al, tf, last, contrib, pk, nt); return 0;
+    case 3: fwd_impl<T, TS, 3>(C, N, W, H, m2, con, f, o, rect, to, isect, goff, cm, out, al, tf, last, contrib, pk, nt); return 0;
+    case 4: fwd_impl<T, TS, 4>(C, N, W, H, m2, con, f, o, rect, to, isect, goff, cm, out, al, tf, last, contrib, pk, nt); return 0;
+    default: return -1;
+  }
+}
+
+template <typename T, int TS>
+int bwd_ch(int CH, int C, int N, int W, int H, const void* pk, const int64_t* to,
+           const Isect* isect, const int64_t* goff, const T* tf,
+           const int32_t* last, const T* go, const T* ga, T* gm2, T* gcon, T* gf, T* gop, int nt) {
+  switch (CH) {
+    case 1: bwd_impl<T, TS, 1>(C, N, W, H, pk, to, isect, goff, tf, last, go, ga, gm2, gcon, gf, gop, nt); return 0;
+    case 2: bwd_impl<T, TS, 2>(C, N, W, H, pk, to, isect, goff, tf, last, go, ga, gm2, gcon, gf, gop, nt); return 0;
+    case 3: bwd_impl<T, TS, 3>(C, N, W, H, pk, to, isect, goff, tf, last, go, ga, gm2, gcon, gf, gop, nt); return 0;
+    case 4: bwd_impl<T, TS, 4>(C, N, W, H, pk, to, isect, goff, tf, last, go, ga, gm2, gcon, gf, gop, nt); return 0;
+    default: return -1;
+  }
+}
+
+}  // namespace
+
+#define SGPOR_API extern "C" __attribute__((visibility("default")))
+
+SGPOR_API int sgpor_abi_version() { return 1; }
+
+SGPOR_API int sgpor_cpu_level() {
+#if defined(__x86_64__) || defined(__i386__)
+  __builtin_cpu_init();
+  if (__builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512bw") &&
+      __builtin_cpu_supports("avx512vl") && __builtin_cpu_supports("avx512dq") &&
+      __builtin_cpu_supports("avx512cd") && __builtin_cpu_supports("avx2") &&
+      __builtin_cpu_supports("fma") && __builtin_cpu_supports("bmi2"))
+    return 4;
+  if (__builtin_cpu_supports("avx2") && __builtin_cpu_supports("fma") &&
+      __builtin_cpu_supports("bmi2") && __builtin_cpu_supports("f16c"))
+    return 3;
+  if (__builtin_cpu_supports("sse4.2") && __builtin_cpu_supports("popcnt")) return 2;
+  return 1;
+#else
+  return 0;
+#endif
+}
+
+SGPOR_API void sgpor_last_stats(int64_t* out) {
+  for (int i = 0; i < 4; ++i) out[i] = stats_slots()[i];
+}
+
+// Number of NaN/inf values (exponent bits all ones), by integer bit tests: the kernel is built
+// with -ffinite-math-only, under which std::isfinite may be folded to true. Serial on purpose
+// (a few microseconds per 100k values; no parallel region).
+SGPOR_API int64_t sgpor_count_nonfinite_f32(const uint32_t* x, int64_t n) {
+  int64_t bad = 0;
+#pragma omp simd reduction(+ : bad)
+  for (int64_t i = 0; i < n; ++i) bad += (x[i] & 0x7f800000u) == 0x7f800000u;
+  return bad;
+}
+SGPOR_API int64_t sgpor_count_nonfinite_f64(const uint64_t* x, int64_t n) {
+  int64_t bad = 0;
+#pragma omp simd reduction(+ : bad)
+  for (int64_t i = 0; i < n; ++i) bad += (x[i] & 0x7ff0000000000000ull) == 0x7ff0000000000000ull;
+  return bad;
+}
+
+SGPOR_API int sgpor_max_threads() {
+#ifdef _OPENMP
+  return omp_get_max_threads();
+#else
+  return 1;
+#endif
+}
+
+#define SGPOR_DEFINE(T, SUF)                                                                        \
+  SGPOR_API int64_t sgpor_project_fwd_##SUF(                                                        \
+      int C, int N, const T* means, const T* quats, const T* scales, const T* opac,                \
+      const T* viewmats, const T* Ks, int W, int H, double near, double far, double eps2d,         \
+      int tile, T* means2d, T* conics, T* depths, int32_t* radii, int32_t* rect, int32_t* ntiles,  \
+      int nthreads) {                                                                               \
+    return project_fwd<T>(C, N, means, quats, scales, opac, viewmats, Ks, W, H, T(near), T(far),   \
+                          T(eps2d), tile, means2d, conics, depths, radii, rect, ntiles, nthreads); \
+  }                                                                                                 \
+  SGPOR_API void sgpor_project_bwd_##SUF(                                                           \
+      int C, int N, const T* means, const T* quats, const T* scales, const T* viewmats,            \
+      const T* Ks, int W, int H, double near, double far, double eps2d, const int32_t* radii,      \
+      const T* g_means2d, const T* g_conics, const T* g_depths, T* g_means, T* g_quats,            \
+      T* g_scales, int nthreads) {                                                                  \
+    project_bwd<T>(C, N, means, quats, scales, viewmats, Ks, W, H, T(near), T(far), T(eps2d),      \
+                   radii, g_means2d, g_conics, g_depths, g_means, g_quats, g_scales, nthreads);     \
+  }                                                                                                 \
+  SGPOR_API void sgpor_sh_fwd_##SUF(int C, int N, int K, int deg, const T* means, const T* sh,     \
+                                    const T* viewmats, T* rgb, int nthreads) {                      \
+    sh_fwd<T>(C, N, K, deg, means, sh, viewmats, rgb, nthreads);                                    \
+  }                                                                                                 \
+  SGPOR_API void sgpor_sh_bwd_##SUF(int C, int N, int K, int deg, const T* means, const T* sh,     \
+                                    const T* viewmats, const T* g_rgb, T* g_means, T* g_sh,         \
+                                    int nthreads) {                                                 \
+    sh_bwd<T>(C, N, K, deg, means, sh, viewmats, g_rgb, g_means, g_sh, nthreads);                   \
+  }                                                                                                 \
+  SGPOR_API void sgpor_bin_##SUF(int C, int N, int W, int H, int tile, const T* depths,            \
+                                 const int32_t* rect, const int32_t* ntiles, int64_t* tile_off,     \
+                                 Isect* isect, int64_t* gauss_off,                                  \
+                                 int nthreads) {                                                    \
+    bin<T>(C, N, W, H, tile, depths, rect, ntiles, tile_off, isect, gauss_off, nthreads);           \
+  }                                                                                                 \
+  SGPOR_API int sgpor_raster_fwd_##SUF(                                                             \
+      int C, int N, int CH, int W, int H, int tile, const T* means2d, const T* conics,              \
+      const T* feats, const T* opac, const int32_t* rect, const int64_t* tile_off,                  \
+      const Isect* isect, const int64_t* goff, const uint8_t* cmask, T* out,                        \
+      T* alpha, T* tfinal, int32_t* last, T* contrib, void* packed, int nthreads) {                 \
+    if (tile == 8)                                                                                  \
+      return fwd_ch<T, 8>(CH, C, N, W, H, means2d, conics, feats, opac, rect, tile_off, isect,   \
+                          goff, cmask, out, alpha, tfinal, last, contrib, packed, nthreads);        \
+    if (tile == 16)                                                                                 \
+      return fwd_ch<T, 16>(CH, C, N, W, H, means2d, conics, feats, opac, rect, tile_off, isect,  \
+                           goff, cmask, out, alpha, tfinal, last, contrib, packed, nthreads);       \
+    return -2;                                                                                      \
+  }                                                                                                 \
+  SGPOR_API int sgpor_raster_bwd_##SUF(                                                             \
+      int C, int N, int CH, int W, int H, int tile, const void* packed, const int64_t* tile_off,    \
+      const Isect* isect, const int64_t* goff, const T* tfinal,                                     \
+      const int32_t* last, const T* g_out, const T* g_alpha, T* g_means2d, T* g_conics,            \
+      T* g_feats, T* g_opac, int nthreads) {                                                        \
+    if (tile == 8)                                                                                  \
+      return bwd_ch<T, 8>(CH, C, N, W, H, packed, tile_off, isect, goff, tfinal, last, g_out,    \
+                          g_alpha, g_means2d, g_conics, g_feats, g_opac, nthreads);                 \
+    if (tile == 16)                                                                                 \
+      return bwd_ch<T, 16>(CH, C, N, W, H, packed, tile_off, isect, goff, tfinal, last, g_out,   \
+                           g_alpha, g_means2d, g_conics, g_feats, g_opac, nthreads);                \
+    return -2;                                                                                      \
+  }                                                                                                 \
+  SGPOR_API int64_t sgpor_packed_bytes_##SUF(int CH) {                                              \
+    switch (CH) {                                                                                   \
+      case 1: return sizeof(GaussPix<T, 1>);                                                        \
+      case 2: return sizeof(GaussPix<T, 2>);                                                        \
+      case 3: return sizeof(GaussPix<T, 3>);                                                        \
+      case 4: return sizeof(GaussPix<T, 4>);                                                        \
+      default: return -1;                                                                           \
+    }                                                                                               \
+  }
+
+SGPOR_DEFINE(float, f32)
+SGPOR_DEFINE(double, f64)

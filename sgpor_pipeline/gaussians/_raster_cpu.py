@@ -1,0 +1,358 @@
+"""The ``cpu`` backend: ctypes bindings of the C++ kernel and its autograd Functions.
+
+Graph (all [C,...] tensors are per camera):
+
+    means, quats, scales --_ProjectFn--> means2d, conics, depths (+ radii, rects: no grad)
+    means, SH            --_SHFn------> colours [C,N,3]
+    means2d, conics, features, opacities --_RasterFn--> render, alpha (+ contrib: no grad)
+
+``means2d`` is a real node of the graph, so ``meta["means2d"].retain_grad()`` gives its gradient.
+The binning (depth sort + tile lists) happens between projection and rasterization and has no
+gradient. The shared library is built by setup.py in several x86-64 levels; the best one the CPU
+supports is loaded (env ``SGPOR_KERNEL=v2|v3|v4|native|generic`` forces one).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import importlib.machinery
+import os
+import re
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch.autograd.function import once_differentiable
+
+_PKG_DIR = Path(__file__).resolve().parent.parent
+_lib: ctypes.CDLL | None = None
+_lib_name: str | None = None
+_load_error: str | None = None
+_loaded = False
+
+_P = ctypes.c_void_p
+_I = ctypes.c_int
+_I64 = ctypes.c_int64
+_D = ctypes.c_double
+
+_SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
+    "project_fwd": (_I64, [_I, _I, _P, _P, _P, _P, _P, _P, _I, _I, _D, _D, _D, _I, _P, _P, _P, _P,
+                           _P, _P, _I]),
+    "project_bwd": (None, [_I, _I, _P, _P, _P, _P, _P, _I, _I, _D, _D, _D, _P, _P, _P, _P, _P, _P,
+                           _P, _I]),
+    "sh_fwd": (None, [_I, _I, _I, _I, _P, _P, _P, _P, _I]),
+    "sh_bwd": (None, [_I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _I]),
+    "bin": (None, [_I, _I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _P, _I]),
+    "raster_fwd": (_I, [_I, _I, _I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P,
+                        _P, _P, _P, _I]),
+    "raster_bwd": (_I, [_I, _I, _I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P,
+                        _I]),
+}
+_PREFERENCE = ("native", "x86_64_v4", "x86_64_v3", "x86_64_v2", "generic")
+_LEVEL_OF = {"x86_64_v4": 4, "x86_64_v3": 3, "x86_64_v2": 2}
+
+
+def _candidates() -> dict[str, Path]:
+    found: dict[str, Path] = {}
+    for suffix in importlib.machinery.EXTENSION_SUFFIXES:
+        for path in _PKG_DIR.glob(f"_raster_kernel_*{suffix}"):
+            m = re.match(r"_raster_kernel_(.+?)" + re.escape(suffix) + "$", path.name)
+            if m and m.group(1) not in found:
+                found[m.group(1)] = path
+    return found
+
+
+def _cpuinfo_level() -> int:
+    try:
+        flags = set()
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("flags"):
+                flags = set(line.split(":", 1)[1].split())
+                break
+    except OSError:
+        return 2
+    if {"avx512f", "avx512bw", "avx512vl", "avx512dq", "avx512cd", "avx2", "fma"} <= flags:
+        return 4
+    if {"avx2", "fma", "bmi2"} <= flags:
+        return 3
+    return 2 if {"sse4_2", "popcnt"} <= flags else 1
+
+
+def _open(path: Path) -> ctypes.CDLL:
+    # Our kernel's OpenMP runtime (the system libgomp) is not torch's (torch bundles its own): with
+    # the default active wait, its idle threads spin after each call and starve torch's ops on a
+    # 2-core machine (measured: 50x slower training steps). Passive waiting costs microseconds per
+    # call. Read by libgomp when it loads, i.e. now.
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    lib = ctypes.CDLL(str(path))
+    if lib.sgpor_abi_version() != 1:
+        raise OSError(f"{path.name}: unexpected ABI version")
+    for base, (res, args) in _SIGNATURES.items():
+        for suf in ("f32", "f64"):
+            fn = getattr(lib, f"sgpor_{base}_{suf}")
+            fn.restype = res
+            fn.argtypes = args
+    for suf in ("f32", "f64"):
+        fn = getattr(lib, f"sgpor_packed_bytes_{suf}")
+        fn.restype, fn.argtypes = _I64, [_I]
+        fn = getattr(lib, f"sgpor_count_nonfinite_{suf}")
+        fn.restype = _I64
+        fn.argtypes = [_P, _I64]
+    return lib
+
+
+def _load() -> None:
+    global _lib, _lib_name, _load_error, _loaded
+    _loaded = True
+    found = _candidates()
+    if not found:
+        _load_error = f"no _raster_kernel_* library in {_PKG_DIR}"
+        return
+    forced = os.environ.get("SGPOR_KERNEL", "").strip()
+    if forced:
+        key = forced if forced in found else f"x86_64_{forced}"
+        if key not in found:
+            _load_error = f"SGPOR_KERNEL={forced} but only {sorted(found)} are built"
+            return
+        order = [key]
+    else:
+        level = None
+        if "x86_64_v2" in found:  # the baseline build asks the CPU (cpuid) what it supports
+            try:
+                level = int(ctypes.CDLL(str(found["x86_64_v2"])).sgpor_cpu_level())
+            except (OSError, AttributeError):
+                level = None
+        if level is None:
+            level = _cpuinfo_level()
+        order = [k for k in _PREFERENCE if k in found and _LEVEL_OF.get(k, 0) <= level]
+    errors = []
+    for key in order:
+        try:
+            _lib = _open(found[key])
+            _lib_name = key
+            return
+        except (OSError, AttributeError) as exc:  # pragma: no cover - broken build
+            errors.append(f"{found[key].name}: {exc}")
+    _load_error = "; ".join(errors) or "no kernel variant suits this CPU"
+
+
+def available() -> bool:
+    """Whether the compiled kernel is loadable."""
+    if not _loaded:
+        _load()
+    return _lib is not None
+
+
+def load_error() -> str | None:
+    if not _loaded:
+        _load()
+    return _load_error
+
+
+def kernel_name() -> str | None:
+    """The variant in use (e.g. ``x86_64_v4``), or None."""
+    available()
+    return _lib_name
+
+
+def _fn(name: str, dtype: torch.dtype):
+    assert _lib is not None
+    return getattr(_lib, f"sgpor_{name}_{'f32' if dtype == torch.float32 else 'f64'}")
+
+
+def count_nonfinite(x: torch.Tensor) -> int | None:
+    """NaN/inf count of a CPU float32/float64 tensor by the kernel (no torch op, no threads), or
+    None when the kernel cannot do it (other dtype or device, no kernel)."""
+    if not available() or x.device.type != "cpu" or x.dtype not in (torch.float32, torch.float64):
+        return None
+    x = x.contiguous()
+    return int(_fn("count_nonfinite", x.dtype)(x.data_ptr(), x.numel()))
+
+
+def _ptr(t: torch.Tensor | None) -> int | None:
+    return None if t is None else t.data_ptr()
+
+
+class _Cfg:
+    __slots__ = ("W", "H", "near", "far", "eps2d", "tile", "threads", "C", "N")
+
+    def __init__(self, **kw):
+        for k, v in kw.items():
+            setattr(self, k, v)
+
+
+class _ProjectFn(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, viewmats, Ks, cfg):
+        C, N = cfg.C, cfg.N
+        dt = means.dtype
+        means2d = torch.empty(C, N, 2, dtype=dt)
+        conics = torch.empty(C, N, 3, dtype=dt)
+        depths = torch.empty(C, N, dtype=dt)
+        radii = torch.empty(C, N, dtype=torch.int32)
+        rect = torch.empty(C, N, 4, dtype=torch.int32)
+        ntiles = torch.empty(C, N, dtype=torch.int32)
+        total = _fn("project_fwd", dt)(
+            C, N, _ptr(means), _ptr(quats), _ptr(scales), _ptr(opacities), _ptr(viewmats), _ptr(Ks),
+            cfg.W, cfg.H, cfg.near, cfg.far, cfg.eps2d, cfg.tile, _ptr(means2d), _ptr(conics),
+            _ptr(depths), _ptr(radii), _ptr(rect), _ptr(ntiles), cfg.threads)
+        ctx.cfg = cfg
+        ctx.save_for_backward(means, quats, scales, viewmats, Ks, radii)
+        ctx.mark_non_differentiable(radii, rect, ntiles)
+        return means2d, conics, depths, radii, rect, ntiles, torch.tensor(total, dtype=torch.int64)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g_means2d, g_conics, g_depths, *_):
+        means, quats, scales, viewmats, Ks, radii = ctx.saved_tensors
+        cfg = ctx.cfg
+        C, N = cfg.C, cfg.N
+        dt = means.dtype
+        g_means2d = torch.zeros(C, N, 2, dtype=dt) if g_means2d is None else g_means2d.contiguous()
+        g_conics = torch.zeros(C, N, 3, dtype=dt) if g_conics is None else g_conics.contiguous()
+        g_depths = None if g_depths is None else g_depths.contiguous()
+        g_means = torch.empty_like(means)
+        g_quats = torch.empty_like(quats)
+        g_scales = torch.empty_like(scales)
+        _fn("project_bwd", dt)(
+            C, N, _ptr(means), _ptr(quats), _ptr(scales), _ptr(viewmats), _ptr(Ks), cfg.W, cfg.H,
+            cfg.near, cfg.far, cfg.eps2d, _ptr(radii), _ptr(g_means2d), _ptr(g_conics),
+            _ptr(g_depths), _ptr(g_means), _ptr(g_quats), _ptr(g_scales), cfg.threads)
+        return g_means, g_quats, g_scales, None, None, None, None
+
+
+class _SHFn(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, sh, viewmats, degree, threads):
+        C, N, K = viewmats.shape[0], means.shape[0], sh.shape[1]
+        rgb = torch.empty(C, N, 3, dtype=means.dtype)
+        _fn("sh_fwd", means.dtype)(C, N, K, degree, _ptr(means), _ptr(sh), _ptr(viewmats), _ptr(rgb),
+                                   threads)
+        ctx.save_for_backward(means, sh, viewmats)
+        ctx.degree, ctx.threads = degree, threads
+        return rgb
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g_rgb):
+        means, sh, viewmats = ctx.saved_tensors
+        C, N, K = viewmats.shape[0], means.shape[0], sh.shape[1]
+        g_means = torch.zeros_like(means)
+        g_sh = torch.empty_like(sh)
+        g_rgb = g_rgb.contiguous()  # keep a reference: the kernel reads its memory
+        _fn("sh_bwd", means.dtype)(C, N, K, ctx.degree, _ptr(means), _ptr(sh), _ptr(viewmats),
+                                   _ptr(g_rgb), _ptr(g_means), _ptr(g_sh), ctx.threads)
+        return g_means, g_sh, None, None, None
+
+
+class _RasterFn(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means2d, conics, features, opacities, rect, bins, cmask, cfg):
+        C, N, CH = features.shape
+        H, W = cfg.H, cfg.W
+        dt = means2d.dtype
+        tile_off, gid, gen, goff = bins
+        out = torch.empty(C, H, W, CH, dtype=dt)
+        alpha = torch.empty(C, H, W, 1, dtype=dt)
+        tfinal = torch.empty(C, H, W, dtype=dt)
+        last = torch.empty(C, H, W, dtype=torch.int32)
+        contrib = torch.empty(C, N, dtype=dt)
+        # the Gaussians as the tiles read them (one 64-byte record each), reused by the backward
+        packed = torch.empty(max(C * N, 1) * int(_fn("packed_bytes", dt)(CH)), dtype=torch.uint8)
+        rc = _fn("raster_fwd", dt)(
+            C, N, CH, W, H, cfg.tile, _ptr(means2d), _ptr(conics), _ptr(features), _ptr(opacities),
+            _ptr(rect), _ptr(tile_off), _ptr(gid), _ptr(gen), _ptr(goff), _ptr(cmask), _ptr(out),
+            _ptr(alpha), _ptr(tfinal), _ptr(last), _ptr(contrib), _ptr(packed), cfg.threads)
+        if rc != 0:
+            raise RuntimeError(f"sgpor raster kernel: unsupported configuration (code {rc})")
+        ctx.cfg = cfg
+        ctx.bins = bins
+        ctx.shapes = (C, N, CH)
+        ctx.save_for_backward(packed, tfinal, last)
+        ctx.mark_non_differentiable(contrib)
+        return out, alpha, contrib
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g_out, g_alpha, _g_contrib):
+        packed, tfinal, last = ctx.saved_tensors
+        cfg = ctx.cfg
+        C, N, CH = ctx.shapes
+        dt = tfinal.dtype
+        tile_off, gid, gen, goff = ctx.bins
+        g_out = torch.zeros(C, cfg.H, cfg.W, CH, dtype=dt) if g_out is None else g_out.contiguous()
+        g_alpha = torch.zeros(C, cfg.H, cfg.W, 1, dtype=dt) if g_alpha is None else g_alpha.contiguous()
+        g_m2 = torch.empty(C, N, 2, dtype=dt)
+        g_con = torch.empty(C, N, 3, dtype=dt)
+        g_f = torch.empty(C, N, CH, dtype=dt)
+        g_op = torch.empty(N, dtype=dt)
+        rc = _fn("raster_bwd", dt)(
+            C, N, CH, cfg.W, cfg.H, cfg.tile, _ptr(packed), _ptr(tile_off), _ptr(gid), _ptr(gen),
+            _ptr(goff), _ptr(tfinal), _ptr(last), _ptr(g_out), _ptr(g_alpha), _ptr(g_m2), _ptr(g_con),
+            _ptr(g_f), _ptr(g_op), cfg.threads)
+        if rc != 0:
+            raise RuntimeError(f"sgpor raster kernel: unsupported configuration (code {rc})")
+        return g_m2, g_con, g_f, g_op, None, None, None, None
+
+
+def _bin(cfg: _Cfg, depths: torch.Tensor, rect: torch.Tensor, ntiles: torch.Tensor, total: int):
+    C, N = cfg.C, cfg.N
+    tw = (cfg.W + cfg.tile - 1) // cfg.tile
+    th = (cfg.H + cfg.tile - 1) // cfg.tile
+    if total >= 2**31 - 1:
+        raise RuntimeError(f"{total} tile intersections: too many for the cpu kernel (max 2^31-1)")
+    tile_off = torch.empty(C * tw * th + 1, dtype=torch.int64)
+    gid = torch.empty(max(total, 1), dtype=torch.int32)
+    gen = torch.empty(max(total, 1), dtype=torch.int32)
+    goff = torch.empty(C * N + 1, dtype=torch.int64)
+    _fn("bin", depths.dtype)(C, N, cfg.W, cfg.H, cfg.tile, _ptr(depths), _ptr(rect), _ptr(ntiles),
+                             _ptr(tile_off), _ptr(gid), _ptr(gen), _ptr(goff), cfg.threads)
+    return tile_off, gid, gen, goff
+
+
+def render(means, quats, scales, opacities, colors, sh_degree, viewmats, Ks, width, height,
+           near_plane, far_plane, eps2d, with_depth, contribution_mask, *, tile_size, num_threads):
+    """Render without background; returns (render [C,H,W,CH], alpha [C,H,W,1], meta)."""
+    if not available():
+        raise RuntimeError(f"the cpu rasterizer kernel is not available: {load_error()}")
+    C, N = viewmats.shape[0], means.shape[0]
+    cfg = _Cfg(W=width, H=height, near=near_plane, far=far_plane, eps2d=eps2d, tile=tile_size,
+               threads=num_threads, C=C, N=N)
+    means = means.contiguous()
+    quats = quats.contiguous()
+    scales = scales.contiguous()
+    opacities = opacities.contiguous()
+    viewmats = viewmats.contiguous()
+    Ks = Ks.contiguous()
+    means2d, conics, depths, radii, rect, ntiles, total = _ProjectFn.apply(
+        means, quats, scales, opacities, viewmats, Ks, cfg)
+    bins = _bin(cfg, depths.detach(), rect, ntiles, int(total))
+
+    feats = []
+    if colors is not None:
+        if sh_degree is not None:
+            feats.append(_SHFn.apply(means, colors.contiguous(), viewmats, sh_degree, num_threads))
+        elif colors.dim() == 2:
+            feats.append(colors[None].expand(C, -1, -1))
+        else:
+            feats.append(colors)
+    if with_depth:
+        feats.append(depths[..., None])
+    features = torch.cat(feats, dim=-1) if len(feats) > 1 else feats[0].contiguous()
+    cmask = None if contribution_mask is None else contribution_mask.contiguous().view(torch.uint8)
+    CH = features.shape[-1]
+    if CH <= 4:
+        out, alpha, contrib = _RasterFn.apply(means2d, conics, features, opacities, rect, bins, cmask, cfg)
+    else:  # several passes of at most 4 channels; alpha and contrib from the first
+        outs = []
+        alpha = contrib = None
+        for k in range(0, CH, 4):
+            o, a, cb = _RasterFn.apply(means2d, conics, features[..., k:k + 4].contiguous(), opacities,
+                                       rect, bins, cmask, cfg)
+            outs.append(o)
+            if alpha is None:
+                alpha, contrib = a, cb
+        out = torch.cat(outs, dim=-1)
+    meta = {"means2d": means2d, "radii": radii, "depths": depths, "conics": conics,
+            "contrib": contrib}
+    return out, alpha, meta

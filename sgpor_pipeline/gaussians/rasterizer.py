@@ -1,0 +1,383 @@
+"""Differentiable Gaussian rasterizer: one API, three backends (DESIGN.md section 6).
+
+:func:`rasterization` is a documented subset of gsplat's ``rasterization()`` (gsplat 1.5):
+the same argument names, the same *activated* parameter convention and the same outputs, so the
+optional ``gsplat`` backend is a drop-in on CUDA machines.
+
+Backends
+--------
+``cpu``
+    Our C++17 kernel (``sgpor_pipeline/csrc``; no torch headers, built by setuptools, loaded with
+    ctypes): tile-based, OpenMP over tiles, SIMD across a tile's pixels, hand-written backward
+    whose per-intersection gradients are reduced in a fixed order, so forward and gradients are
+    bitwise identical for any number of threads. float32 tensors run the float kernel, float64
+    tensors the double instantiation (for gradient checks).
+``torch``
+    A dense pure-PyTorch reference (every pixel of a block against every Gaussian whose footprint
+    rectangle touches the block); autograd does the backward; any device. Slow: for tests and as a
+    fallback.
+``gsplat``
+    ``gsplat.rasterization`` (optional extra ``pip install sgpor-pipeline[gpu]``), CUDA tensors only.
+``auto``
+    gsplat for CUDA tensors when it is importable, else ``cpu`` for CPU tensors (``torch`` with a
+    one-time warning when the compiled kernel is missing), else ``torch``.
+
+Semantics shared by ``cpu`` and ``torch`` (the same rules; results agree to float rounding)
+------------------------------------------------------------------------------------------
+* Cameras: OpenCV axes (x right, y down, z forward), ``viewmats`` = cam_from_world, pinhole ``Ks``
+  (fx, fy, cx, cy; skew ignored). Pixel (row i, column j) has its centre at (j + 0.5, i + 0.5),
+  gsplat's convention, so a point projecting to u = fx x/z + cx lies in column floor(u).
+* A Gaussian is culled in a camera (radius 0, no footprint) when z < near_plane or z > far_plane,
+  when det of its 2D covariance <= 0, when its opacity < 1/255, or when its footprint contains no
+  pixel centre.
+* Quaternions (w, x, y, z) are divided by max(|q|, 1e-12): any norm works, a zero quaternion is
+  the identity rotation (with zero gradient). Covariance R S S^T R^T with S = diag(scales).
+* EWA: the Jacobian of the projection is evaluated at x/z, y/z clamped to the frustum widened by
+  0.3 tan(half FOV) on each side (1.3x the frustum for a centred principal point; gsplat's form
+  for an off-centre one); the gradient through a clamped coordinate is zero. 2D covariance +
+  ``eps2d`` (0.3) I, no compensation ("classic" mode).
+* Footprint: the pixels where ``sigma <= min(3.33^2/2, ln(255 o))`` with sigma = 0.5 d^T
+  Sigma2D^-1 d, d = pixel centre - projected mean, i.e. an opacity-aware radius of
+  ``min(3.33, sqrt(2 ln(255 o)))`` standard deviations, which is exactly where alpha >= 1/255 for
+  o <= 1. A Gaussian only touches the pixel centres inside its footprint's bounding rectangle
+  (columns ceil(u - h_x - 0.5) .. floor(u + h_x - 0.5), h_x = sqrt(2 thr Sigma2D_xx); rows
+  likewise), a per-Gaussian rule, so the tile size cannot change the image (the ``cpu`` kernel's
+  forward is bitwise identical for 8x8 and 16x16 tiles). The footprint edges are hard: they pass
+  no gradient.
+* alpha = min(0.99, o exp(-sigma)); a pair with alpha < 1/255 is skipped. Gaussians are composited
+  front to back in increasing camera z (ties by index). Transmittance T starts at 1; a pixel stops
+  *before* adding a Gaussian when T (1 - alpha) < 1e-4 (3DGS), so the returned alpha is
+  1 - T_final <= 1 - 1e-4. Colour = sum_i alpha_i T_i c_i + T_final * background.
+* SH colours: direction from the camera centre to the mean, real SH up to degree 3 (3DGS/gsplat
+  constants), + 0.5, clamped at 0 (the clamp passes no gradient).
+* Gradients flow to means, quats, scales, opacities, colors/SH and backgrounds; none flows to
+  ``viewmats`` or ``Ks`` (they are detached).
+
+Threads and determinism (``cpu``): ``num_threads`` (default: env ``SGPOR_NUM_THREADS``, else
+``torch.get_num_threads()``) only changes speed: each tile writes its per-intersection gradient
+records into a buffer indexed by intersection, then every Gaussian sums its own records in a fixed
+order, so images and gradients are bitwise identical for any thread count. Phases worth less than
+~1.5 ms run on one thread (a parallel region can cost a whole scheduler time slice on a busy
+machine). On the 2-core development machine, 50k Gaussians at 256x192 take a few tens of ms for
+forward + backward; see ``benchmarks/rasterizer.py``.
+
+The ``gsplat`` backend follows gsplat's own rules, which differ in small ways (alpha is clamped
+to 0.999 there, its 2D radius and tile test differ slightly); meta["contrib"] is computed there
+with an extra rasterization.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from typing import Any
+
+import torch
+
+from . import _raster_torch
+from ._raster_common import (
+    RENDER_MODES,
+    NonFiniteInputError,
+    RasterizerInputError,
+    sh_colors,
+)
+
+__all__ = ["rasterization", "cpu_kernel_available", "RasterizerInputError", "NonFiniteInputError"]
+
+BACKENDS = ("auto", "cpu", "torch", "gsplat")
+_warned: set[str] = set()
+
+
+def _warn_once(key: str, message: str) -> None:
+    if key not in _warned:
+        _warned.add(key)
+        warnings.warn(message, RuntimeWarning, stacklevel=3)
+
+
+def cpu_kernel_available() -> bool:
+    """Whether the compiled C++ kernel of the ``cpu`` backend could be loaded."""
+    from . import _raster_cpu
+
+    return _raster_cpu.available()
+
+
+def _default_threads() -> int:
+    env = os.environ.get("SGPOR_NUM_THREADS")
+    if env:
+        return max(1, int(env))
+    return max(1, torch.get_num_threads())
+
+
+def _check_tensor(name: str, x: Any, shape: tuple, ndim: int | tuple[int, ...] | None = None) -> None:
+    if not isinstance(x, torch.Tensor):
+        raise RasterizerInputError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+    ndims = (ndim,) if isinstance(ndim, int) else ndim
+    if ndims is not None and x.dim() not in ndims:
+        raise RasterizerInputError(f"{name} must have {' or '.join(map(str, ndims))} dimensions, "
+                                   f"got shape {tuple(x.shape)}")
+    if shape and (len(shape) != x.dim() or any(s is not None and s != d for s, d in zip(shape, x.shape))):
+        want = "[" + ",".join("*" if s is None else str(s) for s in shape) + "]"
+        raise RasterizerInputError(f"{name} must have shape {want}, got {tuple(x.shape)}")
+
+
+def _check_finite(name: str, x: torch.Tensor | None) -> None:
+    if x is None or not x.is_floating_point() or x.numel() == 0:
+        return
+    from . import _raster_cpu
+
+    bad = _raster_cpu.count_nonfinite(x)  # CPU: a serial scan in the kernel, no torch threads
+    if bad is None:
+        lo, hi = torch.aminmax(x.detach())  # NaN propagates; one reduction instead of two
+        bad = 0 if bool(torch.isfinite(lo) & torch.isfinite(hi)) else int((~torch.isfinite(x)).sum())
+    if bad:
+        raise NonFiniteInputError(
+            f"rasterization(): {name} holds {bad} NaN/inf value(s)",
+            fix=f"find where {name} became non-finite (a diverging optimisation: lower the "
+                "learning rate, or check the data the Gaussians were initialised from)")
+
+
+def _validate(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane,
+              far_plane, sh_degree, backgrounds, render_mode, tile_size, contribution_mask):
+    """Checks every argument; returns (N, C, D) with D the number of colour channels (0 for D/ED)."""
+    _check_tensor("means", means, (None, 3), 2)
+    N = means.shape[0]
+    if means.dtype not in (torch.float32, torch.float64):
+        raise RasterizerInputError(f"means must be float32 or float64, got {means.dtype}")
+    dev, dt = means.device, means.dtype
+    _check_tensor("quats", quats, (N, 4))
+    _check_tensor("scales", scales, (N, 3))
+    _check_tensor("opacities", opacities, (N,))
+    _check_tensor("viewmats", viewmats, (None, 4, 4), 3)
+    C = viewmats.shape[0]
+    _check_tensor("Ks", Ks, (C, 3, 3))
+    if C == 0:
+        raise RasterizerInputError("viewmats holds no camera (C = 0)")
+    for name, x in (("quats", quats), ("scales", scales), ("opacities", opacities),
+                    ("viewmats", viewmats), ("Ks", Ks)):
+        if not x.is_floating_point():
+            raise RasterizerInputError(f"{name} must be a floating-point tensor, got {x.dtype}")
+        if x.device != dev:
+            raise RasterizerInputError(f"{name} is on {x.device} but means is on {dev}")
+    for name, x in (("quats", quats), ("scales", scales), ("opacities", opacities)):
+        if x.dtype != dt:
+            raise RasterizerInputError(f"{name} is {x.dtype} but means is {dt}: use one dtype")
+    if render_mode not in RENDER_MODES:
+        raise RasterizerInputError(f"render_mode must be one of {RENDER_MODES}, got {render_mode!r}")
+    for name, val in (("width", width), ("height", height)):
+        if isinstance(val, bool) or not isinstance(val, int) or val <= 0:
+            raise RasterizerInputError(f"{name} must be a positive int, got {val!r}")
+    if not (near_plane > 0 and far_plane > near_plane):
+        raise RasterizerInputError(f"need 0 < near_plane < far_plane, got {near_plane}, {far_plane}")
+    if tile_size not in (8, 16):
+        raise RasterizerInputError(f"tile_size must be 8 or 16, got {tile_size!r}")
+    want_color = render_mode in ("RGB", "RGB+D", "RGB+ED")
+    D = 0
+    if sh_degree is not None:
+        if isinstance(sh_degree, bool) or not isinstance(sh_degree, int) or not 0 <= sh_degree <= 3:
+            raise RasterizerInputError(f"sh_degree must be None or an int in 0..3, got {sh_degree!r}")
+        _check_tensor("colors", colors, (N, None, 3), 3)
+        if colors.shape[1] < (sh_degree + 1) ** 2:
+            raise RasterizerInputError(f"colors has {colors.shape[1]} SH coefficients, sh_degree "
+                                       f"{sh_degree} needs {(sh_degree + 1) ** 2}")
+        D = 3
+    elif colors is not None:
+        _check_tensor("colors", colors, (), (2, 3))
+        if colors.dim() == 2 and colors.shape[0] != N:
+            raise RasterizerInputError(f"colors must be [N,D] or [C,N,D] with N={N}, C={C}, got "
+                                       f"{tuple(colors.shape)} (SH coefficients need sh_degree)")
+        if colors.dim() == 3 and colors.shape[:2] != (C, N):
+            raise RasterizerInputError(f"colors must be [N,D] or [C,N,D] with N={N}, C={C}, got "
+                                       f"{tuple(colors.shape)} (SH coefficients need sh_degree)")
+        D = colors.shape[-1]
+        if D == 0:
+            raise RasterizerInputError("colors has zero channels")
+    elif want_color:
+        raise RasterizerInputError(f"render_mode {render_mode!r} needs colors")
+    if colors is not None:
+        if colors.device != dev or colors.dtype != dt:
+            raise RasterizerInputError(f"colors must be {dt} on {dev}, got {colors.dtype} on {colors.device}")
+    if not want_color:
+        D = 0
+    if backgrounds is not None:
+        if not want_color:
+            backgrounds = None
+        else:
+            _check_tensor("backgrounds", backgrounds, (), (1, 2))
+            if backgrounds.shape[-1] != D or (backgrounds.dim() == 2 and backgrounds.shape[0] != C):
+                raise RasterizerInputError(f"backgrounds must be [C,D] or [D] with C={C}, D={D}, "
+                                           f"got {tuple(backgrounds.shape)}")
+            if backgrounds.device != dev or not backgrounds.is_floating_point():
+                raise RasterizerInputError("backgrounds must be a floating-point tensor on the "
+                                           "device of means")
+    if contribution_mask is not None:
+        _check_tensor("contribution_mask", contribution_mask, (C, height, width), 3)
+        if contribution_mask.dtype != torch.bool or contribution_mask.device != dev:
+            raise RasterizerInputError("contribution_mask must be a bool tensor on the device of means")
+    for name, x in (("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities),
+                    ("colors", colors), ("viewmats", viewmats), ("Ks", Ks),
+                    ("backgrounds", backgrounds)):
+        _check_finite(name, x)
+    return N, C, D, backgrounds
+
+
+def _resolve_backend(backend: str, device: torch.device) -> str:
+    if backend not in BACKENDS:
+        raise RasterizerInputError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    if backend == "gsplat":
+        from . import _raster_gsplat
+
+        _raster_gsplat.require(device)
+        return "gsplat"
+    if backend == "auto":
+        if device.type == "cuda":
+            from . import _raster_gsplat
+
+            if _raster_gsplat.importable():
+                return "gsplat"
+            return "torch"
+        if device.type != "cpu":
+            return "torch"
+        backend = "cpu"
+    if backend == "cpu":
+        if device.type != "cpu":
+            raise RasterizerInputError(f"backend='cpu' needs CPU tensors, got {device}")
+        from . import _raster_cpu
+
+        if not _raster_cpu.available():
+            _warn_once("nokernel", "sgpor_pipeline: the compiled rasterizer kernel is missing "
+                       f"({_raster_cpu.load_error()}); using the slow torch reference. Reinstall "
+                       "with a C++ compiler (pip install -e .) to build it.")
+            return "torch"
+        return "cpu"
+    return backend
+
+
+def rasterization(
+    means: torch.Tensor,
+    quats: torch.Tensor,
+    scales: torch.Tensor,
+    opacities: torch.Tensor,
+    colors: torch.Tensor | None,
+    viewmats: torch.Tensor,
+    Ks: torch.Tensor,
+    width: int,
+    height: int,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    sh_degree: int | None = None,
+    backgrounds: torch.Tensor | None = None,
+    render_mode: str = "RGB",
+    backend: str = "auto",
+    tile_size: int = 16,
+    contribution_mask: torch.Tensor | None = None,
+    eps2d: float = 0.3,
+    num_threads: int | None = None,
+    torch_block: int | None = 32,
+) -> tuple[torch.Tensor, torch.Tensor, dict[str, Any]]:
+    """Render N 3D Gaussians into C pinhole cameras; differentiable w.r.t. the Gaussians.
+
+    Parameters are the **activated** values, as in gsplat (the fitted model stores log-scales and
+    opacity logits: pass ``exp(log_scales)`` and ``sigmoid(logits)``).
+
+    Args:
+        means: [N,3] centres in world coordinates; float32 (fast kernel) or float64 (double kernel,
+            for gradient checks). Every other float input must have this dtype and device
+            (``viewmats`` and ``Ks`` are cast to it).
+        quats: [N,4] rotations (w, x, y, z), any norm (normalised in the kernel; 0 = identity).
+        scales: [N,3] linear standard deviations along the rotated axes (>= 0; 0 is allowed).
+        opacities: [N] in [0, 1].
+        colors: [N,D] or [C,N,D] colours/features (D channels; D <= 4 per kernel pass on ``cpu``,
+            more channels are rendered in several passes), or [N,K,3] SH coefficients when
+            ``sh_degree`` is set (K >= (sh_degree+1)^2). May be None for ``render_mode`` "D"/"ED".
+        viewmats: [C,4,4] cam_from_world, OpenCV axes. No gradient.
+        Ks: [C,3,3] pinhole intrinsics (skew ignored). No gradient.
+        width, height: image size in pixels.
+        near_plane, far_plane: Gaussians with camera z outside [near, far] are culled.
+        sh_degree: None for plain colours, else 0..3.
+        backgrounds: [C,D] or [D] colour composited behind the Gaussians (colour channels only).
+        render_mode: "RGB" (colours), "D" (accumulated depth sum_i w_i z_i), "ED" (expected depth,
+            D / alpha), "RGB+D", "RGB+ED" (depth as the last channel).
+        backend: "auto", "cpu", "torch" or "gsplat" (see the module docstring).
+        tile_size: 8 or 16 pixels (``cpu``, ``gsplat``); never changes the image.
+        contribution_mask: [C,H,W] bool; restricts meta["contrib"] to these pixels.
+        eps2d: added to the 2D covariance diagonal (0.3, DESIGN's value).
+        num_threads: threads of the ``cpu`` kernel (default: env SGPOR_NUM_THREADS, else
+            ``torch.get_num_threads()``); results are bitwise identical for any value.
+        torch_block: pixel block edge of the ``torch`` backend (None = the whole image at once).
+
+    Returns:
+        ``(render_colors, render_alphas, meta)``:
+
+        * render_colors [C,H,W,X]: X = D for "RGB", 1 for "D"/"ED", D+1 for "RGB+D"/"RGB+ED".
+        * render_alphas [C,H,W,1]: accumulated opacity 1 - T_final.
+        * meta: ``means2d`` [C,N,2] projected centres in pixels (a non-leaf tensor of the graph:
+          call ``meta["means2d"].retain_grad()`` before ``backward()`` to read its ``.grad``, as
+          densification does; zero for culled Gaussians), ``radii`` [C,N] int32 (pixel radius of
+          the footprint's bounding box, 0 = culled), ``depths`` [C,N] camera z, ``conics`` [C,N,3]
+          (a, b, c of the inverse 2D covariance), ``contrib`` [C,N] (sum over the pixels, or the
+          pixels of ``contribution_mask``, of the blending weight alpha*T; no gradient),
+          ``width``, ``height``, ``n_cameras``, ``tile_size``, ``backend`` (the one that ran).
+
+    Raises:
+        RasterizerInputError (a ValueError): wrong shape, dtype, device or option.
+        NonFiniteInputError (a ValueError and a NonFiniteError): NaN/inf in an input; the message
+            names the argument.
+    """
+    N, C, D, backgrounds = _validate(means, quats, scales, opacities, colors, viewmats, Ks, width,
+                                     height, near_plane, far_plane, sh_degree, backgrounds,
+                                     render_mode, tile_size, contribution_mask)
+    which = _resolve_backend(backend, means.device)
+    viewmats = viewmats.detach().to(means.dtype)
+    Ks = Ks.detach().to(means.dtype)
+    with_depth = render_mode != "RGB"
+    if D == 0:
+        colors = None
+    if which == "gsplat":
+        from . import _raster_gsplat
+
+        render, alpha, meta = _raster_gsplat.rasterization(
+            means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane,
+            far_plane, sh_degree, backgrounds, render_mode, tile_size, contribution_mask, eps2d)
+    else:
+        args = (means, quats, scales, opacities, colors, sh_degree, viewmats, Ks, width, height,
+                float(near_plane), float(far_plane), float(eps2d), with_depth, contribution_mask)
+        if which == "cpu":
+            from . import _raster_cpu
+
+            threads = _default_threads() if num_threads is None else max(1, int(num_threads))
+            render, alpha, meta = _raster_cpu.render(*args, tile_size=tile_size, num_threads=threads)
+        else:
+            render, alpha, meta = _render_torch(*args, block=torch_block)
+        if backgrounds is not None:
+            bg = backgrounds if backgrounds.dim() == 2 else backgrounds[None].expand(C, -1)
+            bg = bg.to(render.dtype)[:, None, None, :]
+            rgb = render[..., :D] + (1.0 - alpha) * bg
+            render = torch.cat([rgb, render[..., D:]], dim=-1) if with_depth else rgb
+        if render_mode in ("ED", "RGB+ED"):
+            render = torch.cat([render[..., :-1], render[..., -1:] / alpha.clamp(min=1e-10)], dim=-1)
+    meta.update({"width": width, "height": height, "n_cameras": C, "tile_size": tile_size,
+                 "backend": which})
+    return render, alpha, meta
+
+
+def _render_torch(means, quats, scales, opacities, colors, sh_degree, viewmats, Ks, width, height,
+                  near_plane, far_plane, eps2d, with_depth, contribution_mask, block):
+    C = viewmats.shape[0]
+    proj = _raster_torch.project(means, quats, scales, opacities, viewmats, Ks, width, height,
+                                 near_plane, far_plane, eps2d)
+    feats = []
+    if colors is not None:
+        if sh_degree is not None:
+            feats.append(sh_colors(means, colors, sh_degree, viewmats))
+        elif colors.dim() == 2:
+            feats.append(colors[None].expand(C, -1, -1))
+        else:
+            feats.append(colors)
+    if with_depth:
+        feats.append(proj["depths"][..., None])
+    features = torch.cat(feats, dim=-1) if len(feats) > 1 else feats[0]
+    render, alpha, contrib = _raster_torch.rasterize(proj, features, opacities, width, height,
+                                                     contribution_mask, block)
+    meta = {"means2d": proj["means2d"], "radii": proj["radii"], "depths": proj["depths"],
+            "conics": proj["conics"], "contrib": contrib}
+    return render, alpha, meta

@@ -1,0 +1,754 @@
+"""The Gaussian Splatting training loop (reused by the fit and finetune stages).
+
+:class:`Trainer` fits a :class:`~sgpor_pipeline.gaussians.model.GaussianModel` to posed images:
+
+* loss ``(1 - lambda) L1 + lambda (1 - SSIM)`` (lambda 0.2; SSIM with an 11-tap Gaussian window,
+  sigma 1.5, reflect padding: the same map as ``kornia.metrics.ssim``, computed with the five local
+  moments in one grouped convolution, see :func:`ssim_map`), plus the strategy's regularisers;
+* one Adam per parameter (eps 1e-15, fused CPU kernel when available) with the 3DGS learning rates:
+  means 1.6e-4 -> 1.6e-6 (exponential over the run) x scene extent, SH DC 2.5e-3, SH rest /20,
+  opacity 5e-2, log-scales 5e-3, quaternions 1e-3;
+* the active SH degree raised by one every ``sh_degree_every`` iterations up to ``sh_degree``;
+* densification by a :mod:`~sgpor_pipeline.gaussians.strategy` under a budget; with an automatic
+  budget the cap starts proportional to the training pixels and grows while the training error
+  still falls by more than ``budget_min_gain`` per growth window (:class:`BudgetController`);
+* checkpoints (model, Adam moments, strategy state, RNG, curve, iteration) written atomically
+  every ``checkpoint_every`` iterations and every ``checkpoint_seconds``; :meth:`Trainer.train`
+  resumes from one when it finds it;
+* a NaN guard: a NaN/inf in the loss, a gradient or a parameter is reported by name and training
+  rolls back to the last in-memory snapshot with the learning rates halved; more than
+  ``max_rollbacks`` rollbacks without progress raise :class:`~sgpor_pipeline.errors.NonFiniteError`;
+* evaluation on held-out views (PSNR, SSIM) every ``eval_every`` iterations, and a training curve.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import math
+import os
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from ..errors import NonFiniteError
+from ..scene import Camera
+from .model import GaussianModel
+from .rasterizer import NonFiniteInputError, rasterization
+from .strategy import Strategy
+
+CHECKPOINT_NAME = "fit_checkpoint.pt"
+CHECKPOINT_FORMAT = 1
+
+log = logging.getLogger("sgpor_pipeline.train")
+
+
+@dataclass
+class TrainParams:
+    """Knobs of the training loop (the fit stage's parameters map onto these)."""
+
+    iterations: int = 3000
+    sh_degree: int = 3
+    sh_degree_every: int = 500  # raise the active SH degree by one every this many iterations
+    lambda_dssim: float = 0.2
+    lr_means: float = 1.6e-4  # x scene extent, decays exponentially to lr_means_final
+    lr_means_final: float = 1.6e-6
+    lr_sh0: float = 2.5e-3
+    lr_shN_factor: float = 1.0 / 20.0  # SH rest learning rate = lr_sh0 x this
+    lr_opacities: float = 5e-2
+    lr_scales: float = 5e-3
+    lr_quats: float = 1e-3
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    seed: int = 0
+    backend: str = "auto"
+    checkpoint_every: int = 500  # iterations; 0 = only by time
+    checkpoint_seconds: float = 30.0  # also checkpoint when this much time passed; 0 = only by count
+    eval_every: int = 500  # held-out evaluation period (iterations); 0 = only at the end
+    log_every: int = 50  # curve sampling period (iterations)
+    snapshot_every: int = 50  # in-memory rollback snapshots for the NaN guard
+    max_rollbacks: int = 3  # consecutive rollbacks (no progress in between) before giving up
+    rollback_lr_factor: float = 0.5
+    # automatic budget (BudgetController)
+    budget: int | None = None  # fixed Gaussian budget; None or 0 = automatic
+    budget_per_pixel: float = 0.03  # automatic start: this many Gaussians per training pixel
+    budget_max_per_pixel: float = 0.25  # automatic hard maximum per training pixel
+    budget_min: int = 5_000
+    budget_max: int = 2_000_000
+    budget_growth: float = 1.5  # cap x this per growth step
+    budget_min_gain: float = 0.03  # grow while the training loss falls by more than this (relative) ...
+    budget_window: int = 300  # ... over this many iterations at the cap
+    # test hooks (documented; never set them in production)
+    debug_inject_nan_at: int = 0  # write a NaN into means[0] after the optimizer step of this iteration
+    debug_inject_nan_times: int = 1  # how many times the injection fires (each time the iteration is reached)
+
+
+# --------------------------------------------------------------------------------------------------
+# data
+
+
+@dataclass
+class TrainView:
+    """One posed image at the training resolution."""
+
+    name: str
+    image: torch.Tensor  # [H,W,3] float32 in [0,1]
+    camera: Camera
+
+    @property
+    def viewmat(self) -> torch.Tensor:
+        return torch.from_numpy(self.camera.cam_from_world).float()[None]
+
+    @property
+    def K(self) -> torch.Tensor:
+        return torch.from_numpy(self.camera.K).float()[None]
+
+
+def training_size(width: int, height: int, max_size: int) -> tuple[int, int]:
+    """Image size whose longer side is at most ``max_size`` (0 = unchanged), aspect kept."""
+    if max_size <= 0 or max(width, height) <= max_size:
+        return width, height
+    s = max_size / max(width, height)
+    return max(1, round(width * s)), max(1, round(height * s))
+
+
+def make_view(name: str, image: np.ndarray, camera: Camera, max_size: int = 0) -> TrainView:
+    """A :class:`TrainView` from an HxWx3 image (uint8 or float in [0,1]), downscaled (INTER_AREA) so
+    its longer side is at most ``max_size``; the intrinsics are scaled with it."""
+    import cv2
+
+    img = np.asarray(image)
+    if img.dtype == np.uint8:
+        img = img.astype(np.float32) / 255.0
+    img = img.astype(np.float32)
+    h, w = img.shape[:2]
+    if (camera.width, camera.height) != (w, h):
+        camera = camera.scaled(w, h)
+    tw, th = training_size(w, h, max_size)
+    if (tw, th) != (w, h):
+        img = cv2.resize(img, (tw, th), interpolation=cv2.INTER_AREA)
+        camera = camera.scaled(tw, th)
+    return TrainView(name, torch.from_numpy(np.ascontiguousarray(img)), camera)
+
+
+def scene_extent(cameras: Sequence[Camera]) -> float:
+    """3DGS's ``cameras_extent``: 1.1 x the largest distance of a camera centre from their mean
+    (at least a small positive number so a single camera works)."""
+    centers = np.array([c.center for c in cameras])
+    radius = float(np.max(np.linalg.norm(centers - centers.mean(0), axis=1))) if len(centers) else 0.0
+    return 1.1 * max(radius, 1e-6)
+
+
+# --------------------------------------------------------------------------------------------------
+# losses and metrics
+
+
+def _gauss_window(dtype: torch.dtype) -> torch.Tensor:
+    x = torch.arange(11, dtype=torch.float64) - 5
+    g = torch.exp(-(x * x) / (2 * 1.5 * 1.5))
+    return (g / g.sum()).to(dtype)
+
+
+def ssim_map(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """SSIM map of images [B,C,H,W]: the same definition as ``kornia.metrics.ssim(x, y, 11)`` (Gaussian
+    window 11 taps, sigma 1.5, reflect padding, C1 = 0.01^2, C2 = 0.03^2, eps 1e-12), but the five
+    local moments are filtered together in one grouped separable convolution (about twice as fast
+    on a CPU as kornia's five filter calls)."""
+    b, c, h, w = x.shape
+    g = _gauss_window(x.dtype)
+    stack = torch.cat([x, y, x * x, y * y, x * y], dim=1)
+    n = stack.shape[1]
+    stack = F.pad(stack, (5, 5, 5, 5), mode="reflect")
+    stack = F.conv2d(stack, g.view(1, 1, 1, 11).expand(n, 1, 1, 11), groups=n)
+    stack = F.conv2d(stack, g.view(1, 1, 11, 1).expand(n, 1, 11, 1), groups=n)
+    mu1, mu2, e11, e22, e12 = stack.split(c, dim=1)
+    m11, m22, m12 = mu1 * mu1, mu2 * mu2, mu1 * mu2
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    num = (2 * m12 + c1) * (2 * (e12 - m12) + c2)
+    den = (m11 + m22 + c1) * ((e11 - m11) + (e22 - m22) + c2)
+    return num / (den + 1e-12)
+
+
+_PAD = 5  # half window of the 11-tap SSIM filter
+
+
+def _blur(z: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """Separable 11-tap filter of [C,H,W] with reflect padding (= F.pad reflect + conv), computed with
+    in-place shifted adds: no im2col, no grouped convolution (slow on CPUs in NCHW)."""
+    h, w = z.shape[-2:]
+    zp = F.pad(z[None], (_PAD,) * 4, mode="reflect")[0]
+    a = zp[..., 0:w] * g[0]
+    for k in range(1, 2 * _PAD + 1):
+        a.add_(zp[..., k:k + w], alpha=float(g[k]))
+    b = a[..., 0:h, :] * g[0]
+    for k in range(1, 2 * _PAD + 1):
+        b.add_(a[..., k:k + h, :], alpha=float(g[k]))
+    return b
+
+
+def _blur_adjoint(gz: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """The adjoint (transpose) of :func:`_blur`: the gradient of <_blur(z), gz> with respect to z."""
+    c, h, w = gz.shape
+    ta = gz.new_zeros(c, h + 2 * _PAD, w)
+    for k in range(2 * _PAD + 1):
+        ta[:, k:k + h, :].add_(gz, alpha=float(g[k]))
+    tz = gz.new_zeros(c, h + 2 * _PAD, w + 2 * _PAD)
+    for k in range(2 * _PAD + 1):
+        tz[..., k:k + w].add_(ta, alpha=float(g[k]))
+    # fold the reflect padding back: padded row i < 5 came from row 5 - i, padded row h+5+j from h-2-j
+    r = tz[:, _PAD:h + _PAD, :].clone()
+    r[:, 1:_PAD + 1, :] += tz[:, 0:_PAD, :].flip(1)
+    r[:, h - _PAD - 1:h - 1, :] += tz[:, h + _PAD:h + 2 * _PAD, :].flip(1)
+    out = r[..., _PAD:w + _PAD].clone()
+    out[..., 1:_PAD + 1] += r[..., 0:_PAD].flip(-1)
+    out[..., w - _PAD - 1:w - 1] += r[..., w + _PAD:w + 2 * _PAD].flip(-1)
+    return out
+
+
+class _SSIMMean(torch.autograd.Function):
+    """Mean SSIM of two [C,H,W] images (the definition of ``kornia.metrics.ssim(x, y, 11)``) with an
+    analytic backward to ``x`` only (``y`` is the target): about 5x faster than autograd through
+    grouped convolutions on a CPU."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        g = _gauss_window(x.dtype)
+        c = x.shape[0]
+        mom = _blur(torch.cat([x, y, x * x, y * y, x * y], dim=0), g)
+        mu1, mu2, e11, e22, e12 = mom.split(c, dim=0)
+        m12 = mu1 * mu2
+        m11 = mu1 * mu1
+        m22 = mu2 * mu2
+        c1, c2 = 0.01 ** 2, 0.03 ** 2
+        A = 2 * m12 + c1
+        B = 2 * (e12 - m12) + c2
+        C = m11 + m22 + c1
+        D = (e11 - m11) + (e22 - m22) + c2
+        den = C * D + 1e-12
+        s = A * B / den
+        ctx.save_for_backward(x, y, mu1, mu2, A, B, C, D, den, s)
+        return s.mean()
+
+    @staticmethod
+    def backward(ctx, grad_out: torch.Tensor):  # type: ignore[override]
+        x, y, mu1, mu2, A, B, C, D, den, s = ctx.saved_tensors
+        g = _gauss_window(x.dtype)
+        w = grad_out / s.numel()
+        dA = B / den
+        dB = A / den
+        dC = -s * D / den
+        dD = -s * C / den
+        d_mu1 = (2 * mu2) * (dA - dB) + (2 * mu1) * (dC - dD)
+        maps = torch.cat([d_mu1, dD, 2 * dB], dim=0) * w  # d/d mu1, d/d e11, d/d e12
+        gm, g11, g12 = _blur_adjoint(maps, g).split(x.shape[0], dim=0)
+        return gm + 2 * x * g11 + y * g12, None
+
+
+def ssim_mean(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """Differentiable (in ``x``) mean SSIM of [C,H,W] images; see :class:`_SSIMMean`."""
+    if min(x.shape[-2:]) <= _PAD:  # reflect padding needs more than 5 pixels
+        return ssim_map(x[None], y[None]).mean()
+    return _SSIMMean.apply(x.contiguous(), y.contiguous().detach())
+
+
+def photometric_loss(render: torch.Tensor, target: torch.Tensor, lambda_dssim: float) -> torch.Tensor:
+    """(1 - lambda) L1 + lambda (1 - SSIM) of HxWx3 images."""
+    l1 = (render - target).abs().mean()
+    if lambda_dssim <= 0:
+        return l1
+    s = ssim_mean(render.permute(2, 0, 1), target.permute(2, 0, 1))
+    return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - s)
+
+
+def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
+    mse = float(((a.clamp(0, 1) - b) ** 2).mean())
+    return float("inf") if mse <= 0 else -10.0 * math.log10(mse)
+
+
+def ssim_metric(a: torch.Tensor, b: torch.Tensor) -> float:
+    """Mean SSIM of two HxWx3 images (kornia.metrics.ssim, window 11)."""
+    import kornia
+
+    return float(kornia.metrics.ssim(a.clamp(0, 1).permute(2, 0, 1)[None].contiguous(),
+                                     b.permute(2, 0, 1)[None].contiguous(), 11).mean())
+
+
+def render_view(model: GaussianModel, camera: Camera, sh_degree: int | None = None, backend: str = "auto",
+                background: Sequence[float] = (0.0, 0.0, 0.0)) -> torch.Tensor:
+    """Render ``model`` at ``camera`` (no gradient): [H,W,3] float32."""
+    deg = model.max_sh_degree if sh_degree is None else sh_degree
+    k = (deg + 1) ** 2
+    with torch.no_grad():
+        act = model.activated()
+        colors = act["colors"][:, :k].contiguous()
+        vm = torch.from_numpy(camera.cam_from_world).float()[None]
+        K = torch.from_numpy(camera.K).float()[None]
+        img, _, _ = rasterization(act["means"], act["quats"], act["scales"], act["opacities"], colors, vm, K,
+                                  camera.width, camera.height, sh_degree=deg,
+                                  backgrounds=torch.tensor(background, dtype=torch.float32), backend=backend)
+    return img[0]
+
+
+def evaluate(model: GaussianModel, views: Sequence[TrainView], sh_degree: int | None = None,
+             backend: str = "auto", background: Sequence[float] = (0.0, 0.0, 0.0)) -> dict[str, float]:
+    """Mean PSNR and SSIM of the renders of ``views`` against their images."""
+    if not views:
+        return {"psnr": float("nan"), "ssim": float("nan")}
+    ps, ss = [], []
+    for v in views:
+        r = render_view(model, v.camera, sh_degree, backend, background)
+        ps.append(psnr(r, v.image))
+        ss.append(ssim_metric(r, v.image))
+    return {"psnr": float(np.mean(ps)), "ssim": float(np.mean(ss))}
+
+
+# --------------------------------------------------------------------------------------------------
+# budget
+
+
+@dataclass
+class BudgetController:
+    """The Gaussian budget: fixed (user) or automatic.
+
+    Automatic: start at ``budget_per_pixel`` x training pixels (clamped to [budget_min,
+    budget_max]). Whenever the model has filled the cap (>= 95 %) and ``window`` iterations passed
+    since the last decision, compare the smoothed training loss with its value at the last decision:
+    if it fell by more than ``min_gain`` (relative), the Gaussians added in that window still paid
+    off and the cap grows by ``growth``; otherwise the budget is frozen. ``reason`` says why the count
+    stopped where it did.
+    """
+
+    cap: int
+    auto: bool
+    growth: float = 1.5
+    min_gain: float = 0.02
+    window: int = 300
+    hard_max: int = 1_000_000
+    frozen: bool = False
+    last_step: int = 0
+    last_loss: float | None = None
+    reason: str = ""
+    history: list[dict[str, Any]] = field(default_factory=list)
+
+    @classmethod
+    def create(cls, p: TrainParams, train_pixels: int) -> BudgetController:
+        if p.budget:
+            return cls(cap=int(p.budget), auto=False, reason="user budget")
+        hard_max = int(np.clip(p.budget_max_per_pixel * train_pixels, p.budget_min, p.budget_max))
+        start = int(np.clip(p.budget_per_pixel * train_pixels, p.budget_min, hard_max))
+        return cls(cap=start, auto=True, growth=p.budget_growth, min_gain=p.budget_min_gain,
+                   window=p.budget_window, hard_max=hard_max)
+
+    def update(self, step: int, count: int, loss_ema: float, growing: bool) -> bool:
+        """Called every iteration; returns True when the cap changed."""
+        if not self.auto or self.frozen or not growing:
+            return False
+        if self.last_loss is None:
+            self.last_loss, self.last_step = loss_ema, step
+            return False
+        if count < 0.95 * self.cap or step - self.last_step < self.window:
+            return False
+        gain = (self.last_loss - loss_ema) / max(self.last_loss, 1e-12)
+        entry = {"iteration": step, "count": count, "cap": self.cap, "loss": loss_ema, "gain": gain}
+        if gain > self.min_gain and self.cap < self.hard_max:
+            self.cap = min(self.hard_max, int(self.cap * self.growth))
+            entry["action"] = f"grow to {self.cap}"
+            self.history.append(entry)
+            self.last_loss, self.last_step = loss_ema, step
+            return True
+        self.frozen = True
+        if self.cap >= self.hard_max:
+            self.reason = f"automatic budget reached its hard maximum ({self.hard_max})"
+        else:
+            self.reason = (f"automatic budget frozen at {self.cap}: the training loss fell {100 * gain:.1f}% "
+                           f"over the last {step - self.last_step} iterations at the cap (< "
+                           f"{100 * self.min_gain:.1f}%)")
+        entry["action"] = "freeze"
+        self.history.append(entry)
+        return False
+
+    def stop_reason(self, count: int, strategy: Strategy, iterations: int) -> str:
+        if self.frozen:
+            return self.reason
+        if count >= 0.95 * self.cap:
+            return (f"{'user' if not self.auto else 'automatic'} budget reached ({count} of {self.cap})"
+                    + ("" if not self.auto else "; densification ended before the next growth decision"))
+        return (f"densification ended (iteration {getattr(strategy, 'refine_stop', iterations)}) with {count} "
+                f"Gaussians, below the budget of {self.cap}: no more were needed by the gradient/opacity criteria")
+
+    def state(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+# --------------------------------------------------------------------------------------------------
+# the trainer
+
+
+class RollbackNeeded(Exception):
+    def __init__(self, what: str):
+        super().__init__(what)
+        self.what = what
+
+
+def _make_optimizer(param: torch.nn.Parameter, lr: float) -> torch.optim.Adam:
+    try:
+        return torch.optim.Adam([param], lr=lr, eps=1e-15, fused=True)
+    except (RuntimeError, TypeError):  # no fused kernel for this device/dtype
+        return torch.optim.Adam([param], lr=lr, eps=1e-15)
+
+
+def _atomic_save(obj: Any, path: Path) -> None:
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    with open(tmp, "wb") as f:
+        torch.save(obj, f)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+class Trainer:
+    """Fits ``model`` to ``train_views``; see the module docstring.
+
+    ``progress`` wraps the iteration range (e.g. ``ctx.progress``; a tqdm bar gets the curve's figures
+    as its postfix). ``checkpoint_dir`` None disables checkpoints.
+    """
+
+    def __init__(self, model: GaussianModel, strategy: Strategy, train_views: Sequence[TrainView],
+                 eval_views: Sequence[TrainView], params: TrainParams, extent: float,
+                 checkpoint_dir: Path | None = None, logger: logging.Logger | None = None,
+                 progress: Callable[..., Any] | None = None):
+        if not train_views:
+            raise ValueError("no training views")
+        self.model = model
+        self.strategy = strategy
+        self.train_views = list(train_views)
+        self.eval_views = list(eval_views)
+        self.p = params
+        self.extent = float(extent)
+        self.checkpoint_dir = None if checkpoint_dir is None else Path(checkpoint_dir)
+        self.log = logger or log
+        self.progress = progress
+        self.gen = torch.Generator().manual_seed(int(params.seed))
+        pixels = sum(v.image.shape[0] * v.image.shape[1] for v in self.train_views)
+        self.budget = BudgetController.create(params, pixels)
+        self.strategy.cap = self.budget.cap
+        self.optimizers = self._build_optimizers()
+        self.sstate = strategy.initialize_state(model, self.extent)
+        self.step = 0
+        self.lr_scale = 1.0
+        self.loss_ema: float | None = None
+        self.curve: list[dict[str, Any]] = []
+        self.events: list[dict[str, Any]] = []
+        self.elapsed = 0.0  # wall seconds of training (summed over resumed runs)
+        self.cpu_elapsed = 0.0  # process CPU seconds of training (all threads)
+        self._t0 = (0.0, 0.0)
+        self.perm: list[int] = []
+        self.resumed_from: int | None = None
+        self.nan_injections = 0
+        self._snapshot: dict[str, Any] | None = None
+        self._rollbacks_in_a_row = 0
+        self._last_failure_step = -1
+        self._window_losses: list[float] = []
+        self.bg = torch.tensor(params.background, dtype=torch.float32)
+        self.last_eval: dict[str, float] = {}
+
+    # optimisation ------------------------------------------------------------------------------
+
+    def base_lrs(self) -> dict[str, float]:
+        p = self.p
+        return {"means": p.lr_means * self.extent, "quats": p.lr_quats, "scales": p.lr_scales,
+                "opacities": p.lr_opacities, "sh0": p.lr_sh0, "shN": p.lr_sh0 * p.lr_shN_factor}
+
+    def _build_optimizers(self) -> dict[str, torch.optim.Adam]:
+        lrs = self.base_lrs()
+        return {n: _make_optimizer(self.model.params[n], lrs[n]) for n in self.model.params}
+
+    def means_lr(self, step: int) -> float:
+        t = min(max(step / max(self.p.iterations, 1), 0.0), 1.0)
+        lr0, lr1 = self.p.lr_means, self.p.lr_means_final
+        return math.exp((1 - t) * math.log(lr0) + t * math.log(lr1)) * self.extent
+
+    def _set_lrs(self, step: int) -> float:
+        lrs = self.base_lrs()
+        lrs["means"] = self.means_lr(step)
+        for n, opt in self.optimizers.items():
+            opt.param_groups[0]["lr"] = lrs[n] * self.lr_scale
+        return lrs["means"] * self.lr_scale
+
+    def active_sh_degree(self, step: int) -> int:
+        if self.p.sh_degree_every <= 0:
+            return min(self.p.sh_degree, self.model.max_sh_degree)
+        return min(self.p.sh_degree, self.model.max_sh_degree, step // self.p.sh_degree_every)
+
+    def _next_view(self) -> TrainView:
+        if not self.perm:
+            self.perm = torch.randperm(len(self.train_views), generator=self.gen).tolist()
+        return self.train_views[self.perm.pop()]
+
+    # state -------------------------------------------------------------------------------------
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "format": CHECKPOINT_FORMAT,
+            "step": self.step,
+            "model": self.model.state_dict(),
+            "optimizers": {n: copy.deepcopy(o.state_dict()) for n, o in self.optimizers.items()},
+            "strategy": self.strategy.state_to_save(self.sstate),
+            "strategy_cap": self.strategy.cap,
+            "budget": copy.deepcopy(self.budget.state()),
+            "generator": self.gen.get_state(),
+            "perm": list(self.perm),
+            "lr_scale": self.lr_scale,
+            "loss_ema": self.loss_ema,
+            "curve": copy.deepcopy(self.curve),
+            "events": copy.deepcopy(self.events),
+            "elapsed": self.elapsed,
+            "cpu_elapsed": self.cpu_elapsed,
+            "window_losses": list(self._window_losses),
+            "last_eval": dict(self.last_eval),
+            "nan_injections": self.nan_injections,
+        }
+
+    def load_state_dict(self, st: dict[str, Any], restore_lr_scale: bool = True) -> None:
+        self.step = int(st["step"])
+        self.model.load_state_dict(st["model"])
+        self.optimizers = self._build_optimizers()
+        for n, o in self.optimizers.items():
+            o.load_state_dict(copy.deepcopy(st["optimizers"][n]))
+        self.sstate = {k: (v.clone() if isinstance(v, torch.Tensor) else v) for k, v in st["strategy"].items()}
+        self.strategy.cap = int(st["strategy_cap"])
+        self.budget = BudgetController(**copy.deepcopy(st["budget"]))
+        self.gen.set_state(st["generator"])
+        self.perm = list(st["perm"])
+        if restore_lr_scale:
+            self.lr_scale = float(st["lr_scale"])
+        self.loss_ema = st["loss_ema"]
+        self.curve = copy.deepcopy(st["curve"])
+        self.events = copy.deepcopy(st["events"]) if restore_lr_scale else self.events
+        self.elapsed = float(st["elapsed"])
+        self.cpu_elapsed = float(st.get("cpu_elapsed", 0.0))
+        self._window_losses = list(st["window_losses"])
+        self.last_eval = dict(st.get("last_eval", {}))
+        if restore_lr_scale:
+            self.nan_injections = int(st.get("nan_injections", 0))
+
+    @property
+    def checkpoint_path(self) -> Path | None:
+        return None if self.checkpoint_dir is None else self.checkpoint_dir / CHECKPOINT_NAME
+
+    def save_checkpoint(self) -> None:
+        path = self.checkpoint_path
+        if path is None:
+            return
+        path.parent.mkdir(parents=True, exist_ok=True)
+        _atomic_save(self.state_dict(), path)
+
+    def try_resume(self) -> bool:
+        """Load the checkpoint when there is a readable one; returns whether training resumed."""
+        path = self.checkpoint_path
+        if path is None or not path.is_file():
+            return False
+        try:
+            st = torch.load(path, map_location="cpu", weights_only=False)
+            if st.get("format") != CHECKPOINT_FORMAT:
+                raise ValueError(f"checkpoint format {st.get('format')}")
+            self.load_state_dict(st)
+        except Exception as e:  # a damaged checkpoint: start over rather than fail
+            self.log.warning(f"ignoring unreadable checkpoint {path.name} ({e}); training from the start")
+            return False
+        self.resumed_from = self.step
+        self.log.info(f"resumed from checkpoint at iteration {self.step} ({len(self.model)} Gaussians)")
+        return True
+
+    # NaN guard ---------------------------------------------------------------------------------
+
+    def _take_snapshot(self) -> None:
+        self._snapshot = self.state_dict()
+        if self.step > self._last_failure_step:
+            self._rollbacks_in_a_row = 0
+
+    def _rollback(self, what: str) -> None:
+        self._rollbacks_in_a_row += 1
+        self._last_failure_step = max(self._last_failure_step, self.step)
+        failed_at = self.step
+        if self._snapshot is None or self._rollbacks_in_a_row > self.p.max_rollbacks:
+            raise NonFiniteError(
+                f"fit: {what} at iteration {failed_at}, still after {self._rollbacks_in_a_row - 1} rollback(s) "
+                f"with the learning rates scaled by {self.lr_scale:g}",
+                fix="lower the learning rates (fit.lr_*), check the cameras and points from SfM, or "
+                    "lower fit.sh_degree")
+        self.lr_scale *= self.p.rollback_lr_factor
+        lr_scale, elapsed, cpu = self.lr_scale, self.elapsed, self.cpu_elapsed
+        self.load_state_dict(self._snapshot, restore_lr_scale=False)
+        self.lr_scale, self.elapsed, self.cpu_elapsed = lr_scale, elapsed, cpu  # time is not rolled back
+        self.events.append({"iteration": failed_at, "event": "rollback", "what": what,
+                            "to_iteration": self.step, "lr_scale": self.lr_scale})
+        self.log.warning(f"fit: {what} at iteration {failed_at}: rolled back to iteration {self.step}, "
+                         f"learning rates x{self.lr_scale:g}")
+
+    @staticmethod
+    def _first_non_finite(tensors: dict[str, torch.Tensor | None]) -> str | None:
+        for n, t in tensors.items():
+            if t is not None and not bool(torch.isfinite(t).all()):
+                return n
+        return None
+
+    # one iteration -----------------------------------------------------------------------------
+
+    def _iteration(self) -> float:
+        step = self.step + 1
+        means_lr = self._set_lrs(step)
+        deg = self.active_sh_degree(step)
+        k = (deg + 1) ** 2
+        view = self._next_view()
+        H, W = view.image.shape[:2]
+        p = self.model.params
+        colors = torch.cat([p["sh0"], p["shN"][:, : k - 1]], dim=1) if k > 1 else p["sh0"]
+        try:
+            render, _alpha, info = rasterization(
+                p["means"], p["quats"], torch.exp(p["scales"]), torch.sigmoid(p["opacities"]), colors,
+                view.viewmat, view.K, W, H, sh_degree=deg, backgrounds=self.bg, backend=self.p.backend)
+        except NonFiniteInputError as e:
+            raise RollbackNeeded(f"non-finite rasterizer input ({e.message})") from None
+        info["generator"] = self.gen
+        self.strategy.step_pre_backward(self.model, self.optimizers, self.sstate, step, info)
+        loss = photometric_loss(render[0], view.image, self.p.lambda_dssim)
+        extra = self.strategy.extra_loss(self.model, step)
+        if extra is not None:
+            loss = loss + extra
+        if not bool(torch.isfinite(loss)):
+            raise RollbackNeeded("non-finite loss")
+        loss.backward()
+        bad = self._first_non_finite({n: q.grad for n, q in p.items()})
+        if bad is not None:
+            raise RollbackNeeded(f"non-finite gradient of '{bad}'")
+        for opt in self.optimizers.values():
+            opt.step()
+            opt.zero_grad(set_to_none=True)
+        changed = self.strategy.step_post_backward(self.model, self.optimizers, self.sstate, step, info,
+                                                   lr=means_lr)
+        if changed:
+            self.events.append({"iteration": step, "event": self.strategy.name, **changed,
+                                "count": len(self.model)})
+        if (self.p.debug_inject_nan_at and step == self.p.debug_inject_nan_at
+                and self.nan_injections < self.p.debug_inject_nan_times):
+            self.nan_injections += 1
+            with torch.no_grad():
+                self.model.params["means"][0, 0] = float("nan")
+        bad = self._first_non_finite(dict(self.model.params))
+        if bad is not None:
+            raise RollbackNeeded(f"non-finite parameter '{bad}'")
+        self.step = step
+        return float(loss.detach())
+
+    # the loop ----------------------------------------------------------------------------------
+
+    def evaluate(self) -> dict[str, float]:
+        views = self.eval_views or self.train_views
+        deg = self.active_sh_degree(self.step)
+        res = evaluate(self.model, views, deg, self.p.backend, self.p.background)
+        self.last_eval = res
+        return res
+
+    def train(self, resume: bool = True) -> dict[str, Any]:
+        """Run (or resume) to ``iterations``; returns a summary (also see :attr:`curve`)."""
+        if resume:
+            self.try_resume()
+        self._take_snapshot()
+        last_ckpt_time = time.perf_counter()
+        self._start_clock()
+        it = range(self.step, self.p.iterations)
+        bar = self.progress(it, total=self.p.iterations, desc="fit") if self.progress else None
+        if bar is not None and hasattr(bar, "update") and self.step:
+            bar.update(self.step)
+        try:
+            while self.step < self.p.iterations:
+                try:
+                    loss = self._iteration()
+                except RollbackNeeded as e:
+                    self._tick()
+                    self._rollback(e.what)
+                    if bar is not None and hasattr(bar, "n"):
+                        bar.n = self.step
+                    continue
+                self._tick()
+                self.loss_ema = loss if self.loss_ema is None else 0.98 * self.loss_ema + 0.02 * loss
+                self._window_losses.append(loss)
+                step = self.step
+                if self.budget.update(step, len(self.model), self.loss_ema, self.strategy.is_growing(step)):
+                    self.strategy.cap = self.budget.cap
+                    self.events.append({"iteration": step, "event": "budget", "cap": self.budget.cap})
+                    self.log.info(f"fit: budget grows to {self.budget.cap} Gaussians at iteration {step}")
+                do_eval = step == self.p.iterations or (self.p.eval_every > 0 and step % self.p.eval_every == 0)
+                if do_eval or step % max(self.p.log_every, 1) == 0:
+                    self._record(step, do_eval)
+                    self._tick()
+                    if bar is not None and hasattr(bar, "set_postfix"):
+                        last = self.curve[-1]
+                        post = {"loss": f"{last['loss']:.4f}", "n": last["count"]}
+                        if self.last_eval:
+                            post["psnr"] = f"{self.last_eval['psnr']:.2f}"
+                        bar.set_postfix(post, refresh=False)
+                if step % max(self.p.snapshot_every, 1) == 0:
+                    self._take_snapshot()
+                now = time.perf_counter()
+                if step < self.p.iterations and (
+                        (self.p.checkpoint_every > 0 and step % self.p.checkpoint_every == 0)
+                        or (self.p.checkpoint_seconds > 0 and now - last_ckpt_time >= self.p.checkpoint_seconds)):
+                    self.save_checkpoint()
+                    last_ckpt_time = time.perf_counter()
+                if bar is not None and hasattr(bar, "update"):
+                    bar.update(1)
+        finally:
+            if bar is not None and hasattr(bar, "close"):
+                bar.close()
+        self._tick()
+        return self.summary()
+
+    def _start_clock(self) -> None:
+        self._t0 = (time.perf_counter() - self.elapsed, time.process_time() - self.cpu_elapsed)
+
+    def _tick(self) -> None:
+        self.elapsed = time.perf_counter() - self._t0[0]
+        self.cpu_elapsed = time.process_time() - self._t0[1]
+
+    def _record(self, step: int, do_eval: bool) -> None:
+        window = self._window_losses or [float("nan")]
+        entry: dict[str, Any] = {"iteration": step, "loss": float(np.mean(window)), "count": len(self.model),
+                                 "seconds": round(self.elapsed, 3), "cpu_seconds": round(self.cpu_elapsed, 3),
+                                 "sh_degree": self.active_sh_degree(step), "lr_scale": self.lr_scale}
+        self._window_losses = []
+        if do_eval:
+            t0 = time.perf_counter()
+            ev = self.evaluate()
+            entry.update(heldout_psnr=ev["psnr"], heldout_ssim=ev["ssim"],
+                         eval_seconds=round(time.perf_counter() - t0, 3))
+            self.log.info(f"iteration {step}/{self.p.iterations}: loss {entry['loss']:.4f}, {entry['count']} "
+                          f"Gaussians, {'held-out' if self.eval_views else 'training'} PSNR {ev['psnr']:.2f} dB, "
+                          f"SSIM {ev['ssim']:.3f}, {self.elapsed:.0f} s")
+        self.curve.append(entry)
+
+    def summary(self) -> dict[str, Any]:
+        if not self.last_eval or (self.curve and "heldout_psnr" not in self.curve[-1]):
+            self.evaluate()
+        return {
+            "iterations": self.step,
+            "count": len(self.model),
+            "stop_reason": self.budget.stop_reason(len(self.model), self.strategy, self.p.iterations),
+            "budget": self.budget.cap,
+            "budget_auto": self.budget.auto,
+            "budget_history": self.budget.history,
+            "heldout_psnr": self.last_eval.get("psnr"),
+            "heldout_ssim": self.last_eval.get("ssim"),
+            "heldout_is_training": not self.eval_views,
+            "train_seconds": self.elapsed,
+            "train_cpu_seconds": self.cpu_elapsed,
+            "resumed_from_iteration": self.resumed_from,
+            "rollbacks": [e for e in self.events if e.get("event") == "rollback"],
+            "lr_scale": self.lr_scale,
+        }

@@ -1,0 +1,438 @@
+"""The export frame: Z up, metres (DESIGN.md section 5).
+
+Structure from motion knows neither gravity nor metres: its world frame is whatever the first
+image pair gave. For export (USD for robotics simulators, meshes, splats) every geometry is mapped
+by one similarity ``x_export = s R (x_sfm - c)`` into a frame whose +Z is "up", whose unit is the
+metre when a scale is known, and whose origin sits on the estimated floor below the point the
+cameras look at.
+
+Up (``FrameSettings.up``):
+
+``"auto"`` (default)
+    The horizon estimate: photographers rarely roll the camera, so every camera's x axis (OpenCV:
+    right) is horizontal and "up" is the direction most perpendicular to all of them (the smallest
+    eigenvector of sum x x^T). When the x axes are nearly parallel (a forward-facing capture, where
+    that is ambiguous between up and the viewing direction), the plane of the camera centres (a
+    grid held in front of the scene contains "up") or else the mean of the cameras' -y axes decides.
+    The sign always agrees with the mean of the cameras' -y axes (OpenCV y points down).
+``"cameras"``
+    The normalised mean of the cameras' -y axes (biased by the mean pitch of the cameras).
+``"ring"``
+    The normal of the best-fit plane of the camera centres, oriented by the mean -y axis (a
+    turntable or a walk around at constant height).
+``"+x"``, ``"-x"``, ``"+y"``, ``"-y"``, ``"+z"``, ``"-z"``
+    A known axis of the SfM frame (e.g. ``"-y"`` for a frame that is already OpenCV-like).
+
+Scale: ``scale`` (metres per SfM unit) or ``known_distance`` (two camera or image names and the
+distance between their centres in metres). With neither, the unit is arbitrary (the SfM unit): the
+exporters say so in the log and in the files' metadata (USD ``customLayerData`` ``sgpor:units``).
+
+Origin (``FrameSettings.origin``): ``"floor"`` (default): horizontally the point the cameras look
+at, vertically a low percentile of the heights of the opaque Gaussians (the floor or the table the
+scene stands on); ``"center"``: the point the cameras look at; ``"none"``: the SfM origin.
+
+Heading: the first registered camera (by name) looks along +Y (its viewing direction projected on
+the horizontal plane), so the result does not depend on the SfM frame's arbitrary rotation.
+
+These settings are not export-stage parameters yet: :meth:`FrameSettings.from_params` reads any
+same-named attribute of the export stage's parameters (``up``, ``scale``, ``known_distance``,
+``origin``), so they take effect as soon as ``ExportParams`` grows them; until then the defaults
+above apply.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+import numpy as np
+
+from .errors import PipelineError
+from .scene import Camera
+
+log = logging.getLogger(__name__)
+
+UP_METHODS = ("auto", "cameras", "ring", "+x", "-x", "+y", "-y", "+z", "-z")
+ORIGINS = ("floor", "center", "none")
+_AXES = {"x": 0, "y": 1, "z": 2}
+
+
+@dataclass
+class FrameSettings:
+    """How the export frame is chosen (see the module docstring)."""
+
+    up: str = "auto"
+    scale: float | None = None  # metres per SfM unit
+    known_distance: tuple[str, str, float] | None = None  # (camera a, camera b, metres between them)
+    origin: str = "floor"
+    floor_percentile: float = 1.0  # percentile of the opaque Gaussians' heights taken as the floor
+
+    def __post_init__(self) -> None:
+        if self.up not in UP_METHODS:
+            raise PipelineError(f"unknown up-axis method {self.up!r}", fix=f"use one of {', '.join(UP_METHODS)}")
+        if self.origin not in ORIGINS:
+            raise PipelineError(f"unknown export origin {self.origin!r}", fix=f"use one of {', '.join(ORIGINS)}")
+        if self.scale is not None and not (math.isfinite(self.scale) and self.scale > 0):
+            raise PipelineError(f"export scale must be a positive number, got {self.scale!r}")
+        if self.known_distance is not None:
+            if len(self.known_distance) != 3 or not float(self.known_distance[2]) > 0:
+                raise PipelineError(f"known_distance must be [camera_a, camera_b, metres > 0], got "
+                                    f"{self.known_distance!r}")
+            a, b, d = self.known_distance
+            self.known_distance = (str(a), str(b), float(d))
+
+    @classmethod
+    def from_params(cls, params: Any) -> FrameSettings:
+        """Defaults, overridden by same-named attributes of ``params`` (the export stage's params)."""
+        kw = {f.name: getattr(params, f.name) for f in fields(cls)
+              if params is not None and getattr(params, f.name, None) is not None}
+        return cls(**kw)
+
+
+# --------------------------------------------------------------------------------------------------
+# quaternions (w, x, y, z), Hamilton convention, as the Gaussians store them
+
+
+def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product a * b of (..., 4) arrays in (w, x, y, z) order (rotation b, then a)."""
+    aw, ax, ay, az = np.moveaxis(np.asarray(a), -1, 0)
+    bw, bx, by, bz = np.moveaxis(np.asarray(b), -1, 0)
+    return np.stack([aw * bw - ax * bx - ay * by - az * bz,
+                     aw * bx + ax * bw + ay * bz - az * by,
+                     aw * by - ax * bz + ay * bw + az * bx,
+                     aw * bz + ax * by - ay * bx + az * bw], axis=-1)
+
+
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    """(..., 4) quaternions (w, x, y, z), any norm, to (..., 3, 3) rotation matrices."""
+    q = np.asarray(q, np.float64)
+    q = q / np.maximum(np.linalg.norm(q, axis=-1, keepdims=True), 1e-12)
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+    ], -2)
+
+
+def quat_from_matrix(R: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rotation matrices to unit quaternions (..., 4) (w, x, y, z) with w >= 0."""
+    R = np.asarray(R, np.float64)
+    shape = R.shape[:-2]
+    R = R.reshape(-1, 3, 3)
+    m00, m11, m22 = R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]
+    # Shepperd's method: pick the largest of the four candidate denominators per matrix
+    cand = np.stack([1 + m00 + m11 + m22, 1 + m00 - m11 - m22, 1 - m00 + m11 - m22, 1 - m00 - m11 + m22], 1)
+    k = np.argmax(cand, axis=1)
+    q = np.empty((len(R), 4))
+    s = np.sqrt(np.maximum(cand[np.arange(len(R)), k], 1e-300)) * 2  # = 4 |q_k|
+    i = k == 0
+    q[i] = np.stack([s[i] / 4, (R[i, 2, 1] - R[i, 1, 2]) / s[i], (R[i, 0, 2] - R[i, 2, 0]) / s[i],
+                     (R[i, 1, 0] - R[i, 0, 1]) / s[i]], 1)
+    i = k == 1
+    q[i] = np.stack([(R[i, 2, 1] - R[i, 1, 2]) / s[i], s[i] / 4, (R[i, 0, 1] + R[i, 1, 0]) / s[i],
+                     (R[i, 0, 2] + R[i, 2, 0]) / s[i]], 1)
+    i = k == 2
+    q[i] = np.stack([(R[i, 0, 2] - R[i, 2, 0]) / s[i], (R[i, 0, 1] + R[i, 1, 0]) / s[i], s[i] / 4,
+                     (R[i, 1, 2] + R[i, 2, 1]) / s[i]], 1)
+    i = k == 3
+    q[i] = np.stack([(R[i, 1, 0] - R[i, 0, 1]) / s[i], (R[i, 0, 2] + R[i, 2, 0]) / s[i],
+                     (R[i, 1, 2] + R[i, 2, 1]) / s[i], s[i] / 4], 1)
+    q *= np.where(q[:, :1] < 0, -1.0, 1.0)
+    return q.reshape(*shape, 4)
+
+
+# --------------------------------------------------------------------------------------------------
+# spherical harmonics under a rotation
+
+
+def _sh_basis(dirs: np.ndarray, degree: int) -> np.ndarray:
+    """[M, (degree+1)^2] real SH basis (the rasterizer's convention) at unit directions [M,3]."""
+    import torch
+
+    from .gaussians._raster_common import eval_sh
+
+    k = (degree + 1) ** 2
+    eye = torch.eye(k, dtype=torch.float64)[:, :, None].expand(k, k, 3)  # coefficient set j = e_j
+    d = torch.from_numpy(np.asarray(dirs, np.float64))[:, None, :]  # [M,1,3] broadcast over j
+    return eval_sh(degree, d, eye[None]).numpy()[..., 0]  # [M, k]
+
+
+def sh_rotation_matrix(R: np.ndarray, degree: int) -> np.ndarray:
+    """[K,K] matrix T (block diagonal per band) with sum_k (T c)_k Y_k(R d) = sum_k c_k Y_k(d).
+
+    Found by least squares on a fixed set of directions (exact up to rounding: every band of real
+    SH is closed under rotations).
+    """
+    k = (degree + 1) ** 2
+    if degree == 0:
+        return np.eye(1)
+    n = 4 * k + 16
+    i = np.arange(n) + 0.5  # Fibonacci sphere: well spread, deterministic
+    phi = np.arccos(1 - 2 * i / n)
+    theta = np.pi * (1 + 5 ** 0.5) * i
+    d = np.stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)], 1)
+    A = _sh_basis(d @ np.asarray(R, np.float64).T, degree)  # Y(R d)
+    B = _sh_basis(d, degree)  # Y(d)
+    T, *_ = np.linalg.lstsq(A, B, rcond=None)
+    T[np.abs(T) < 1e-12] = 0.0
+    return T
+
+
+def rotate_sh(shN: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """Rotate higher-order SH coefficients [N, K-1, 3] (no DC term) by the rotation ``R``."""
+    shN = np.asarray(shN)
+    if shN.shape[1] == 0:
+        return shN.copy()
+    degree = int(round(math.sqrt(shN.shape[1] + 1))) - 1
+    T = sh_rotation_matrix(R, degree)[1:, 1:]
+    return np.einsum("jk,nkc->njc", T, shN.astype(np.float64)).astype(shN.dtype)
+
+
+# --------------------------------------------------------------------------------------------------
+# similarity transforms
+
+
+@dataclass
+class Similarity:
+    """``x -> s R x + t`` (export_from_sfm when used for the export frame)."""
+
+    s: float = 1.0
+    R: np.ndarray = field(default_factory=lambda: np.eye(3))
+    t: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def __post_init__(self) -> None:
+        self.s = float(self.s)
+        self.R = np.asarray(self.R, np.float64).reshape(3, 3)
+        self.t = np.asarray(self.t, np.float64).reshape(3)
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """4x4 homogeneous matrix (column vectors)."""
+        M = np.eye(4)
+        M[:3, :3] = self.s * self.R
+        M[:3, 3] = self.t
+        return M
+
+    def inverse(self) -> Similarity:
+        return Similarity(1.0 / self.s, self.R.T, -(self.R.T @ self.t) / self.s)
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        p = np.asarray(points, np.float64)
+        return self.s * p @ self.R.T + self.t
+
+    def rotate_quats(self, quats: np.ndarray) -> np.ndarray:
+        """Gaussian orientations (w, x, y, z) [N,4] after the rotation (their norms are kept)."""
+        qr = quat_from_matrix(self.R)
+        return quat_multiply(qr[None], np.asarray(quats, np.float64))
+
+    def camera(self, cam: Camera) -> Camera:
+        """The same camera in the transformed frame (it sees the same image)."""
+        Rc = cam.cam_from_world[:3, :3]
+        tc = cam.cam_from_world[:3, 3]
+        T = np.eye(4)
+        T[:3, :3] = Rc @ self.R.T
+        T[:3, 3] = self.s * tc - Rc @ self.R.T @ self.t
+        return Camera(cam.name, cam.width, cam.height, cam.K.copy(), T, cam.image, cam.model,
+                      list(cam.distortion))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"scale": self.s, "rotation": self.R.tolist(), "translation": self.t.tolist(),
+                "matrix": self.matrix.tolist()}
+
+
+def transform_model(model: Any, sim: Similarity) -> Any:
+    """A :class:`~sgpor_pipeline.gaussians.model.GaussianModel` mapped by ``sim``.
+
+    Means are transformed, orientations rotated, log-scales shifted by log(s), higher-order SH
+    rotated; opacities and the DC colour are unchanged. Values stay pre-activation, float32.
+    """
+    import torch
+
+    from .gaussians.model import GaussianModel
+
+    p = model.numpy()
+    f32 = np.float32
+    params = {
+        "means": torch.from_numpy(sim.apply(p["means"]).astype(f32)),
+        "quats": torch.from_numpy(sim.rotate_quats(p["quats"]).astype(f32)),
+        "scales": torch.from_numpy((p["scales"].astype(np.float64) + math.log(sim.s)).astype(f32)),
+        "opacities": torch.from_numpy(p["opacities"].copy()),
+        "sh0": torch.from_numpy(p["sh0"].copy()),
+        "shN": torch.from_numpy(rotate_sh(p["shN"], sim.R).astype(f32)),
+    }
+    return GaussianModel(params, model.max_sh_degree)
+
+
+# --------------------------------------------------------------------------------------------------
+# estimating up, scale and origin
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    n = float(np.linalg.norm(v))
+    return v / n if n > 1e-12 else v
+
+
+def look_at_center(cameras: Sequence[Camera]) -> np.ndarray:
+    """The point nearest to all viewing axes (see :func:`sgpor_pipeline.synthetic.viewing_axes_center`)."""
+    from .synthetic import viewing_axes_center
+
+    return viewing_axes_center(list(cameras))
+
+
+def scene_center_radius(cameras: Sequence[Camera]) -> tuple[np.ndarray, float]:
+    """The point the cameras look at and the median camera distance to it (a scene size)."""
+    c = look_at_center(cameras)
+    centers = np.array([cam.center for cam in cameras])
+    r = float(np.median(np.linalg.norm(centers - c, axis=1))) if len(cameras) else 1.0
+    if not r > 0:
+        r = 1.0
+    return c, r
+
+
+def estimate_up(cameras: Sequence[Camera], method: str = "auto") -> tuple[np.ndarray, str]:
+    """The up direction (unit, SfM frame) and the name of the method that decided it."""
+    if method in UP_METHODS[3:]:
+        v = np.zeros(3)
+        v[_AXES[method[1]]] = 1.0 if method[0] == "+" else -1.0
+        return v, f"given {method}"
+    if not cameras:
+        raise PipelineError("cannot estimate the up axis without cameras",
+                            fix="give the up axis explicitly (up = '+z', ...)")
+    Rs = np.array([c.cam_from_world[:3, :3] for c in cameras])
+    ups = -Rs[:, 1, :]  # each camera's up (-y), world frame
+    u0 = _unit(ups.mean(0))
+    if np.linalg.norm(ups.mean(0)) < 1e-6:
+        u0 = np.array([0.0, 0.0, 1.0])
+    if method == "cameras":
+        return u0, "mean camera up (-y)"
+    centers = np.array([c.center for c in cameras])
+    if method == "ring":
+        if len(cameras) < 3:
+            return u0, "mean camera up (-y); too few cameras for a plane"
+        _, _, vt = np.linalg.svd(centers - centers.mean(0))
+        n = vt[2]
+        return (n if n @ u0 >= 0 else -n), "camera-centre plane normal"
+    # auto: the horizon (camera x axes are horizontal)
+    xs = Rs[:, 0, :]
+    M = xs.T @ xs / len(xs)
+    w, V = np.linalg.eigh(M)  # ascending
+    if len(cameras) >= 2 and w[1] > 4.0 * w[0] + 1e-6 and w[1] > 1e-4:
+        up, how = V[:, 0], "horizon (camera x axes)"
+    else:
+        # x axes nearly parallel: up is in the plane orthogonal to them, but where?
+        xbar = V[:, 2]
+        up, how = None, ""
+        if len(cameras) >= 3:
+            _, sv, vt = np.linalg.svd(centers - centers.mean(0))
+            if sv[1] > 0.2 * sv[0] and sv[2] < 0.3 * sv[1]:  # the centres span a plane: it contains up
+                cand = np.cross(xbar, vt[2])
+                if np.linalg.norm(cand) > 0.5:
+                    up, how = cand, "horizon + camera-centre plane"
+        if up is None:
+            up, how = u0 - (u0 @ xbar) * xbar, "horizon + mean camera up"
+    up = _unit(up)
+    if up @ u0 < 0:
+        up = -up
+    if up @ u0 < 0.3:  # disagrees badly with where the cameras' tops point: trust the cameras
+        return u0, "mean camera up (-y); the horizon estimate disagreed"
+    return up, how
+
+
+def _rotation_to_z(up: np.ndarray, heading: np.ndarray | None) -> np.ndarray:
+    """R with R up = +z and R heading (projected on the horizontal plane) = +y."""
+    z = _unit(np.asarray(up, np.float64))
+    y = None
+    if heading is not None:
+        h = heading - z * (heading @ z)
+        if np.linalg.norm(h) > 1e-6:
+            y = _unit(h)
+    if y is None:
+        a = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        y = _unit(np.cross(z, a))
+    x = np.cross(y, z)
+    return np.stack([x, y, z])  # rows: the new axes in old coordinates
+
+
+def _find_camera(cameras: Sequence[Camera], name: str) -> Camera:
+    for c in cameras:
+        if name in (c.name, c.image):
+            return c
+    raise PipelineError(f"known_distance names camera {name!r}, which is not in the run",
+                        fix=f"use one of: {', '.join(c.name for c in list(cameras)[:10])}...")
+
+
+@dataclass
+class ExportFrame:
+    """The similarity into the export frame and how it was found."""
+
+    transform: Similarity  # export_from_sfm
+    up_sfm: np.ndarray
+    up_method: str
+    metric: bool  # True when the unit is the metre
+    scale_source: str
+    origin: str
+
+    @property
+    def units(self) -> str:
+        return "metres" if self.metric else "arbitrary"
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"format": "sgpor-export-frame/1", "up_axis": "Z", "units": self.units,
+                "scale_source": self.scale_source, "up_method": self.up_method,
+                "up_in_sfm_frame": self.up_sfm.tolist(), "origin": self.origin,
+                "export_from_sfm": self.transform.to_dict()}
+
+    def describe(self) -> str:
+        unit = ("metres (" + self.scale_source + ")") if self.metric else \
+            "ARBITRARY units (no scale given: set a scale or a known distance between two cameras)"
+        return f"export frame: Z up ({self.up_method}), {unit}, origin {self.origin}"
+
+
+def compute_export_frame(cameras: Sequence[Camera], settings: FrameSettings | None = None,
+                         means: np.ndarray | None = None, opacities: np.ndarray | None = None) -> ExportFrame:
+    """The export frame for a scene seen by ``cameras`` (registered ones; novel cameras are ignored).
+
+    ``means`` (SfM frame) and ``opacities`` (activated, in [0,1]) of the Gaussians place the floor
+    for ``origin="floor"``; without them the origin is the look-at point.
+    """
+    settings = settings or FrameSettings()
+    cams = [c for c in cameras if c.image is not None] or list(cameras)
+    up, how = estimate_up(cams, settings.up)
+    first = sorted(cams, key=lambda c: c.name)[0] if cams else None
+    heading = first.cam_from_world[2, :3] if first is not None else None
+    R = _rotation_to_z(up, heading)
+
+    if settings.scale is not None:
+        s, source, metric = float(settings.scale), f"scale {settings.scale:g} m per SfM unit", True
+    elif settings.known_distance is not None:
+        a, b, metres = settings.known_distance
+        d = float(np.linalg.norm(_find_camera(cams, a).center - _find_camera(cams, b).center))
+        if not d > 1e-12:
+            raise PipelineError(f"cameras {a!r} and {b!r} are at the same place: cannot set the scale",
+                                fix="pick two cameras further apart")
+        s, source, metric = metres / d, f"{a} to {b} = {metres:g} m", True
+    else:
+        s, source, metric = 1.0, "none", False
+
+    if settings.origin == "none" or not cams:
+        c = np.zeros(3)
+        origin = "SfM origin"
+    else:
+        c = look_at_center(cams)
+        origin = "look-at point"
+        if settings.origin == "floor" and means is not None and len(means):
+            m = np.asarray(means, np.float64)
+            keep = np.ones(len(m), bool) if opacities is None else np.asarray(opacities) >= 0.5
+            _, r = scene_center_radius(cams)
+            horiz = (m - c) - np.outer((m - c) @ up, up)
+            keep &= np.linalg.norm(horiz, axis=1) <= 3.0 * r
+            if keep.sum() >= 10:
+                h = (m[keep] - c) @ up
+                c = c + float(np.percentile(h, settings.floor_percentile)) * up
+                origin = "floor below the look-at point"
+    t = -s * (R @ c)
+    return ExportFrame(Similarity(s, R, t), up, how, metric, source, origin)

@@ -1,0 +1,194 @@
+"""Deleting the object and finding what is truly unseen (DESIGN.md section 7).
+
+After the object's Gaussians are gone, most of its mask is still covered by background that other
+views saw: that is kept as fitted. Only mask pixels where the remaining Gaussians' accumulated
+opacity stays low are a *hole*. The hole's depth is completed from the surrounding background by
+harmonic interpolation of inverse depth (exact for planes: a plane's inverse depth is affine in
+pixel coordinates, and the harmonic extension of affine boundary values is that affine function),
+and new Gaussians are seeded on that completed surface for the later stages to colour.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import torch
+from scipy.sparse import coo_matrix
+from scipy.sparse.linalg import spsolve
+from scipy.spatial import cKDTree
+
+from ..gaussians.model import GaussianModel, inverse_sigmoid, rgb_to_sh
+from ..scene import Camera
+from .selection import contribution_scores, in_visual_cone, median_spacing, render_channels
+
+
+@dataclass
+class RemoveParams:
+    score_threshold: float = 0.6  # a Gaussian with this share of its weight inside the masks is object
+    min_weight: float = 0.05  # below this total blending weight over all views a Gaussian counts as unseen
+    hull_dilate: int = 2  # pixels the masks are dilated by for the visual-hull floater test
+    hole_alpha: float = 0.5  # mask pixels whose background opacity is below this are holes
+    hole_close: int = 2  # morphological closing radius of the hole mask (pixels); removes specks
+    seed_stride: int = 3  # one new Gaussian per stride x stride hole pixels per view (before merging)
+    seed_opacity: float = 0.7
+    max_seeds: int = 30000
+    backend: str = "auto"
+
+
+def objects_to_delete(model: GaussianModel, cameras: list[Camera], masks: list[np.ndarray],
+                      object_ids: np.ndarray, params: RemoveParams) -> tuple[np.ndarray, dict]:
+    """The object's Gaussians (from the masks stage, confirmed with every view's mask) plus floaters
+    inside the object's visual hull that no view shows outside the masks."""
+    inside, total = contribution_scores(model, cameras, masks, params.backend)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        score = np.where(total > 0, inside / total, np.nan)
+    delete = np.zeros(len(model), bool)
+    delete[object_ids] = True
+    by_score = (total >= params.min_weight) & (score >= params.score_threshold)
+    means = model.means.detach().double().numpy()
+    hull = in_visual_cone(means, cameras, masks, params.hull_dilate)
+    floaters = hull & ~((total >= params.min_weight) & (score < 0.5))
+    stats = {"from_masks_stage": int(delete.sum()), "by_score": int((by_score & ~delete).sum())}
+    delete |= by_score
+    stats["floaters"] = int((floaters & ~delete).sum())
+    delete |= floaters
+    stats["deleted"] = int(delete.sum())
+    return delete, stats
+
+
+def render_background(model: GaussianModel, camera: Camera, backend: str = "auto"
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(rgb [H,W,3], alpha [H,W], expected depth [H,W]) of the DC colours (view-independent)."""
+    img, alpha, _ = render_channels(model, camera, model.colors_dc(), backend, depth=True)
+    return img[..., :3].clip(0.0, 1.0), alpha, img[..., 3]
+
+
+def hole_mask(object_mask: np.ndarray, alpha: np.ndarray, params: RemoveParams) -> np.ndarray:
+    hole = object_mask & (alpha < params.hole_alpha)
+    if params.hole_close > 0 and hole.any():
+        k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * params.hole_close + 1,) * 2)
+        hole = cv2.morphologyEx(hole.astype(np.uint8), cv2.MORPH_CLOSE, k) > 0
+        hole &= object_mask
+    return hole
+
+
+def complete_depth(depth: np.ndarray, valid: np.ndarray, hole: np.ndarray) -> np.ndarray:
+    """Fill ``hole`` by harmonic interpolation of inverse depth from the valid pixels around it.
+
+    Unknown pixels = the hole plus invalid pixels connected to it; the Laplace equation is solved
+    on them with the valid neighbours as boundary values (a sparse linear system)."""
+    out = depth.astype(np.float64).copy()
+    unknown = hole | ~valid
+    if not hole.any():
+        return out.astype(np.float32)
+    good = valid & ~hole & (depth > 0)
+    if not good.any():
+        return out.astype(np.float32)
+    inv = np.zeros_like(out)
+    inv[good] = 1.0 / out[good]
+    h, w = depth.shape
+    idx = -np.ones((h, w), np.int64)
+    ys, xs = np.nonzero(unknown)
+    idx[ys, xs] = np.arange(len(ys))
+    n = len(ys)
+    rows, cols, vals = [np.arange(n)], [np.arange(n)], [np.zeros(n)]
+    rhs = np.zeros(n)
+    diag = np.zeros(n)
+    for dy, dx in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+        ny, nx = ys + dy, xs + dx
+        inside = (ny >= 0) & (ny < h) & (nx >= 0) & (nx < w)
+        diag[inside] += 1.0
+        nyi, nxi = ny[inside], nx[inside]
+        neighbour_unknown = unknown[nyi, nxi]
+        src = np.flatnonzero(inside)
+        rows.append(src[neighbour_unknown])
+        cols.append(idx[nyi[neighbour_unknown], nxi[neighbour_unknown]])
+        vals.append(-np.ones(int(neighbour_unknown.sum())))
+        known = ~neighbour_unknown
+        rhs[src[known]] += inv[nyi[known], nxi[known]] * good[nyi[known], nxi[known]]
+        # Invalid-but-not-hole neighbours that are not good carry no value: treat as Neumann (drop).
+        bad = known & ~good[nyi, nxi]
+        diag[src[bad]] -= 1.0
+    vals[0] = diag
+    A = coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)).tocsr()
+    # Components of unknown pixels that touch no valid pixel have a singular block: regularise lightly
+    # towards the median inverse depth so they get a finite, plausible value.
+    reg = 1e-6
+    A = A + reg * coo_matrix((np.ones(n), (np.arange(n), np.arange(n))), shape=(n, n)).tocsr()
+    rhs += reg * float(np.median(inv[good]))
+    sol = spsolve(A, rhs)
+    sol = np.clip(sol, 1e-6, None)
+    out[ys, xs] = 1.0 / sol
+    return out.astype(np.float32)
+
+
+def initial_colour(render: np.ndarray, hole: np.ndarray) -> np.ndarray:
+    """A first colour for the hole (OpenCV Telea diffusion from its border): seeds' starting colour."""
+    if not hole.any():
+        return render
+    img8 = (render.clip(0, 1) * 255 + 0.5).astype(np.uint8)
+    filled = cv2.inpaint(img8, hole.astype(np.uint8), 3, cv2.INPAINT_TELEA)
+    return filled.astype(np.float32) / 255.0
+
+
+def lift(camera: Camera, ys: np.ndarray, xs: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """World points of pixel centres (xs+0.5, ys+0.5) at camera z ``depth``."""
+    K = camera.K
+    x = (xs + 0.5 - K[0, 2]) / K[0, 0] * depth
+    y = (ys + 0.5 - K[1, 2]) / K[1, 1] * depth
+    pc = np.stack([x, y, depth], axis=1)
+    wfc = camera.world_from_cam
+    return pc @ wfc[:3, :3].T + wfc[:3, 3]
+
+
+def seed_hole_gaussians(cameras: list[Camera], holes: list[np.ndarray], depths: list[np.ndarray],
+                        colours: list[np.ndarray], spacing: float, max_sh_degree: int,
+                        params: RemoveParams, seed: int = 0) -> GaussianModel:
+    """New isotropic Gaussians on the completed hole surfaces of every view, merged on a voxel grid."""
+    pts, cols = [], []
+    s = max(1, params.seed_stride)
+    for cam, hole, depth, colour in zip(cameras, holes, depths, colours):
+        grid = np.zeros_like(hole)
+        grid[s // 2::s, s // 2::s] = True
+        ys, xs = np.nonzero(hole & grid & (depth > 0))
+        if ys.size == 0:
+            continue
+        pts.append(lift(cam, ys, xs, depth[ys, xs].astype(np.float64)))
+        cols.append(colour[ys, xs])
+    if not pts:
+        return GaussianModel.empty(0, max_sh_degree)
+    xyz = np.concatenate(pts)
+    rgb = np.concatenate(cols)
+    voxel = max(spacing, 1e-9)
+    keys = np.floor(xyz / voxel).astype(np.int64)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    first = np.sort(first)
+    if len(first) > params.max_seeds:
+        first = np.sort(np.random.default_rng(seed).choice(first, params.max_seeds, replace=False))
+    xyz, rgb = xyz[first], rgb[first]
+    d, _ = cKDTree(xyz).query(xyz, k=min(4, len(xyz)))
+    scale = np.clip(np.mean(d[:, 1:], axis=1) if d.ndim == 2 and d.shape[1] > 1 else np.full(len(xyz), voxel),
+                    0.25 * voxel, 4 * voxel)
+    model = GaussianModel.empty(len(xyz), max_sh_degree)
+    with torch.no_grad():
+        model.params["means"].copy_(torch.from_numpy(xyz).float())
+        model.params["scales"].copy_(torch.from_numpy(np.log(scale)).float()[:, None].expand(-1, 3))
+        model.params["opacities"].fill_(float(inverse_sigmoid(torch.tensor(params.seed_opacity))))
+        model.params["sh0"].copy_(rgb_to_sh(torch.from_numpy(rgb).float())[:, None, :])
+    return model
+
+
+def concat_models(a: GaussianModel, b: GaussianModel) -> GaussianModel:
+    params = {n: torch.cat([a.params[n].detach(), b.params[n].detach()]) for n in a.params}
+    return GaussianModel(params, a.max_sh_degree)
+
+
+def subset(model: GaussianModel, keep: np.ndarray) -> GaussianModel:
+    sel = torch.from_numpy(np.asarray(keep, bool))
+    return GaussianModel({n: p.detach()[sel] for n, p in model.params.items()}, model.max_sh_degree)
+
+
+__all__ = ["RemoveParams", "objects_to_delete", "render_background", "hole_mask", "complete_depth",
+           "initial_colour", "seed_hole_gaussians", "concat_models", "subset", "median_spacing"]

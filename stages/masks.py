@@ -1,0 +1,99 @@
+"""masks: an object mask for every view, propagated from the masks the user gave for some.
+
+Out: ``masks/<view>.png`` (0/1, every registered view, in the undistorted sfm images' pixels),
+``prob/<view>.png`` (the soft object probability, 8-bit), ``object_ids.npy`` (indices of the
+object's Gaussians in the fit stage's ``gaussians.ply``), ``scores.npy``, ``masks.json``
+(per-view confidence and source: "given" or "propagated"; selection counts). Views given by the
+user keep their masks. See :mod:`sgpor_pipeline.removal.selection` for the method.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+
+import numpy as np
+
+from sgpor_pipeline.dag import Stage, StageContext
+from sgpor_pipeline.errors import PipelineError
+from sgpor_pipeline.gaussians.ply import read_ply
+from sgpor_pipeline.imageio import read_image, read_mask, write_mask01, write_png
+from sgpor_pipeline.removal.selection import (
+    SelectionParams,
+    mask_confidence,
+    refine_mask,
+    render_object_probability,
+    select_object,
+)
+from sgpor_pipeline.sfm import load_sfm
+
+
+@dataclass
+class MasksParams:
+    score_threshold: float = 0.6
+    grow_radius: float = 2.5
+    render_threshold: float = 0.5
+    guided_radius: int = 4
+    use_sfm_points: bool = True
+    # Use only the first N given masks (0 = all): the benchmark measures propagation from 1, 2, 4.
+    max_given: int = 0
+    backend: str = "auto"
+
+
+class MasksStage(Stage):
+    name = "masks"
+    VERSION = 1
+    Params = MasksParams
+    inputs = ("sfm", "fit")
+
+    def run(self, ctx: StageContext) -> None:
+        p = ctx.params
+        sel_params = SelectionParams(score_threshold=p.score_threshold, grow_radius=p.grow_radius,
+                                     render_threshold=p.render_threshold, guided_radius=p.guided_radius,
+                                     backend=p.backend)
+        sfm = load_sfm(ctx.inputs["sfm"])
+        model = read_ply(ctx.inputs["fit"] / "gaussians.ply")
+        posed = sfm.posed
+        given = [(c, read_mask(sfm.mask_path(c.image))) for c in posed if sfm.mask_path(c.image) is not None]
+        given = [(c, m) for c, m in given if m.any()]
+        if p.max_given > 0:
+            given = given[: p.max_given]
+        if not given:
+            raise PipelineError("no view has a non-empty object mask", path=ctx.run_inputs.masks,
+                                fix="pass --masks with the object painted in at least one photo")
+        cams = [c for c, _ in given]
+        masks = [m for _, m in given]
+        sfm_pts = None
+        if p.use_sfm_points and len(sfm.points):
+            pts = sfm.points
+            sfm_pts = (pts.xyz, pts.obs_point, pts.obs_view, pts.obs_xy)
+        selection = select_object(model, cams, masks, sel_params, sfm_pts,
+                                  [sfm.index(c.image) for c in cams])
+        if not selection.is_object.any():
+            raise PipelineError("no Gaussian of the fitted scene falls inside the given masks",
+                                path=ctx.run_inputs.masks,
+                                fix="check that the masks cover the object (non-zero = object)")
+        np.save(ctx.out_dir / "object_ids.npy", np.flatnonzero(selection.is_object))
+        np.save(ctx.out_dir / "scores.npy", selection.score.astype(np.float32))
+        (ctx.out_dir / "masks").mkdir()
+        (ctx.out_dir / "prob").mkdir()
+        given_names = {c.image for c in cams}
+        per_view = {}
+        for cam in ctx.progress(posed, total=len(posed), desc="masks"):
+            prob = render_object_probability(model, selection.is_object, cam, p.backend)
+            if cam.image in given_names:
+                mask = next(m for c, m in given if c.image == cam.image)
+                info = {"source": "given", "confidence": 1.0}
+            else:
+                image = read_image(sfm.image_path(cam.image))
+                mask = refine_mask(prob, image, sel_params)
+                info = {"source": "propagated", "confidence": round(mask_confidence(prob, mask), 4)}
+            info["pixels"] = int(mask.sum())
+            write_mask01(ctx.out_dir / "masks" / f"{cam.image}.png", mask)
+            write_png(ctx.out_dir / "prob" / f"{cam.image}.png", prob)
+            per_view[cam.image] = info
+        summary = {"views": per_view, "object_gaussians": int(selection.is_object.sum()),
+                   "gaussians": len(model), "seeds": selection.seeds, "from_sfm_points": selection.from_points,
+                   "grown": selection.grown, "given": sorted(given_names)}
+        (ctx.out_dir / "masks.json").write_text(json.dumps(summary, indent=1))
+        ctx.notes.update({k: v for k, v in summary.items() if k != "views"})

@@ -1,0 +1,93 @@
+"""remove: delete the object's Gaussians, find the truly unseen holes, seed the holes.
+
+Out (the contract the inpaint and refine stages read):
+
+- ``cameras.json``: the training cameras (PINHOLE; novel cameras dropped),
+- ``renders/<view>.png``: RGB render of the scene after deletion (before any new Gaussian),
+- ``holes/<view>.png``: 0/1, object pixels the remaining background does not cover: what to inpaint,
+- ``masks/<view>.png``: 0/1 object mask of every view (from the masks stage); holes are inside it,
+- ``depth/<view>.npy``: float32 z-depth of the background with the hole completed from its surroundings,
+- ``gaussians.ply``: the background Gaussians followed by the new hole Gaussians,
+  ``seed_ids.npy``: indices of the new ones; ``object.ply``: the deleted Gaussians (a reusable asset),
+- ``remove.json``: counts and per-view hole sizes.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import dataclass
+
+import numpy as np
+
+from sgpor_pipeline.dag import Stage, StageContext
+from sgpor_pipeline.gaussians.ply import read_ply, write_ply
+from sgpor_pipeline.imageio import read_mask, write_mask01, write_png
+from sgpor_pipeline.removal.holes import (
+    RemoveParams,
+    complete_depth,
+    concat_models,
+    hole_mask,
+    initial_colour,
+    median_spacing,
+    objects_to_delete,
+    render_background,
+    seed_hole_gaussians,
+    subset,
+)
+from sgpor_pipeline.scene import save_cameras
+from sgpor_pipeline.sfm import load_sfm
+
+
+@dataclass
+class RemoveStageParams(RemoveParams):
+    seed: int = 0
+
+
+class RemoveStage(Stage):
+    name = "remove"
+    VERSION = 1
+    Params = RemoveStageParams
+    inputs = ("sfm", "fit", "masks")
+
+    def run(self, ctx: StageContext) -> None:
+        p = ctx.params
+        sfm = load_sfm(ctx.inputs["sfm"])
+        cameras = sfm.posed
+        model = read_ply(ctx.inputs["fit"] / "gaussians.ply")
+        masks_dir = ctx.inputs["masks"] / "masks"
+        masks = [read_mask(masks_dir / f"{c.image}.png") for c in cameras]
+        object_ids = np.load(ctx.inputs["masks"] / "object_ids.npy")
+        delete, stats = objects_to_delete(model, cameras, masks, object_ids, p)
+        background = subset(model, ~delete)
+        write_ply(ctx.out_dir / "object.ply", subset(model, delete))
+        save_cameras(ctx.out_dir / "cameras.json", cameras)
+        for sub in ("renders", "holes", "masks", "depth"):
+            (ctx.out_dir / sub).mkdir()
+        holes, depths, colours = [], [], []
+        per_view = {}
+        for cam, mask in ctx.progress(list(zip(cameras, masks)), total=len(cameras), desc="remove"):
+            rgb, alpha, depth = render_background(background, cam, p.backend)
+            hole = hole_mask(mask, alpha, p)
+            valid = alpha >= p.hole_alpha
+            filled_depth = complete_depth(depth, valid, hole)
+            write_png(ctx.out_dir / "renders" / f"{cam.image}.png", rgb)
+            write_mask01(ctx.out_dir / "holes" / f"{cam.image}.png", hole)
+            shutil.copyfile(masks_dir / f"{cam.image}.png", ctx.out_dir / "masks" / f"{cam.image}.png")
+            np.save(ctx.out_dir / "depth" / f"{cam.image}.npy", filled_depth)
+            holes.append(hole)
+            depths.append(filled_depth)
+            colours.append(initial_colour(rgb, hole))
+            per_view[cam.image] = {"mask_pixels": int(mask.sum()), "hole_pixels": int(hole.sum())}
+        spacing = median_spacing(background.means.detach().double().numpy())
+        seeds = seed_hole_gaussians(cameras, holes, depths, colours, spacing, model.max_sh_degree, p, p.seed)
+        cleaned = concat_models(background, seeds)
+        write_ply(ctx.out_dir / "gaussians.ply", cleaned)
+        np.save(ctx.out_dir / "seed_ids.npy", np.arange(len(background), len(cleaned)))
+        mask_px = sum(v["mask_pixels"] for v in per_view.values())
+        hole_px = sum(v["hole_pixels"] for v in per_view.values())
+        summary = {**stats, "gaussians_before": len(model), "background": len(background), "seeds": len(seeds),
+                   "mask_pixels": mask_px, "hole_pixels": hole_px,
+                   "hole_fraction_of_mask": hole_px / mask_px if mask_px else 0.0, "views": per_view}
+        (ctx.out_dir / "remove.json").write_text(json.dumps(summary, indent=1))
+        ctx.notes.update({k: v for k, v in summary.items() if k != "views"})

@@ -1,0 +1,65 @@
+"""The whole pipeline on a small synthetic scene, as ``sgpor-pipeline demo`` runs it: every stage,
+the evaluation against ground truth, the export folder, and a resumed run that is all cache hits."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from sgpor_pipeline.dag import RunInputs, discover_stages
+from sgpor_pipeline.imageio import read_image
+from sgpor_pipeline.metrics import psnr
+from sgpor_pipeline.runner import pipeline_status, run_pipeline
+from sgpor_pipeline.synthetic import SceneParams, generate_scene, save_scene
+
+STAGES = ["ingest", "sfm", "fit", "masks", "remove", "inpaint", "refine", "finetune", "evaluate", "export"]
+FAST = ["fit.iterations=300", "fit.eval_every=0", "finetune.iterations=60", "export.mesh_target_faces=5000"]
+
+
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory):
+    root = tmp_path_factory.mktemp("e2e")
+    scene = generate_scene(SceneParams(seed=1, rig="forward", n_views=10, width=96, height=72))
+    folder = save_scene(scene, root / "scene")
+    inputs = RunInputs(images=folder / "images", masks=folder / "masks", cameras=folder / "cameras.json",
+                       extra={"groundtruth": folder / "groundtruth"})
+    out = root / "out"
+    result = run_pipeline(out, inputs, overrides=FAST)
+    return out, inputs, result
+
+
+@pytest.mark.slow
+def test_every_stage_runs_and_exports(finished_run):
+    out, _, result = finished_run
+    assert set(STAGES) <= set(discover_stages())
+    assert [s for s in STAGES if s in result.ran] == STAGES
+    export = out / "export"
+    for name in ("scene.ply", "scene.splat", "mesh.glb", "scene.usda", "scene.usdz", "report.html"):
+        assert (export / name).is_file(), name
+    assert len(list((export / "renders").glob("*.png"))) == 10
+    metrics = json.loads((result.path("evaluate") / "metrics.json").read_text())
+    assert metrics["views"] == 10
+    for name in ("final", "delete_only", "inpainted_2d"):
+        for key in ("psnr_mask", "psnr_bbox", "psnr_full", "ssim_mask"):
+            assert metrics["means"][name][key] == metrics["means"][name][key]  # not NaN
+    # Plumbing, not fit quality (tests/test_fit.py bounds that): a 300-iteration fit is blurry, yet
+    # its object-free renders must beat the best constant image (each view's mean true colour), and
+    # the finetune must not make the scene worse than it was right after deletion.
+    truth = [read_image(p) for p in sorted((out.parent / "scene" / "groundtruth").glob("*.png"))]
+    constant = np.mean([psnr(np.broadcast_to(t.mean(axis=(0, 1)), t.shape), t) for t in truth])
+    final, deleted = metrics["means"]["final"], metrics["means"]["delete_only"]
+    assert final["psnr_full"] > constant, (final, constant)
+    assert final["psnr_full"] > deleted["psnr_full"] - 0.5, (final, deleted)
+    seconds = {s: json.loads((result.path(s) / "manifest.json").read_text())["seconds"] for s in STAGES}
+    print("seconds per stage:", {k: round(v, 1) for k, v in seconds.items()})
+
+
+@pytest.mark.slow
+def test_resumed_run_is_all_hits_and_status_lists_every_stage(finished_run):
+    out, inputs, _ = finished_run
+    again = run_pipeline(out, inputs, overrides=FAST)
+    assert again.ran == [] and set(again.hits) == set(STAGES)
+    states = {r.name: r.state for r in pipeline_status(out)}
+    assert all(states[s] == "hit" for s in STAGES), states

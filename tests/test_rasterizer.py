@@ -1,0 +1,532 @@
+"""The Gaussian rasterizer: cpu kernel against the torch reference, gradients, hard cases.
+
+Scenes are small so that the dense torch reference stays fast; the whole file runs in well under
+a minute on 2 cores.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import pytest
+import torch
+
+from sgpor_pipeline.errors import NonFiniteError
+from sgpor_pipeline.gaussians import _raster_common as rcommon
+from sgpor_pipeline.gaussians import _raster_cpu
+from sgpor_pipeline.gaussians._raster_scenes import look_at_camera, random_scene
+from sgpor_pipeline.gaussians.rasterizer import (
+    NonFiniteInputError,
+    RasterizerInputError,
+    cpu_kernel_available,
+    rasterization,
+)
+
+PARAMS = ("means", "quats", "scales", "opacities", "colors")
+
+@pytest.fixture(autouse=True)
+def _torch_single_thread():
+    """These scenes are tiny: torch's intra-op threads only add fork/join costs (large ones on a
+    busy machine). The kernel's own thread count is a separate argument (num_threads)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+requires_kernel = pytest.mark.skipif(not cpu_kernel_available(),
+                                     reason=f"cpu kernel not built: {_raster_cpu.load_error()}")
+
+
+def test_kernel_is_built():
+    """The install must build the C++ kernel (a missing kernel silently costs 30x speed)."""
+    assert cpu_kernel_available(), _raster_cpu.load_error()
+
+
+def _leaf(scene: dict, extra: dict | None = None) -> dict:
+    out = {}
+    for k, v in scene.items():
+        out[k] = v.detach().clone().requires_grad_(True) if k in PARAMS and v is not None else v
+    if extra:
+        out.update(extra)
+    return out
+
+
+def run(scene: dict, backend: str, seed: int = 0, **kw) -> dict:
+    """Renders, backpropagates fixed random weights; returns outputs and gradients."""
+    args = _leaf(scene)
+    bg = kw.pop("backgrounds", None)
+    if bg is not None:
+        bg = bg.detach().clone().requires_grad_(True)
+        kw["backgrounds"] = bg
+    render, alpha, meta = rasterization(**args, backend=backend, **kw)
+    meta["means2d"].retain_grad()
+    g = torch.Generator().manual_seed(seed)
+    w_r = torch.randn(render.shape, generator=g, dtype=torch.float64).to(render.dtype)
+    w_a = torch.randn(alpha.shape, generator=g, dtype=torch.float64).to(alpha.dtype)
+    loss = (render * w_r).sum() + (alpha * w_a).sum()
+    loss.backward()
+    out = {"render": render.detach(), "alpha": alpha.detach(), "contrib": meta["contrib"],
+           "radii": meta["radii"], "depths": meta["depths"].detach(),
+           "means2d": meta["means2d"].detach(), "conics": meta["conics"].detach(),
+           "g_means2d": meta["means2d"].grad, "backend": meta["backend"]}
+    for k in PARAMS:
+        if args.get(k) is not None:
+            out["g_" + k] = args[k].grad
+    if bg is not None:
+        out["g_backgrounds"] = bg.grad
+    return out
+
+
+def assert_close(a: dict, b: dict, rtol: float, atol: float, skip=("backend",)) -> None:
+    for k in a:
+        if k in skip:
+            continue
+        x, y = a[k], b[k]
+        if x is None or y is None:
+            assert x is None and y is None, k
+            continue
+        assert x.shape == y.shape, (k, x.shape, y.shape)
+        if not x.is_floating_point():
+            assert torch.equal(x, y), k
+            continue
+        assert torch.isfinite(x).all(), k
+        scale = max(1.0, float(y.abs().max())) if y.numel() else 1.0
+        err = float((x.double() - y.double()).abs().max()) if x.numel() else 0.0
+        assert err <= atol + rtol * scale, f"{k}: max error {err:.3e} (scale {scale:.3e})"
+
+
+def assert_bitwise(a: dict, b: dict, skip=("backend",)) -> None:
+    for k in a:
+        if k in skip or a[k] is None:
+            continue
+        assert torch.equal(a[k], b[k]), k
+
+
+# ------------------------------------------------------------------------------------------------
+# cpu kernel == torch reference
+
+
+@requires_kernel
+@pytest.mark.parametrize("mode", ["RGB", "D", "ED", "RGB+D", "RGB+ED"])
+@pytest.mark.parametrize("sh_degree", [None, 0, 1, 2, 3])
+def test_cpu_matches_torch_double(mode, sh_degree):
+    scene = random_scene(150, 37, 29, seed=3 + (sh_degree or 0), dtype=torch.float64, sigma_px=2.5,
+                         sh_degree=sh_degree)
+    kw = {"render_mode": mode}
+    if mode.startswith("RGB"):
+        kw["backgrounds"] = torch.tensor([0.2, 0.5, 0.9], dtype=torch.float64)
+    ref = run(scene, "torch", **dict(kw))
+    cpu = run(scene, "cpu", **dict(kw))
+    assert cpu["backend"] == "cpu" and ref["backend"] == "torch"
+    assert ref["alpha"].max() > 0.99  # the scene saturates: the T cut-off is exercised
+    assert_close(cpu, ref, rtol=1e-10, atol=1e-10)
+
+
+@requires_kernel
+@pytest.mark.parametrize("tile_size", [8, 16])
+def test_cpu_matches_torch_float32_two_cameras(tile_size):
+    scene = random_scene(300, 48, 32, seed=11, sigma_px=2.0, sh_degree=3)
+    # a second camera, rotated and shifted, so that per-camera sums and SH directions matter
+    ang = 0.2
+    R = torch.tensor([[math.cos(ang), 0, math.sin(ang)], [0, 1, 0], [-math.sin(ang), 0, math.cos(ang)]])
+    vm2 = torch.eye(4)
+    vm2[:3, :3] = R
+    vm2[:3, 3] = torch.tensor([0.3, -0.1, 0.5])
+    scene["viewmats"] = torch.cat([scene["viewmats"], vm2[None]])
+    scene["Ks"] = scene["Ks"].expand(2, -1, -1).clone()
+    kw = {"render_mode": "RGB+ED", "tile_size": tile_size,
+          "backgrounds": torch.tensor([[0.1, 0.2, 0.3], [1.0, 0.0, 0.5]])}
+    ref = run(scene, "torch", **dict(kw))
+    cpu = run(scene, "cpu", **dict(kw))
+    assert_close(cpu, ref, rtol=2e-4, atol=2e-5)
+
+
+@requires_kernel
+def test_cpu_matches_torch_features_per_camera_and_many_channels():
+    scene = random_scene(120, 30, 20, seed=5, dtype=torch.float64, sigma_px=2.5)
+    g = torch.Generator().manual_seed(0)
+    scene["colors"] = torch.rand(1, 120, 6, generator=g, dtype=torch.float64)  # [C,N,6]: two passes
+    ref = run(scene, "torch", render_mode="RGB+D")
+    cpu = run(scene, "cpu", render_mode="RGB+D")
+    assert cpu["render"].shape == (1, 20, 30, 7)
+    assert_close(cpu, ref, rtol=1e-10, atol=1e-10)
+    scene["colors"] = torch.rand(120, 1, generator=g, dtype=torch.float64)  # one channel
+    assert_close(run(scene, "cpu"), run(scene, "torch"), rtol=1e-10, atol=1e-10)
+
+
+def test_torch_reference_blocks_equal_dense():
+    """Culling Gaussians per pixel block cannot change the torch reference's result."""
+    scene = random_scene(80, 23, 17, seed=2, dtype=torch.float64, sigma_px=2.0, sh_degree=1)
+    dense = run(scene, "torch", torch_block=None, render_mode="RGB+D")
+    for block in (4, 7):
+        assert_close(run(scene, "torch", torch_block=block, render_mode="RGB+D"), dense,
+                     rtol=1e-12, atol=1e-12)
+
+
+def test_single_gaussian_closed_form():
+    """One isotropic Gaussian: alpha = o exp(-0.5 d^2 / (s^2 f^2/z^2 + 0.3)) at each pixel centre."""
+    W, H = 9, 7
+    vm, K = look_at_camera(W, H, dtype=torch.float64)
+    f = float(K[0, 0, 0])
+    z, s, o = 3.0, 0.02, 0.7
+    kw = dict(means=torch.tensor([[0.0, 0.0, z]], dtype=torch.float64),
+              quats=torch.tensor([[0.3, 0.0, 0.0, 0.0]], dtype=torch.float64),
+              scales=torch.full((1, 3), s, dtype=torch.float64),
+              opacities=torch.tensor([o], dtype=torch.float64),
+              colors=torch.tensor([[1.0, 0.5, 0.25]], dtype=torch.float64),
+              viewmats=vm, Ks=K, width=W, height=H)
+    var = (s * f / z) ** 2 + 0.3
+    jj, ii = torch.meshgrid(torch.arange(W, dtype=torch.float64), torch.arange(H, dtype=torch.float64),
+                            indexing="xy")
+    d2 = (jj + 0.5 - W / 2) ** 2 + (ii + 0.5 - H / 2) ** 2
+    sigma = 0.5 * d2 / var
+    alpha = o * torch.exp(-sigma)
+    alpha = torch.where((alpha >= 1 / 255) & (sigma <= math.log(255 * o)), alpha, 0.0)
+    for backend in ("torch", "cpu") if cpu_kernel_available() else ("torch",):
+        render, acc, meta = rasterization(**kw, backend=backend)
+        torch.testing.assert_close(acc[0, ..., 0], alpha, rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(render[0, ..., 1], 0.5 * alpha, rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(meta["means2d"][0, 0], torch.tensor([W / 2, H / 2], dtype=torch.float64))
+        assert int(meta["radii"][0, 0]) == math.ceil(math.sqrt(2 * math.log(255 * o) * var))
+        torch.testing.assert_close(meta["contrib"][0, 0], alpha.sum())
+
+
+# ------------------------------------------------------------------------------------------------
+# gradcheck
+
+
+def _gradcheck_scene(sh_degree):
+    """Three large, translucent Gaussians: every pixel is inside every footprint, no alpha clamp,
+    no T cut-off, no frustum clamp: the rendering is smooth in all parameters."""
+    W, H = 8, 6
+    vm, K = look_at_camera(W, H, dtype=torch.float64)
+    g = torch.Generator().manual_seed(7)
+    means = torch.tensor([[0.05, -0.03, 2.0], [-0.1, 0.05, 2.5], [0.02, 0.08, 3.0]], dtype=torch.float64)
+    quats = torch.randn(3, 4, generator=g, dtype=torch.float64)
+    scales = torch.tensor([[0.6, 0.4, 0.5], [0.5, 0.7, 0.3], [0.8, 0.6, 0.9]], dtype=torch.float64)
+    opacities = torch.tensor([0.35, 0.5, 0.6], dtype=torch.float64)
+    if sh_degree is None:
+        colors = torch.rand(3, 3, generator=g, dtype=torch.float64)
+    else:
+        colors = 0.2 * torch.randn(3, (sh_degree + 1) ** 2, 3, generator=g, dtype=torch.float64)
+        colors[:, 0] += 1.0
+    return means, quats, scales, opacities, colors, vm, K, W, H
+
+
+@pytest.mark.parametrize("backend", ["cpu", "torch"])
+@pytest.mark.parametrize("sh_degree", [None, 3])
+def test_gradcheck(backend, sh_degree):
+    if backend == "cpu" and not cpu_kernel_available():
+        pytest.skip("cpu kernel not built")
+    means, quats, scales, opacities, colors, vm, K, W, H = _gradcheck_scene(sh_degree)
+    bg = torch.tensor([0.3, 0.6, 0.1], dtype=torch.float64)
+
+    def f(means, quats, scales, opacities, colors, bg):
+        render, alpha, meta = rasterization(means, quats, scales, opacities, colors, vm, K, W, H,
+                                            sh_degree=sh_degree, backgrounds=bg,
+                                            render_mode="RGB+ED", backend=backend)
+        return render, alpha, meta["means2d"]
+
+    inputs = [t.clone().requires_grad_(True) for t in (means, quats, scales, opacities, colors, bg)]
+    # the full Jacobian for our kernel; a random projection of it for the (slow) dense reference
+    assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-6, rtol=1e-5,
+                                    fast_mode=backend == "torch")
+
+
+# ------------------------------------------------------------------------------------------------
+# invariances and determinism
+
+
+def _tiled_scene():
+    return random_scene(2000, 96, 64, seed=21, sigma_px=2.0, sh_degree=1)
+
+
+@requires_kernel
+def test_tile_size_does_not_change_the_image():
+    scene = _tiled_scene()
+    a = run(scene, "cpu", tile_size=8, render_mode="RGB+D")
+    b = run(scene, "cpu", tile_size=16, render_mode="RGB+D")
+    for k in ("render", "alpha", "radii", "means2d", "depths", "conics"):
+        assert torch.equal(a[k], b[k]), k
+    assert_close(a, b, rtol=1e-5, atol=1e-5)
+
+
+@requires_kernel
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_bitwise_identical_across_thread_counts(dtype):
+    scene = random_scene(2000, 96, 64, seed=21, sigma_px=2.0, sh_degree=2, dtype=dtype)
+    one = run(scene, "cpu", num_threads=1, render_mode="RGB+D")
+    two = run(scene, "cpu", num_threads=2, render_mode="RGB+D")
+    four = run(scene, "cpu", num_threads=4, render_mode="RGB+D")
+    assert_bitwise(one, two)
+    assert_bitwise(one, four)
+
+
+@requires_kernel
+def test_gaussian_order_does_not_matter():
+    scene = _tiled_scene()
+    perm = torch.randperm(2000, generator=torch.Generator().manual_seed(0))
+    permuted = {k: (v[perm] if k in PARAMS else v) for k, v in scene.items()}
+    a = run(scene, "cpu")
+    b = run(permuted, "cpu")
+    torch.testing.assert_close(a["render"], b["render"], rtol=0, atol=2e-6)
+    torch.testing.assert_close(a["alpha"], b["alpha"], rtol=0, atol=2e-6)
+    for k in ("g_means", "g_scales", "g_opacities", "g_colors"):
+        torch.testing.assert_close(a[k][perm], b[k], rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(a["contrib"][:, perm], b["contrib"], rtol=1e-5, atol=1e-5)
+
+
+# ------------------------------------------------------------------------------------------------
+# hard cases (each checked on both backends against each other, outputs and gradients finite)
+
+
+def _hard_case(name):
+    W, H = 24, 18
+    vm, K = look_at_camera(W, H, dtype=torch.float64)
+    f = float(K[0, 0, 0])
+    one = torch.tensor([[1.0, 0.0, 0.0, 0.0]], dtype=torch.float64)
+
+    def gauss(x_px, y_px, z, s_px, o=0.8, quat=None, scale=None):
+        means = torch.tensor([[(x_px - W / 2) * z / f, (y_px - H / 2) * z / f, z]], dtype=torch.float64)
+        scales = torch.full((1, 3), s_px * abs(z) / f, dtype=torch.float64) if scale is None else scale
+        return dict(means=means, quats=one.clone() if quat is None else quat, scales=scales,
+                    opacities=torch.tensor([o], dtype=torch.float64))
+
+    def cat(*gs):
+        out = {k: torch.cat([g[k] for g in gs]) for k in gs[0]}
+        n = out["means"].shape[0]
+        out["colors"] = torch.rand(n, 3, generator=torch.Generator().manual_seed(n), dtype=torch.float64)
+        return out
+
+    cases = {
+        "behind_camera": cat(gauss(12, 9, -2.0, 3.0), gauss(10, 8, 2.0, 2.0)),
+        "near_plane": cat(gauss(12, 9, 0.01, 1.0), gauss(12, 9, 0.0099999, 1.0), gauss(5, 5, 0.0101, 1.0)),
+        "border_straddling": cat(gauss(0.2, 9, 2.0, 2.5), gauss(23.9, 17.5, 3.0, 3.0), gauss(-2.0, -1.0, 2.0, 2.0),
+                                 gauss(12, 18.5, 2.0, 1.5)),
+        "covers_image": cat(gauss(12, 9, 2.0, 80.0, o=0.6), gauss(3, 4, 2.5, 2.0)),
+        "sub_pixel": cat(gauss(12.3, 9.7, 2.0, 0.01), gauss(5.5, 5.5, 2.0, 0.001, o=1.0)),
+        "zero_scale_axis": cat(gauss(12, 9, 2.0, 0, scale=torch.tensor([[0.05, 0.0, 0.02]], dtype=torch.float64)),
+                               gauss(6, 6, 2.0, 0, scale=torch.zeros(1, 3, dtype=torch.float64))),
+        "zero_quaternion": cat(gauss(12, 9, 2.0, 2.0, quat=torch.zeros(1, 4, dtype=torch.float64)),
+                               gauss(8, 9, 2.0, 0, quat=torch.zeros(1, 4, dtype=torch.float64),
+                                     scale=torch.tensor([[0.1, 0.01, 0.03]], dtype=torch.float64))),
+        "stacked_opaque": cat(*[gauss(12 + 0.01 * i, 9, 2.0 + 0.01 * i, 3.0, o=0.999) for i in range(100)]),
+        "far_outside_frustum": cat(gauss(-400, 9, 2.0, 5.0), gauss(12, 900, 0.5, 3.0), gauss(12, 9, 2.0, 2.0)),
+        "tiny_opacity": cat(gauss(12, 9, 2.0, 2.0, o=1.0 / 255 - 1e-6), gauss(10, 9, 2.0, 2.0, o=0.0),
+                            gauss(14, 9, 2.0, 2.0, o=2.0 / 255)),
+    }
+    sc = cases[name]
+    sc.update(viewmats=vm, Ks=K, width=W, height=H, sh_degree=None)
+    return sc
+
+
+HARD = ["behind_camera", "near_plane", "border_straddling", "covers_image", "sub_pixel",
+        "zero_scale_axis", "zero_quaternion", "stacked_opaque", "far_outside_frustum", "tiny_opacity"]
+
+
+@pytest.mark.parametrize("name", HARD)
+def test_hard_cases(name):
+    scene = _hard_case(name)
+    kw = {"render_mode": "RGB+ED", "backgrounds": torch.tensor([0.5, 0.5, 0.5], dtype=torch.float64)}
+    ref = run(scene, "torch", **dict(kw))
+    for k, v in ref.items():
+        if isinstance(v, torch.Tensor) and v.is_floating_point():
+            assert torch.isfinite(v).all(), (name, k)
+    if cpu_kernel_available():
+        cpu = run(scene, "cpu", **dict(kw))
+        assert_close(cpu, ref, rtol=1e-10, atol=1e-10)
+    radii = ref["radii"][0]
+    if name == "behind_camera":
+        assert radii[0] == 0 and radii[1] > 0
+    if name == "near_plane":
+        assert radii[0] > 0 and radii[1] == 0 and radii[2] > 0
+    if name == "covers_image":
+        assert (ref["alpha"] > 0.5).all()
+    if name == "stacked_opaque":
+        # alpha = min(0.99, ...) per layer; a pixel stops before T would drop below 1e-4
+        centre = ref["alpha"][0, 9, 12, 0]
+        assert 1 - centre >= 1e-4 - 1e-12 and centre > 0.999
+    if name == "far_outside_frustum":
+        assert radii[0] == 0 and radii[1] == 0 and radii[2] > 0
+    if name == "tiny_opacity":
+        assert radii[0] == 0 and radii[1] == 0 and radii[2] > 0
+    if name == "sub_pixel":
+        assert (radii > 0).all()  # the 0.3 px^2 dilation keeps them visible
+
+
+@pytest.mark.parametrize("backend", ["cpu", "torch"])
+def test_empty_scene(backend):
+    if backend == "cpu" and not cpu_kernel_available():
+        pytest.skip("cpu kernel not built")
+    vm, K = look_at_camera(10, 7)
+    z = torch.zeros(0, 3, requires_grad=True)
+    bg = torch.tensor([0.1, 0.2, 0.3])
+    render, alpha, meta = rasterization(z, torch.zeros(0, 4), torch.zeros(0, 3), torch.zeros(0),
+                                        torch.zeros(0, 3), vm, K, 10, 7, backgrounds=bg,
+                                        render_mode="RGB+D", backend=backend)
+    assert render.shape == (1, 7, 10, 4) and alpha.shape == (1, 7, 10, 1)
+    assert torch.equal(render[..., :3], bg.expand(1, 7, 10, 3)) and (alpha == 0).all()
+    assert meta["means2d"].shape == (1, 0, 2) and meta["radii"].shape == (1, 0)
+    render.sum().backward()
+    assert z.grad.shape == (0, 3)
+
+
+@pytest.mark.parametrize("size", [(1, 1), (37, 23), (17, 41), (16, 16), (33, 8)])
+def test_odd_image_sizes(size):
+    W, H = size
+    scene = random_scene(60, W, H, seed=W * 100 + H, dtype=torch.float64, sigma_px=1.5)
+    ref = run(scene, "torch", render_mode="RGB+D")
+    assert ref["render"].shape == (1, H, W, 4)
+    if cpu_kernel_available():
+        for ts in (8, 16):
+            assert_close(run(scene, "cpu", render_mode="RGB+D", tile_size=ts), ref, rtol=1e-10, atol=1e-10)
+
+
+# ------------------------------------------------------------------------------------------------
+# meta: means2d gradient, contribution
+
+
+@pytest.mark.parametrize("backend", ["cpu", "torch"])
+def test_means2d_grad_and_contribution_mask(backend):
+    if backend == "cpu" and not cpu_kernel_available():
+        pytest.skip("cpu kernel not built")
+    scene = random_scene(100, 32, 24, seed=4, dtype=torch.float64, sigma_px=2.0)
+    mask = torch.zeros(1, 24, 32, dtype=torch.bool)
+    mask[:, 5:15, 10:20] = True
+    args = _leaf(scene)
+    render, alpha, meta = rasterization(**args, backend=backend, contribution_mask=mask)
+    meta["means2d"].retain_grad()
+    render.sum().backward()
+    g2 = meta["means2d"].grad
+    assert g2 is not None and g2.shape == (1, 100, 2)
+    assert (g2[meta["radii"] == 0] == 0).all() and g2.abs().sum() > 0
+    # contrib with a mask = contrib of the masked pixels only: compare with an all-true mask
+    _, _, meta_all = rasterization(**scene, backend=backend)
+    assert (meta["contrib"] <= meta_all["contrib"] + 1e-12).all()
+    assert meta["contrib"].sum() < meta_all["contrib"].sum()
+    # sum over Gaussians of contrib = sum over (masked) pixels of alpha
+    torch.testing.assert_close(meta_all["contrib"].sum(), alpha.sum().detach())
+    torch.testing.assert_close(meta["contrib"].sum(), alpha.detach()[0, ..., 0][mask[0]].sum())
+    # Gaussians whose footprint misses the mask contribute nothing
+    m2 = meta["means2d"].detach()[0]
+    far = (m2[:, 0] < 10 - 8 * 3.4) | (m2[:, 0] > 20 + 8 * 3.4)
+    assert (meta["contrib"][0][far] == 0).all()
+
+
+# ------------------------------------------------------------------------------------------------
+# input validation
+
+
+def _valid_args():
+    scene = random_scene(10, 16, 12, seed=0)
+    scene.pop("sh_degree")
+    return scene
+
+
+@pytest.mark.parametrize("name", ["means", "quats", "scales", "opacities", "colors", "viewmats", "Ks",
+                                  "backgrounds"])
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
+def test_non_finite_inputs_raise(name, bad):
+    args = _valid_args()
+    args["backgrounds"] = torch.zeros(3)
+    x = args[name].clone()
+    x.view(-1)[min(3, x.numel() - 1)] = bad
+    args[name] = x
+    with pytest.raises(NonFiniteInputError, match=name) as info:
+        rasterization(**args)
+    assert isinstance(info.value, ValueError) and isinstance(info.value, NonFiniteError)
+    assert info.value.fix
+
+
+@pytest.mark.parametrize("change, match", [
+    ({"means": torch.zeros(10, 2)}, "means"),
+    ({"quats": torch.zeros(9, 4)}, "quats"),
+    ({"scales": torch.zeros(10, 3, dtype=torch.float64)}, "scales"),
+    ({"opacities": torch.zeros(10, 1)}, "opacities"),
+    ({"colors": torch.zeros(10, 3, 3)}, "colors"),
+    ({"viewmats": torch.eye(3)[None]}, "viewmats"),
+    ({"Ks": torch.eye(3)[None].expand(2, 3, 3)}, "Ks"),
+    ({"width": 0}, "width"),
+    ({"height": 2.5}, "height"),
+    ({"render_mode": "RGBD"}, "render_mode"),
+    ({"tile_size": 32}, "tile_size"),
+    ({"backend": "cuda"}, "backend"),
+    ({"near_plane": 0.0}, "near_plane"),
+    ({"sh_degree": 4}, "sh_degree"),
+    ({"backgrounds": torch.zeros(4)}, "backgrounds"),
+    ({"contribution_mask": torch.zeros(1, 12, 16)}, "contribution_mask"),
+    ({"means": torch.zeros(10, 3, dtype=torch.float16)}, "means"),
+])
+def test_invalid_inputs_raise(change, match):
+    args = _valid_args()
+    args.update(change)
+    with pytest.raises(RasterizerInputError, match=match) as info:
+        rasterization(**args)
+    assert isinstance(info.value, ValueError)
+
+
+def test_sh_needs_enough_coefficients():
+    args = _valid_args()
+    args["colors"] = torch.zeros(10, 4, 3)
+    with pytest.raises(RasterizerInputError, match="SH"):
+        rasterization(**args, sh_degree=2)
+    rasterization(**args, sh_degree=1)  # 4 coefficients are enough for degree 1
+
+
+def test_depth_modes_need_no_colors():
+    args = _valid_args()
+    args["colors"] = None
+    render, alpha, _ = rasterization(**args, render_mode="ED")
+    assert render.shape == (1, 12, 16, 1)
+    with pytest.raises(RasterizerInputError, match="colors"):
+        rasterization(**args, render_mode="RGB")
+
+
+# ------------------------------------------------------------------------------------------------
+# backends
+
+
+def test_auto_backend_and_missing_kernel_fallback(monkeypatch):
+    args = _valid_args()
+    _, _, meta = rasterization(**args)
+    assert meta["backend"] == ("cpu" if cpu_kernel_available() else "torch")
+    from sgpor_pipeline.gaussians import rasterizer
+
+    monkeypatch.setattr(_raster_cpu, "_lib", None)
+    monkeypatch.setattr(_raster_cpu, "_loaded", True)
+    monkeypatch.setattr(_raster_cpu, "_load_error", "simulated")
+    monkeypatch.setattr(rasterizer, "_warned", set())
+    with pytest.warns(RuntimeWarning, match="simulated"):
+        _, _, meta = rasterization(**args, backend="cpu")
+    assert meta["backend"] == "torch"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rasterization(**args)  # warned once only
+
+
+def test_constants_match_kernel_source():
+    from pathlib import Path
+
+    src = (Path(rcommon.__file__).resolve().parents[1] / "csrc" / "raster.h").read_text()
+    assert "kAlphaMax = 0.99;" in src and rcommon.ALPHA_MAX == 0.99
+    assert "kTMin = 1e-4;" in src and rcommon.T_MIN == 1e-4
+    assert "kMaxSigma = 0.5 * 3.33 * 3.33;" in src and rcommon.MAX_EXTEND == 3.33
+    assert "kFrustumMargin = 0.3;" in src and rcommon.FRUSTUM_MARGIN == 0.3
+    assert "kAlphaMin = 1.0 / 255.0;" in src and rcommon.ALPHA_MIN == 1.0 / 255.0
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="gsplat parity needs a CUDA device")
+def test_gsplat_parity():
+    pytest.importorskip("gsplat")
+    scene = random_scene(500, 64, 48, seed=1, sigma_px=2.0, sh_degree=2)
+    cuda = {k: (v.cuda() if isinstance(v, torch.Tensor) else v) for k, v in scene.items()}
+    ref = run(scene, "torch", render_mode="RGB+ED")
+    gs = run(cuda, "gsplat", render_mode="RGB+ED")
+    assert gs["backend"] == "gsplat"
+    # gsplat clamps alpha at 0.999 (we use 0.99) and bounds footprints slightly differently
+    diff = (gs["render"].cpu()[..., :3] - ref["render"][..., :3]).abs()
+    assert diff.mean() < 0.02
+    torch.testing.assert_close(gs["means2d"].cpu(), ref["means2d"], rtol=1e-4, atol=1e-3)
+    assert ((gs["radii"].cpu() > 0) == (ref["radii"] > 0)).float().mean() > 0.95

@@ -42,10 +42,10 @@ _SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
                            _P, _I]),
     "sh_fwd": (None, [_I, _I, _I, _I, _P, _P, _P, _P, _I]),
     "sh_bwd": (None, [_I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _I]),
-    "bin": (None, [_I, _I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _P, _I]),
+    "bin": (None, [_I, _I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _I]),
     "raster_fwd": (_I, [_I, _I, _I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P,
-                        _P, _P, _P, _I]),
-    "raster_bwd": (_I, [_I, _I, _I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P,
+                        _P, _P, _I]),
+    "raster_bwd": (_I, [_I, _I, _I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P,
                         _I]),
 }
 _PREFERENCE = ("native", "x86_64_v4", "x86_64_v3", "x86_64_v2", "generic")
@@ -251,7 +251,7 @@ class _RasterFn(torch.autograd.Function):
         C, N, CH = features.shape
         H, W = cfg.H, cfg.W
         dt = means2d.dtype
-        tile_off, gid, gen, goff = bins
+        tile_off, isect, goff = bins
         out = torch.empty(C, H, W, CH, dtype=dt)
         alpha = torch.empty(C, H, W, 1, dtype=dt)
         tfinal = torch.empty(C, H, W, dtype=dt)
@@ -261,7 +261,7 @@ class _RasterFn(torch.autograd.Function):
         packed = torch.empty(max(C * N, 1) * int(_fn("packed_bytes", dt)(CH)), dtype=torch.uint8)
         rc = _fn("raster_fwd", dt)(
             C, N, CH, W, H, cfg.tile, _ptr(means2d), _ptr(conics), _ptr(features), _ptr(opacities),
-            _ptr(rect), _ptr(tile_off), _ptr(gid), _ptr(gen), _ptr(goff), _ptr(cmask), _ptr(out),
+            _ptr(rect), _ptr(tile_off), _ptr(isect), _ptr(goff), _ptr(cmask), _ptr(out),
             _ptr(alpha), _ptr(tfinal), _ptr(last), _ptr(contrib), _ptr(packed), cfg.threads)
         if rc != 0:
             raise RuntimeError(f"sgpor raster kernel: unsupported configuration (code {rc})")
@@ -279,7 +279,7 @@ class _RasterFn(torch.autograd.Function):
         cfg = ctx.cfg
         C, N, CH = ctx.shapes
         dt = tfinal.dtype
-        tile_off, gid, gen, goff = ctx.bins
+        tile_off, isect, goff = ctx.bins
         g_out = torch.zeros(C, cfg.H, cfg.W, CH, dtype=dt) if g_out is None else g_out.contiguous()
         g_alpha = torch.zeros(C, cfg.H, cfg.W, 1, dtype=dt) if g_alpha is None else g_alpha.contiguous()
         g_m2 = torch.empty(C, N, 2, dtype=dt)
@@ -287,9 +287,9 @@ class _RasterFn(torch.autograd.Function):
         g_f = torch.empty(C, N, CH, dtype=dt)
         g_op = torch.empty(N, dtype=dt)
         rc = _fn("raster_bwd", dt)(
-            C, N, CH, cfg.W, cfg.H, cfg.tile, _ptr(packed), _ptr(tile_off), _ptr(gid), _ptr(gen),
-            _ptr(goff), _ptr(tfinal), _ptr(last), _ptr(g_out), _ptr(g_alpha), _ptr(g_m2), _ptr(g_con),
-            _ptr(g_f), _ptr(g_op), cfg.threads)
+            C, N, CH, cfg.W, cfg.H, cfg.tile, _ptr(packed), _ptr(tile_off), _ptr(isect), _ptr(goff),
+            _ptr(tfinal), _ptr(last), _ptr(g_out), _ptr(g_alpha), _ptr(g_m2), _ptr(g_con), _ptr(g_f),
+            _ptr(g_op), cfg.threads)
         if rc != 0:
             raise RuntimeError(f"sgpor raster kernel: unsupported configuration (code {rc})")
         return g_m2, g_con, g_f, g_op, None, None, None, None
@@ -302,12 +302,11 @@ def _bin(cfg: _Cfg, depths: torch.Tensor, rect: torch.Tensor, ntiles: torch.Tens
     if total >= 2**31 - 1:
         raise RuntimeError(f"{total} tile intersections: too many for the cpu kernel (max 2^31-1)")
     tile_off = torch.empty(C * tw * th + 1, dtype=torch.int64)
-    gid = torch.empty(max(total, 1), dtype=torch.int32)
-    gen = torch.empty(max(total, 1), dtype=torch.int32)
+    isect = torch.empty(max(total, 1), 2, dtype=torch.int32)  # (Gaussian, generation id) pairs
     goff = torch.empty(C * N + 1, dtype=torch.int64)
     _fn("bin", depths.dtype)(C, N, cfg.W, cfg.H, cfg.tile, _ptr(depths), _ptr(rect), _ptr(ntiles),
-                             _ptr(tile_off), _ptr(gid), _ptr(gen), _ptr(goff), cfg.threads)
-    return tile_off, gid, gen, goff
+                             _ptr(tile_off), _ptr(isect), _ptr(goff), cfg.threads)
+    return tile_off, isect, goff
 
 
 def render(means, quats, scales, opacities, colors, sh_degree, viewmats, Ks, width, height,

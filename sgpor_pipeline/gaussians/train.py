@@ -575,7 +575,7 @@ class Trainer:
     def _rollback(self, what: str) -> None:
         self._rollbacks_in_a_row += 1
         self._last_failure_step = max(self._last_failure_step, self.step)
-        failed_at = self.step
+        failed_at = self.step + 1  # the iteration in progress (self.step counts completed ones)
         if self._snapshot is None or self._rollbacks_in_a_row > self.p.max_rollbacks:
             raise NonFiniteError(
                 f"fit: {what} at iteration {failed_at}, still after {self._rollbacks_in_a_row - 1} rollback(s) "

@@ -312,7 +312,9 @@ def test_hard_cases_stay_finite(tmp_path, small_scene):
     out = tmp_path / "fit20"
     out.mkdir()
     res = fit_scene(sfm, out, quick_params(iterations=120, max_size=48), None, LOG)
-    assert res["points"]["used"] == 20 and math.isfinite(res["heldout_psnr"]) and all_finite(out / "gaussians.ply")
+    # The 20 points are all used; the fit tops the initialisation up to its init_points (points_added).
+    assert res["points"]["points_in"] == 20 and res["points"]["used"] == 20 + res["points"].get("points_added", 0)
+    assert math.isfinite(res["heldout_psnr"]) and all_finite(out / "gaussians.ply")
 
     # (b) some points absurdly far away (1e4 x the scene extent), and a view of constant colour
     sfm = make_sfm(tmp_path / "sfmfar", small_scene, n_points=300)
@@ -336,7 +338,8 @@ def test_hard_cases_stay_finite(tmp_path, small_scene):
     out = tmp_path / "fitfar_kept"
     out.mkdir()
     res = fit_scene(sfm, out, quick_params(iterations=120, max_size=48, far_points=0.0), None, LOG)
-    assert res["points"]["used"] == 310 and all_finite(out / "gaussians.ply")
+    assert res["points"]["points_in"] == 310 and res["points"]["points_far"] == 0
+    assert res["points"]["used"] == 310 + res["points"].get("points_added", 0) and all_finite(out / "gaussians.ply")
 
 
 def test_mcmc_strategy_fits(tmp_path, small_scene):

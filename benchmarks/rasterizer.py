@@ -115,7 +115,10 @@ def run_cell(n: int, width: int, height: int, backend: str, reps: int, warmup: i
     """One cell in a fresh Python process, so that its peak memory is its own."""
     cmd = [sys.executable, str(Path(__file__).resolve()), "--cell", f"{n},{width},{height},{backend}",
            "--reps", str(reps), "--warmup", str(warmup), "--threads", str(threads)]
-    out = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    # as the pipeline runs (sgpor_pipeline/__init__.py sets it before torch loads OpenMP): passive
+    # waiting, so that idle OpenMP threads do not spin on the cores the other threads need
+    env = {**os.environ, "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "PASSIVE")}
+    out = subprocess.run(cmd, capture_output=True, text=True, check=False, env=env)
     if out.returncode != 0:
         raise RuntimeError(f"benchmark cell {n} {width}x{height} {backend} failed:\n{out.stderr[-3000:]}")
     return json.loads(out.stdout.strip().splitlines()[-1])

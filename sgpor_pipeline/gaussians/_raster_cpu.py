@@ -79,10 +79,12 @@ def _cpuinfo_level() -> int:
 
 
 def _open(path: Path) -> ctypes.CDLL:
-    # Our kernel's OpenMP runtime (the system libgomp) is not torch's (torch bundles its own): with
-    # the default active wait, its idle threads spin after each call and starve torch's ops on a
-    # 2-core machine (measured: 50x slower training steps). Passive waiting costs microseconds per
-    # call. Read by libgomp when it loads, i.e. now.
+    # With the default active wait, idle OpenMP threads spin after each parallel region and starve
+    # the threads that have work on a busy 2-core machine (measured: 3-50x slower steps). Passive
+    # waiting costs microseconds per region. libgomp reads the policy once, when it is loaded: our
+    # library and torch both need libgomp.so.1 and the process shares the first one loaded
+    # (torch's, normally), so this only matters if the kernel loads OpenMP first;
+    # sgpor_pipeline/__init__.py sets it before torch is imported through the package.
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     lib = ctypes.CDLL(str(path))
     if lib.sgpor_abi_version() != 1:

@@ -107,7 +107,7 @@ def project(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opac
 
 def rasterize(proj: dict[str, torch.Tensor], features: torch.Tensor, opacities: torch.Tensor,
               width: int, height: int, contribution_mask: torch.Tensor | None = None,
-              block: int | None = 32) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+              block: int | None = 16) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Front-to-back alpha compositing of ``features`` [C,N,CH] (no background).
 
     Returns render [C,H,W,CH], alpha [C,H,W,1] and contrib [C,N] (sum over the pixels of

@@ -53,7 +53,7 @@ log = logging.getLogger("sgpor_pipeline.train")
 class TrainParams:
     """Knobs of the training loop (the fit stage's parameters map onto these)."""
 
-    iterations: int = 3000
+    iterations: int = 2000
     sh_degree: int = 3
     sh_degree_every: int = 500  # raise the active SH degree by one every this many iterations
     lambda_dssim: float = 0.2
@@ -81,7 +81,7 @@ class TrainParams:
     budget_min: int = 5_000
     budget_max: int = 2_000_000
     budget_growth: float = 1.5  # cap x this per growth step
-    budget_min_gain: float = 0.03  # grow while the training loss falls by more than this (relative) ...
+    budget_min_gain: float = 0.05  # grow while the training loss falls by more than this (relative) ...
     budget_window: int = 300  # ... over this many iterations at the cap
     # test hooks (documented; never set them in production)
     debug_inject_nan_at: int = 0  # write a NaN into means[0] after the optimizer step of this iteration

@@ -5,9 +5,10 @@
 * ``synthetic``: the default synthetic scene (``SceneParams()``: 24 views, 256x192, every 8th view
   held out) with its known cameras and points sampled on its true geometry (the fit stage's
   "known cameras" input, :func:`sgpor_pipeline.stages.fit.write_known_sfm`). Runs the default
-  configuration (automatic budget) and a grid of budgets x iterations (and the MCMC strategy at
-  one budget), each reporting wall seconds (initialisation included), process CPU seconds, the final
-  Gaussian count and held-out PSNR/SSIM.
+  configuration (automatic budget, 2000 iterations), a grid of budgets x iterations, and the runs
+  behind the defaults: the MCMC strategy, SH degree 0, no initial top-up of the SfM points. Each
+  reports wall seconds (initialisation included), process CPU seconds, the final Gaussian count and
+  held-out PSNR/SSIM.
 * ``statue``: ``../shared/data/statue`` (29 PNG, 504x378) through the pipeline (ingest -> sfm -> fit,
   our own SfM); skipped cleanly when the folder or the sfm stage is missing.
 * ``lund``: SfM registration of ``../shared/data/lund/images`` (``run_lund`` from benchmarks/sfm.py
@@ -18,23 +19,30 @@ training curve) and ``fit_benchmark.json`` into ``--out``. ``--quick`` runs a sh
 ``--json`` the last line is one JSON object with at least ``synthetic_heldout_psnr``,
 ``synthetic_fit_seconds``, ``lund_registered`` and ``lund_images``.
 
-Wall-clock figures depend on what else runs on the machine: the CPU seconds are printed beside them
-(on an idle 2-core machine wall ~= CPU / 2 for this workload).
+Wall-clock figures depend on what else runs on the machine: the process CPU seconds are printed
+beside them (on an idle 2-core machine CPU ~= 1.4 x wall for this workload; CPU ~= wall means the
+fit only had about one core).
 """
 
 from __future__ import annotations
 
-import argparse
-import importlib.util
-import json
-import logging
 import os
-import sys
-import tempfile
-import time
-from dataclasses import replace
-from pathlib import Path
-from typing import Any
+
+# torch's bundled OpenMP runtime spins its idle threads by default; with the rasterizer kernel's own
+# OpenMP threads on the same 2 cores that makes training steps several times slower (measured 3-10x on
+# a busy machine). The policy is read once, when torch loads: set it before anything imports torch.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import argparse  # noqa: E402
+import importlib.util  # noqa: E402
+import json  # noqa: E402
+import logging  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from dataclasses import replace  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_DATA = ROOT.parent / "shared" / "data"
@@ -205,12 +213,14 @@ def main(argv: list[str] | None = None) -> int:
         else:
             grid = [(f"b{b // 1000}k-{it}", dict(budget=b, iterations=it))
                     for b in (10_000, 30_000, 100_000) for it in (1000, 3000)]
-            grid.append(("mcmc-b30k-3000", dict(budget=30_000, iterations=3000, strategy="mcmc")))
+            grid += [("mcmc-b100k-2000", dict(budget=100_000, strategy="mcmc")),  # strategy choice
+                     ("sh0-2000", dict(sh_degree=0)),  # SH degree choice
+                     ("no-topup-2000", dict(init_points=0))]  # initialisation: SfM points only
         for name, kw in grid:
             rows.append(run_synthetic(out, name, sfm, **kw))
             print(format_table(rows[-1:]).splitlines()[-1], flush=True)
     if "statue" in scenes:
-        r = run_statue(args.data, out, 1000 if args.quick else 3000)
+        r = run_statue(args.data, out, 500 if args.quick else 2000)
         rows.append(r)
         if "skipped" not in r:
             summary.update(statue_heldout_psnr=r["psnr"], statue_heldout_ssim=r["ssim"],

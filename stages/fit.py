@@ -16,15 +16,20 @@ The training loop lives in :mod:`sgpor_pipeline.gaussians.train`; checkpoints go
 from __future__ import annotations
 
 import json
+import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
 from sgpor_pipeline.dag import Stage, StageContext
 from sgpor_pipeline.errors import PipelineError
+
+if TYPE_CHECKING:
+    from sgpor_pipeline.gaussians.model import GaussianModel
 
 #: Default number of training iterations. On the default synthetic scene (21 training views,
 #: 256x192) the held-out PSNR plateaus after ~1500 iterations; 2000 take 1.5-2.5 minutes on 2 CPU
@@ -177,8 +182,11 @@ def depth_points(pts: SfmPoints, views: list, cam_index: dict[str, int], n_new: 
     from scipy.spatial import cKDTree
 
     out_xyz, out_rgb = [], []
-    per_view = max(1, n_new // max(len(views), 1))
-    for v in views:
+    n_views = max(len(views), 1)
+    for i, v in enumerate(views):
+        per_view = n_new // n_views + (1 if i < n_new % n_views else 0)
+        if per_view <= 0:
+            continue
         cam = v.camera
         if pts.obs_view is not None and v.name in cam_index:
             ids = np.unique(pts.obs_point[pts.obs_view == cam_index[v.name]])
@@ -287,7 +295,8 @@ def _plot_curve(path: Path, curve: list[dict], title: str) -> None:
     FigureCanvasAgg(fig).print_png(str(path))
 
 
-def save_renders(folder: Path, model, views: list, sh_degree: int, backend: str, n: int) -> list[str]:
+def save_renders(folder: Path, model: GaussianModel, views: list, sh_degree: int, backend: str,
+                 n: int) -> list[str]:
     """Write ``<view>.png``: the render (left) beside the ground truth (right), for up to n views."""
     from sgpor_pipeline.gaussians.train import render_view
     from sgpor_pipeline.imageio import write_png
@@ -303,8 +312,8 @@ def save_renders(folder: Path, model, views: list, sh_degree: int, backend: str,
     return names
 
 
-def fit_scene(sfm_dir: Path, out_dir: Path, params: FitParams, checkpoint_dir: Path | None, log,
-              progress=None) -> dict:
+def fit_scene(sfm_dir: Path, out_dir: Path, params: FitParams, checkpoint_dir: Path | None,
+              log: logging.Logger, progress: Callable[..., Any] | None = None) -> dict[str, Any]:
     """Everything the stage does, callable without the pipeline (benchmarks, tests)."""
     import torch
 
@@ -315,6 +324,8 @@ def fit_scene(sfm_dir: Path, out_dir: Path, params: FitParams, checkpoint_dir: P
     from sgpor_pipeline.scene import load_cameras
 
     t0 = time.perf_counter()
+    if params.strategy not in ("adc", "mcmc"):
+        raise PipelineError(f"unknown fit.strategy {params.strategy!r}", fix="use adc or mcmc")
     if not 0 <= params.sh_degree <= 3:
         raise PipelineError(f"fit.sh_degree must be 0..3, got {params.sh_degree}", fix="use 0, 1, 2 or 3")
     if params.iterations < 1:
@@ -339,6 +350,8 @@ def fit_scene(sfm_dir: Path, out_dir: Path, params: FitParams, checkpoint_dir: P
     train_pixels = sum(v.image.shape[0] * v.image.shape[1] for v in train_views)
     init_points = params.init_points if params.init_points is not None else \
         int(min(params.init_points_per_pixel * train_pixels, 200_000))
+    if params.budget:
+        init_points = min(init_points, params.budget)
     if init_points > len(xyz):
         cam_index = {c.name: i for i, c in enumerate(load_cameras(sfm_dir / "cameras.json"))}
         n_before = len(xyz)
@@ -346,13 +359,19 @@ def fit_scene(sfm_dir: Path, out_dir: Path, params: FitParams, checkpoint_dir: P
                                    views=train_views, cam_index=cam_index)
         report["points_added"] = len(xyz) - n_before
         report["init_mode"] = params.init_mode
+    limit = params.budget or int(TrainParams.budget_max_per_pixel * train_pixels)
+    if len(xyz) > limit > 0:  # never start above the budget: keep a random subset
+        keep = np.sort(np.random.default_rng(params.seed).permutation(len(xyz))[:limit])
+        xyz, rgb = xyz[keep], (None if rgb is None else rgb[keep])
+        report["points_subsampled_to"] = int(limit)
     if report["points_far"] or report["points_non_finite"]:
         log.info(f"fit: dropped {report['points_far']} far and {report['points_non_finite']} non-finite SfM points")
 
     strategy = make_strategy(params.strategy, 1, params.iterations, grow_grad2d=params.densify_grad,
                              refine_stop_frac=params.densify_until)
     init = InitParams(opacity=params.init_opacity or strategy.init_opacity())
-    model = GaussianModel.from_points(xyz, rgb, params.sh_degree, extent, init, seed=params.seed)
+    center = np.mean([v.camera.center for v in views], axis=0)
+    model = GaussianModel.from_points(xyz, rgb, params.sh_degree, extent, init, seed=params.seed, center=center)
     tp = TrainParams(
         iterations=params.iterations, sh_degree=params.sh_degree, sh_degree_every=params.sh_degree_every,
         lambda_dssim=params.lambda_dssim, lr_means=params.lr_means, lr_means_final=params.lr_means_final,

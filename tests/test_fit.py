@@ -35,8 +35,9 @@ from sgpor_pipeline.synthetic import SceneParams, generate_scene
 TESTS = Path(__file__).resolve().parent
 LOG = logging.getLogger("sgpor_pipeline.fit")
 
-# Small and fast: a 12-view inward rig at 64x48; a fit of a few hundred iterations takes seconds.
-SMALL = SceneParams(seed=3, n_views=12, width=64, height=48, n_background_objects=4)
+# Small and fast: a 16-view inward rig at 96x72 (views 0 and 8 held out); a fit of a few hundred
+# iterations takes seconds.
+SMALL = SceneParams(seed=3, n_views=16, width=96, height=72, n_background_objects=4)
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +52,7 @@ def make_sfm(folder: Path, scene, n_points: int = 1500, seed: int = 0) -> Path:
 
 def quick_params(**kw) -> FitParams:
     base = dict(iterations=150, eval_every=0, checkpoint_every=0, checkpoint_seconds=0, n_renders=1,
-                holdout_every=4, sh_degree=1, sh_degree_every=50)
+                holdout_every=8, sh_degree=1, sh_degree_every=50)
     base.update(kw)
     return FitParams(**base)
 
@@ -230,46 +231,51 @@ def test_budget_controller_grows_then_freezes():
     p = TrainParams(budget=None, budget_per_pixel=0.01, budget_min=100, budget_window=10, budget_min_gain=0.05)
     b = BudgetController.create(p, 20_000)
     assert b.auto and b.cap == 200
-    assert not b.update(1, 50, 1.0, True)  # first call: reference loss
-    assert not b.update(20, 100, 0.5, True)  # below the cap: no decision
-    assert b.update(20, 200, 0.5, True) and b.cap == 300  # fell 50 %: grow
-    assert not b.update(40, 300, 0.49, True) and b.frozen  # fell 2 %: freeze
-    assert "frozen at 300" in b.reason
+    assert not b.due(5, 100, True)  # below the cap: no decision
+    assert b.due(5, 200, True) and b.decide(5, 200, 1.0, "held-out MSE") and b.cap == 300  # first: grow
+    assert not b.due(10, 300, True)  # within the window
+    assert not b.due(20, 300, False)  # densification over
+    assert b.due(20, 300, True) and b.decide(20, 300, 0.5, "held-out MSE") and b.cap == 450  # fell 50 %
+    assert b.due(40, 450, True) and not b.decide(40, 450, 0.49, "held-out MSE") and b.frozen  # fell 2 %
+    assert "frozen at 450" in b.reason and "held-out MSE" in b.reason
+    assert not b.due(100, 450, True)
     fixed = BudgetController.create(replace(p, budget=1234), 20_000)
-    assert not fixed.auto and fixed.cap == 1234 and not fixed.update(100, 1234, 0.1, True)
+    assert not fixed.auto and fixed.cap == 1234 and not fixed.due(100, 1234, True)
 
 
 # --------------------------------------------------------------------------------------------------
 # the fit
 
 
-@pytest.mark.slow
 def test_fit_reaches_psnr_on_a_small_scene(tmp_path, small_scene):
     """Bound: the mean-colour baseline (every held-out pixel predicted as the mean training colour)
-    scores ~16 dB here; 500 iterations at 64x48 reached 18.7 dB / SSIM 0.42 at the end of the founding
-    session. We require 2 dB over the baseline and SSIM above 0.35: clearly better than any constant
-    image. (Earlier versions of the fit reached ~24 dB here: a regression to find, see the note.)"""
+    scores 16.1 dB on this scene; 400 iterations at 96x72 from 1500 true-geometry points topped up to
+    4000 (depth-interpolated) reached 21.3 dB held-out (SSIM 0.56) in our runs (the default 256x192
+    scene reaches 30 dB with 2000 iterations, see benchmarks/fit.py). We require 19.5 dB AND 3.5 dB
+    over the baseline (no constant image gets there; a fit that learns the scene does, with margin)
+    and SSIM > 0.45."""
     sfm = make_sfm(tmp_path / "sfm", small_scene)
     out = tmp_path / "fit"
     out.mkdir()
-    res = fit_scene(sfm, out, quick_params(iterations=500, eval_every=250, sh_degree=0), None, LOG)
-    assert res["heldout_views"] == ["view_000", "view_004", "view_008"]
-    # Measured at the end of the founding session: 18.7 dB, baseline 16.1 dB (+2.6 dB). The fit is
-    # weaker than earlier runs of it (~24 dB); the issue stays open on quality (see the session note).
-    assert res["heldout_psnr"] >= res["mean_color_baseline_psnr"] + 2.0, res
-    assert res["heldout_ssim"] > 0.35  # measured 0.42
+    res = fit_scene(sfm, out, quick_params(iterations=400, eval_every=200, sh_degree=0, init_points=4000), None,
+                    LOG)
+    assert res["heldout_views"] == ["view_000", "view_008"]
+    assert res["heldout_psnr"] >= 19.5, res
+    assert res["heldout_psnr"] >= res["mean_color_baseline_psnr"] + 3.5, res
+    assert res["heldout_ssim"] > 0.45
     for name in ("gaussians.ply", "curve.json", "curve.png", "fit.json"):
         assert (out / name).is_file(), name
     assert len(list((out / "renders").glob("*.png"))) == 1
     curve = json.loads((out / "curve.json").read_text())["curve"]
-    assert [c["iteration"] for c in curve][-1] == 500
+    assert [c["iteration"] for c in curve][-1] == 400
     assert {"iteration", "loss", "count", "seconds", "heldout_psnr", "heldout_ssim"} <= set(curve[-1])
     assert curve[-1]["loss"] < curve[0]["loss"]
     fit = json.loads((out / "fit.json").read_text())
     for key in ("count", "stop_reason", "heldout_psnr", "heldout_ssim", "seconds", "iterations", "scene_extent",
                 "training_resolution"):
         assert key in fit, key
-    assert fit["training_resolution"] == [64, 48] and all_finite(out / "gaussians.ply")
+    assert fit["training_resolution"] == [96, 72] and all_finite(out / "gaussians.ply")
+    assert fit["points"]["points_added"] == 2500 and fit["points"]["init_mode"] == "depth"  # 1500 + 2500
 
 
 def test_fit_resolution_and_budget_params(tmp_path, small_scene):
@@ -278,6 +284,7 @@ def test_fit_resolution_and_budget_params(tmp_path, small_scene):
     out.mkdir()
     res = fit_scene(sfm, out, quick_params(iterations=120, max_size=32, budget=450, holdout_every=0), None, LOG)
     assert res["training_resolution"] == [32, 24]
+    assert "points_added" not in res["points"]  # 400 SfM points > the automatic init count at 32x24
     assert res["count"] <= 450 and res["budget"] == 450 and not res["budget_auto"]
     assert res["heldout_is_training"] and res["heldout_views"] == []
     assert math.isfinite(res["heldout_psnr"])
@@ -399,7 +406,7 @@ def test_killed_fit_resumes_from_its_checkpoint(tmp_path):
     images.mkdir()
     out = tmp_path / "out"
     script = CHILD.format(tests=str(TESTS), out=str(out), images=str(images))
-    env = dict(os.environ, TQDM_DISABLE="1")
+    env = dict(os.environ, TQDM_DISABLE="1", OMP_WAIT_POLICY="PASSIVE")
     proc = subprocess.Popen([sys.executable, "-c", script], env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT)
     ckpt = None

@@ -58,8 +58,9 @@ class InitParams:
     opacity: float = 0.1  # initial opacity of every Gaussian (3DGS: 0.1)
     scale_factor: float = 1.0  # initial scale = factor x mean distance to the 3 nearest neighbours
     knn: int = 3  # neighbours for the initial scale
-    min_scale_rel: float = 1e-4  # scales are clamped to [min_scale_rel, max_scale_rel] x scene extent
-    max_scale_rel: float = 0.1
+    min_scale_rel: float = 1e-4  # scales are clamped to at least min_scale_rel x scene extent ...
+    max_scale_rel: float = 0.1  # ... and at most max_scale_rel x extent or max_scale_dist x the point's
+    max_scale_dist: float = 0.05  # distance to ``center`` (far background points may be large)
 
 
 def knn_mean_distance(xyz: np.ndarray, k: int = 3) -> np.ndarray:
@@ -106,9 +107,10 @@ class GaussianModel:
     @classmethod
     def from_points(cls, xyz: np.ndarray, rgb: np.ndarray | None, max_sh_degree: int,
                     scene_extent: float, init: InitParams | None = None,
-                    seed: int = 0) -> GaussianModel:
+                    seed: int = 0, center: np.ndarray | None = None) -> GaussianModel:
         """Isotropic Gaussians at the points: colour from ``rgb`` (uint8 or float in [0,1]), scale from
-        the mean distance to the nearest neighbours, identity rotation, opacity ``init.opacity``."""
+        the mean distance to the nearest neighbours (clamped, see :class:`InitParams`; ``center`` is the
+        cameras' centroid, default the origin), identity rotation, opacity ``init.opacity``."""
         init = init or InitParams()
         xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
         n = len(xyz)
@@ -121,8 +123,9 @@ class GaussianModel:
                 colors = colors / 255.0
         dist = knn_mean_distance(xyz, init.knn) * init.scale_factor
         ext = max(float(scene_extent), 1e-9)
-        dist = np.clip(np.nan_to_num(dist, nan=ext * init.max_scale_rel), init.min_scale_rel * ext,
-                       init.max_scale_rel * ext)
+        c = np.zeros(3) if center is None else np.asarray(center, np.float64).reshape(3)
+        upper = np.maximum(init.max_scale_rel * ext, init.max_scale_dist * np.linalg.norm(xyz - c, axis=1))
+        dist = np.clip(np.nan_to_num(dist, nan=ext * init.max_scale_rel), init.min_scale_rel * ext, upper)
         k = num_sh_bases(max_sh_degree)
         quats = torch.zeros(n, 4)
         quats[:, 0] = 1.0

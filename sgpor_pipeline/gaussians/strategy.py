@@ -19,8 +19,9 @@ Two strategies:
     The adaptive density control of 3DGS, budgeted: Gaussians whose accumulated screen-space
     position gradient exceeds ``grow_grad2d`` are cloned (small ones) or split in two (large ones);
     when the candidates exceed the room left under ``cap``, the ones with the largest gradients win.
-    Transparent (opacity < ``prune_opa``) and oversized (largest axis > ``prune_scale3d`` x scene
-    extent) Gaussians are pruned; opacities are optionally reset every ``reset_every`` steps.
+    Transparent (opacity < ``prune_opa``) Gaussians are pruned, and, once opacities are reset (every
+    ``reset_every`` steps, off by default for short runs), oversized ones (largest axis >
+    ``prune_scale3d`` x scene extent) too.
 ``mcmc`` (:class:`MCMCStrategy`)
     3DGS as MCMC (Kheradmand et al. 2024): every ``refine_every`` steps dead Gaussians (opacity <=
     ``min_opacity``) are relocated onto live ones sampled by opacity (opacity and scale adjusted so
@@ -173,7 +174,7 @@ class ADCParams:
     grow_grad2d: float = 0.0002  # screen-space gradient threshold (3DGS: 0.0002, NDC units)
     grow_scale3d: float = 0.01  # clone below / split above this x scene extent
     prune_opa: float = 0.005
-    prune_scale3d: float = 0.1  # prune Gaussians larger than this x scene extent
+    prune_scale3d: float = 0.1  # prune Gaussians larger than this x scene extent (after the first reset)
     reset_every: int = 0  # opacity reset period (3DGS: 3000); 0 = never (short runs do better without)
 
 
@@ -207,7 +208,7 @@ class ADCStrategy(Strategy):
             state["grad2d"] += (gn * sel).sum(0).to(state["grad2d"].dtype)
             state["count"] += sel.sum(0).to(state["count"].dtype)
         if step > self.p.refine_start and step % self.p.refine_every == 0:
-            out = self._refine(model, optimizers, state, info["generator"])
+            out = self._refine(model, optimizers, state, info["generator"], step)
             if self.p.reset_every > 0 and step % self.p.reset_every == 0:
                 reset_opacity(model, optimizers, 2.0 * self.p.prune_opa)
                 out["reset"] = 1
@@ -215,7 +216,7 @@ class ADCStrategy(Strategy):
         return None
 
     def _refine(self, model: GaussianModel, optimizers: dict, state: dict,
-                generator: torch.Generator) -> dict[str, int]:
+                generator: torch.Generator, step: int = 0) -> dict[str, int]:
         ext = state["scene_extent"]
         avg = state["grad2d"] / state["count"].clamp_min(1)
         high = avg > self.p.grow_grad2d
@@ -236,10 +237,12 @@ class ADCStrategy(Strategy):
             spl = torch.cat([spl, torch.zeros(n_dup, dtype=torch.bool)])
         if n_split:
             split(model, optimizers, spl, generator)
-        # prune transparent and oversized Gaussians
+        # prune transparent Gaussians, and oversized ones once opacity resets are active (3DGS/gsplat:
+        # only after the first reset; earlier, far background Gaussians are legitimately large)
         op = model.opacities_activated()
-        big = model.scales_linear().max(dim=-1).values > self.p.prune_scale3d * ext
-        prune = (op < self.p.prune_opa) | big
+        prune = op < self.p.prune_opa
+        if self.p.reset_every > 0 and step > self.p.reset_every:
+            prune |= model.scales_linear().max(dim=-1).values > self.p.prune_scale3d * ext
         n_prune = int(prune.sum())
         if n_prune and n_prune < len(model):
             remove(model, optimizers, prune)

@@ -315,23 +315,26 @@ def evaluate(model: GaussianModel, views: Sequence[TrainView], sh_degree: int | 
 class BudgetController:
     """The Gaussian budget: fixed (user) or automatic.
 
-    Automatic: start at ``budget_per_pixel`` x training pixels (clamped to [budget_min,
-    budget_max]). Whenever the model has filled the cap (>= 95 %) and ``window`` iterations passed
-    since the last decision, compare the smoothed training loss with its value at the last decision:
-    if it fell by more than ``min_gain`` (relative), the Gaussians added in that window still paid
-    off and the cap grows by ``growth``; otherwise the budget is frozen. ``reason`` says why the count
-    stopped where it did.
+    Automatic: start at ``budget_per_pixel`` x training pixels (clamped to [budget_min, hard
+    maximum = budget_max_per_pixel x training pixels]). A growth decision is due when the model has
+    filled the cap (>= 95 %) and ``window`` iterations passed since the last decision: it measures
+    the error (the held-out MSE when there are held-out views, else the smoothed training loss) and
+    compares it with the error at the previous decision. The first decision only records it and
+    grows; later ones grow the cap by ``growth`` while the error fell by more than ``min_gain``
+    (relative; 5 % of MSE = 0.22 dB) over the last growth step, and freeze the budget otherwise.
+    Growth also ends with densification. ``reason`` says why the count stopped where it did.
     """
 
     cap: int
     auto: bool
     growth: float = 1.5
-    min_gain: float = 0.02
+    min_gain: float = 0.05
     window: int = 300
     hard_max: int = 1_000_000
     frozen: bool = False
     last_step: int = 0
-    last_loss: float | None = None
+    last_error: float | None = None
+    metric: str = ""
     reason: str = ""
     history: list[dict[str, Any]] = field(default_factory=list)
 
@@ -344,29 +347,33 @@ class BudgetController:
         return cls(cap=start, auto=True, growth=p.budget_growth, min_gain=p.budget_min_gain,
                    window=p.budget_window, hard_max=hard_max)
 
-    def update(self, step: int, count: int, loss_ema: float, growing: bool) -> bool:
-        """Called every iteration; returns True when the cap changed."""
-        if not self.auto or self.frozen or not growing:
-            return False
-        if self.last_loss is None:
-            self.last_loss, self.last_step = loss_ema, step
-            return False
-        if count < 0.95 * self.cap or step - self.last_step < self.window:
-            return False
-        gain = (self.last_loss - loss_ema) / max(self.last_loss, 1e-12)
-        entry = {"iteration": step, "count": count, "cap": self.cap, "loss": loss_ema, "gain": gain}
-        if gain > self.min_gain and self.cap < self.hard_max:
+    def due(self, step: int, count: int, growing: bool) -> bool:
+        """Whether a growth decision is due at ``step`` (then call :meth:`decide`)."""
+        return (self.auto and not self.frozen and growing and count >= 0.95 * self.cap
+                and (self.last_error is None or step - self.last_step >= self.window))
+
+    def decide(self, step: int, count: int, error: float, metric: str) -> bool:
+        """Grow or freeze given the current ``error``; returns True when the cap grew."""
+        self.metric = metric
+        entry: dict[str, Any] = {"iteration": step, "count": count, "cap": self.cap, "error": error,
+                                 "metric": metric}
+        if self.last_error is None:
+            gain = None
+        else:
+            gain = (self.last_error - error) / max(self.last_error, 1e-12)
+            entry["gain"] = gain
+        if (gain is None or gain > self.min_gain) and self.cap < self.hard_max:
             self.cap = min(self.hard_max, int(self.cap * self.growth))
             entry["action"] = f"grow to {self.cap}"
             self.history.append(entry)
-            self.last_loss, self.last_step = loss_ema, step
+            self.last_error, self.last_step = error, step
             return True
         self.frozen = True
         if self.cap >= self.hard_max:
             self.reason = f"automatic budget reached its hard maximum ({self.hard_max})"
         else:
-            self.reason = (f"automatic budget frozen at {self.cap}: the training loss fell {100 * gain:.1f}% "
-                           f"over the last {step - self.last_step} iterations at the cap (< "
+            self.reason = (f"automatic budget frozen at {self.cap}: the {metric} fell {100 * (gain or 0.0):.1f}% "
+                           f"over the last growth step ({step - self.last_step} iterations; < "
                            f"{100 * self.min_gain:.1f}%)")
         entry["action"] = "freeze"
         self.history.append(entry)
@@ -432,10 +439,13 @@ class Trainer:
         self.extent = float(extent)
         self.checkpoint_dir = None if checkpoint_dir is None else Path(checkpoint_dir)
         self.log = logger or log
+        self.tag = self.log.name.rsplit(".", 1)[-1]  # "fit", "finetune": prefixes the log lines
         self.progress = progress
         self.gen = torch.Generator().manual_seed(int(params.seed))
         pixels = sum(v.image.shape[0] * v.image.shape[1] for v in self.train_views)
         self.budget = BudgetController.create(params, pixels)
+        if self.budget.auto and len(model) > self.budget.cap:  # the model starts above the automatic start
+            self.budget.cap = min(max(len(model), self.budget.cap), max(self.budget.hard_max, len(model)))
         self.strategy.cap = self.budget.cap
         self.optimizers = self._build_optimizers()
         self.sstate = strategy.initialize_state(model, self.extent)
@@ -559,10 +569,10 @@ class Trainer:
                 raise ValueError(f"checkpoint format {st.get('format')}")
             self.load_state_dict(st)
         except Exception as e:  # a damaged checkpoint: start over rather than fail
-            self.log.warning(f"ignoring unreadable checkpoint {path.name} ({e}); training from the start")
+            self.log.warning(f"{self.tag}: ignoring unreadable checkpoint {path.name} ({e}); training from the start")
             return False
         self.resumed_from = self.step
-        self.log.info(f"resumed from checkpoint at iteration {self.step} ({len(self.model)} Gaussians)")
+        self.log.info(f"{self.tag}: resumed from checkpoint at iteration {self.step} ({len(self.model)} Gaussians)")
         return True
 
     # NaN guard ---------------------------------------------------------------------------------
@@ -578,7 +588,7 @@ class Trainer:
         failed_at = self.step + 1  # the iteration in progress (self.step counts completed ones)
         if self._snapshot is None or self._rollbacks_in_a_row > self.p.max_rollbacks:
             raise NonFiniteError(
-                f"fit: {what} at iteration {failed_at}, still after {self._rollbacks_in_a_row - 1} rollback(s) "
+                f"{self.tag}: {what} at iteration {failed_at}, still after {self._rollbacks_in_a_row - 1} rollback(s) "
                 f"with the learning rates scaled by {self.lr_scale:g}",
                 fix="lower the learning rates (fit.lr_*), check the cameras and points from SfM, or "
                     "lower fit.sh_degree")
@@ -588,7 +598,7 @@ class Trainer:
         self.lr_scale, self.elapsed, self.cpu_elapsed = lr_scale, elapsed, cpu  # time is not rolled back
         self.events.append({"iteration": failed_at, "event": "rollback", "what": what,
                             "to_iteration": self.step, "lr_scale": self.lr_scale})
-        self.log.warning(f"fit: {what} at iteration {failed_at}: rolled back to iteration {self.step}, "
+        self.log.warning(f"{self.tag}: {what} at iteration {failed_at}: rolled back to iteration {self.step}, "
                          f"learning rates x{self.lr_scale:g}")
 
     @staticmethod
@@ -663,7 +673,7 @@ class Trainer:
         last_ckpt_time = time.perf_counter()
         self._start_clock()
         it = range(self.step, self.p.iterations)
-        bar = self.progress(it, total=self.p.iterations, desc="fit") if self.progress else None
+        bar = self.progress(it, total=self.p.iterations, desc=self.tag) if self.progress else None
         if bar is not None and hasattr(bar, "update") and self.step:
             bar.update(self.step)
         try:
@@ -680,10 +690,15 @@ class Trainer:
                 self.loss_ema = loss if self.loss_ema is None else 0.98 * self.loss_ema + 0.02 * loss
                 self._window_losses.append(loss)
                 step = self.step
-                if self.budget.update(step, len(self.model), self.loss_ema, self.strategy.is_growing(step)):
-                    self.strategy.cap = self.budget.cap
-                    self.events.append({"iteration": step, "event": "budget", "cap": self.budget.cap})
-                    self.log.info(f"fit: budget grows to {self.budget.cap} Gaussians at iteration {step}")
+                if self.budget.due(step, len(self.model), self.strategy.is_growing(step)):
+                    error, metric = self._budget_error()
+                    if self.budget.decide(step, len(self.model), error, metric):
+                        self.strategy.cap = self.budget.cap
+                        self.events.append({"iteration": step, "event": "budget", "cap": self.budget.cap})
+                        self.log.info(f"{self.tag}: budget grows to {self.budget.cap} Gaussians at iteration {step} "
+                                      f"({metric} {error:.5f})")
+                    else:
+                        self.log.info(f"{self.tag}: budget frozen at iteration {step}: {self.budget.reason}")
                 do_eval = step == self.p.iterations or (self.p.eval_every > 0 and step % self.p.eval_every == 0)
                 if do_eval or step % max(self.p.log_every, 1) == 0:
                     self._record(step, do_eval)
@@ -717,6 +732,17 @@ class Trainer:
         self.elapsed = time.perf_counter() - self._t0[0]
         self.cpu_elapsed = time.process_time() - self._t0[1]
 
+    def _budget_error(self) -> tuple[float, str]:
+        """The error the automatic budget follows: held-out MSE, else the smoothed training loss."""
+        if not self.eval_views:
+            return float(self.loss_ema if self.loss_ema is not None else float("nan")), "training loss"
+        deg = self.active_sh_degree(self.step)
+        mses = []
+        for v in self.eval_views:
+            r = render_view(self.model, v.camera, deg, self.p.backend, self.p.background)
+            mses.append(float(((r.clamp(0, 1) - v.image) ** 2).mean()))
+        return float(np.mean(mses)), "held-out MSE"
+
     def _record(self, step: int, do_eval: bool) -> None:
         window = self._window_losses or [float("nan")]
         entry: dict[str, Any] = {"iteration": step, "loss": float(np.mean(window)), "count": len(self.model),
@@ -728,8 +754,9 @@ class Trainer:
             ev = self.evaluate()
             entry.update(heldout_psnr=ev["psnr"], heldout_ssim=ev["ssim"],
                          eval_seconds=round(time.perf_counter() - t0, 3))
-            self.log.info(f"iteration {step}/{self.p.iterations}: loss {entry['loss']:.4f}, {entry['count']} "
-                          f"Gaussians, {'held-out' if self.eval_views else 'training'} PSNR {ev['psnr']:.2f} dB, "
+            self.log.info(f"{self.tag}: iteration {step}/{self.p.iterations}: loss {entry['loss']:.4f}, "
+                          f"{entry['count']} Gaussians, {'held-out' if self.eval_views else 'training'} PSNR "
+                          f"{ev['psnr']:.2f} dB, "
                           f"SSIM {ev['ssim']:.3f}, {self.elapsed:.0f} s")
         self.curve.append(entry)
 

@@ -77,6 +77,24 @@ def build_parser() -> argparse.ArgumentParser:
                         "(reliable with --rig forward; the inward room repeats its wall textures)")
     _add_run_options(p)
 
+    p = sub.add_parser("render", help="render a finished run's cleaned scene at any cameras",
+                       description="Render the Gaussians of a finished run at the cameras of a file (COLMAP model, "
+                                   "transforms.json or cameras.json), e.g. a camera path or a benchmark's "
+                                   "object-free test views. Cameras are in the run's frame, or aligned to it "
+                                   "through the image names they share with the run. Nothing is recomputed.")
+    p.add_argument("out", type=Path, help="the run's output folder")
+    p.add_argument("--cameras", type=Path, required=True, metavar="FILE",
+                   help="a COLMAP model folder, a transforms.json or a cameras.json")
+    p.add_argument("--output", type=Path, metavar="DIR",
+                   help="where the PNGs go (default: OUT/renders/<name of the cameras file>)")
+    p.add_argument("--stage", metavar="STAGE", help="render this stage's Gaussians (default: finetune, the "
+                                                     "cleaned scene; fit: the scene with the object)")
+    p.add_argument("--align", choices=["auto", "none", "similarity"], default="auto",
+                   help="auto (default): a similarity fitted on the cameras named like the run's photos when "
+                        "there are 3 or more, else none; none: the cameras are in the run's frame; "
+                        "similarity: require the alignment")
+    p.add_argument("--depth", action="store_true", help="also write depth/<camera>.npy (float32 z-depth)")
+
     p = sub.add_parser("status", help="show each stage of a run folder: hit / missing / stale, time, size",
                        description="Show each stage of a run folder: hit / missing / stale / damaged, time, size.")
     p.add_argument("out", type=Path, help="the run's output folder")
@@ -131,6 +149,17 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return _run(args, inputs)
 
 
+def cmd_render(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from sgpor_pipeline.render import RenderParams, render_run
+
+    params = RenderParams(stage=args.stage, align=args.align, depth=args.depth)
+    render_run(args.out, args.cameras, args.output, params,
+               progress=lambda cams: tqdm(cams, desc="render", leave=False, dynamic_ncols=True, disable=None))
+    return 0
+
+
 def cmd_status(args: argparse.Namespace) -> int:
     from sgpor_pipeline.runner import format_status, pipeline_status
 
@@ -148,7 +177,7 @@ def cmd_clean(args: argparse.Namespace) -> int:
     return 0
 
 
-COMMANDS = {"run": cmd_run, "demo": cmd_demo, "status": cmd_status, "clean": cmd_clean}
+COMMANDS = {"run": cmd_run, "demo": cmd_demo, "render": cmd_render, "status": cmd_status, "clean": cmd_clean}
 
 
 def main(argv: list[str] | None = None) -> int:

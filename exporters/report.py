@@ -17,13 +17,18 @@ those stages' folders reach ``ctx.inputs``). Built in:
 * training: ``curve.png``, ``fit.json`` and the held-out renders it lists (and the same of
   ``finetune``, when present);
 * speed against error: ``speed_error.png`` of any input stage;
-* metrics: ``metrics.json`` of any input stage, as tables.
+* metrics: the ``evaluate`` stage's ``metrics.json`` (an optional input: present when the run has
+  ground truth) as tables: PSNR/SSIM in the ``mask``, ``bbox`` and ``full`` definitions for the final
+  scene, the 2D-inpainted views and delete-only, seconds per stage, and per view; the file itself is
+  copied beside the report as ``metrics.json``. Any other input stage's ``metrics.json`` is shown as
+  key/value rows.
 """
 
 from __future__ import annotations
 
 import html
 import json
+import math
 import re
 import shutil
 import time
@@ -381,12 +386,90 @@ class StageFileSection:
         return "".join(parts) or None
 
 
+#: The results the evaluate stage scores, in the order shown, with what each one is.
+METRIC_RESULTS = {
+    "final": "the cleaned scene (finetune renders)",
+    "inpainted_2d": "the views inpainted in 2D, before re-fitting",
+    "delete_only": "object Gaussians deleted, hole left unfilled",
+}
+METRIC_COLUMNS = [("PSNR mask", "psnr_mask", 2), ("SSIM mask", "ssim_mask", 4), ("PSNR bbox", "psnr_bbox", 2),
+                  ("SSIM bbox", "ssim_bbox", 4), ("PSNR full", "psnr_full", 2), ("SSIM full", "ssim_full", 4)]
+METRICS_FILE = "metrics.json"
+
+
+def _num(v: Any, digits: int) -> str:
+    if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v):
+        return f"{v:.{digits}f}"
+    return "&ndash;"  # NaN (e.g. an empty mask) or missing
+
+
+def metrics_tables(data: dict[str, Any]) -> str:
+    """HTML tables of an evaluate ``metrics.json``: means per result, seconds per stage, per view."""
+    means = data.get("means") or {}
+    names = [n for n in METRIC_RESULTS if n in means] + [n for n in means if n not in METRIC_RESULTS]
+    head = "<tr><th>result</th>" + "".join(f"<th>{esc(t)}</th>" for t, _, _ in METRIC_COLUMNS) + "</tr>"
+    rows = "".join(
+        f"<tr><th title='{esc(METRIC_RESULTS.get(n, ''))}'>{esc(n)}</th>"
+        + "".join(f"<td>{_num((means[n] or {}).get(k), d)}</td>" for _, k, d in METRIC_COLUMNS) + "</tr>"
+        for n in names)
+    parts = [f"<p class='meta'>means over {esc(data.get('views', '?'))} view(s) with ground truth; "
+             "<i>mask</i>: object-mask pixels only, <i>bbox</i>: the mask's bounding box, <i>full</i>: the whole "
+             "image; " + "; ".join(f"<i>{esc(n)}</i>: {esc(METRIC_RESULTS[n])}" for n in names
+                                  if n in METRIC_RESULTS) + "</p>",
+             f"<table class='metrics'>{head}{rows}</table>"]
+    seconds = data.get("seconds") or {}
+    if seconds:
+        srows = "".join(f"<tr><th>{esc(k)}</th><td>{_num(v, 1)}</td></tr>" for k, v in seconds.items())
+        total = data.get("total_seconds", sum(v for v in seconds.values() if isinstance(v, (int, float))))
+        parts.append(f"<table class='kv'><tr><th>stage</th><th>seconds</th></tr>{srows}"
+                     f"<tr><th>total</th><td>{_num(total, 1)}</td></tr></table>")
+    per_view = data.get("per_view") or {}
+    if per_view:
+        cols = [(n, k, t, d) for k, t, d in (("psnr_mask", "PSNR mask", 2), ("ssim_mask", "SSIM mask", 4))
+                for n in names]
+        vhead = "<tr><th>view</th>" + "".join(f"<th>{esc(t)}<br>{esc(n)}</th>" for n, _, t, _ in cols) + "</tr>"
+        vrows = "".join(
+            f"<tr><th>{esc(view)}</th>"
+            + "".join(f"<td>{_num(((res or {}).get(n) or {}).get(k), d)}</td>" for n, k, _, d in cols) + "</tr>"
+            for view, res in per_view.items())
+        parts.append(f"<details><summary>per view ({len(per_view)})</summary>"
+                     f"<table class='metrics'>{vhead}{vrows}</table></details>")
+    return "".join(parts)
+
+
+@dataclass
+class MetricsSection:
+    """The ``evaluate`` stage's metrics (when the run has it) as tables, and ``metrics.json`` of any
+    other input stage as key/value rows."""
+
+    title: str = "Metrics"
+    stage: str = "evaluate"
+
+    def render(self, rc: ReportContext) -> str | None:
+        parts = []
+        for stage, folder in sorted(rc.inputs.items(), key=lambda kv: (kv[0] != self.stage, kv[0])):
+            path = folder / METRICS_FILE
+            data = _read_json(path) if path.is_file() else None
+            if not isinstance(data, dict):
+                continue
+            if isinstance(data.get("means"), dict):
+                if stage == self.stage:  # the file beside the report: what the tables show, all digits
+                    shutil.copyfile(path, rc.export_dir / METRICS_FILE)
+                    link = f" <a href='{esc(href(METRICS_FILE))}'>{esc(METRICS_FILE)}</a>"
+                else:
+                    link = ""
+                parts.append(f"<h3>{esc(stage)}{link}</h3>" + metrics_tables(data))
+            else:
+                parts.append(f"<h3>{esc(stage)}</h3>" + kv_table(flatten_json(data)))
+        return "".join(parts) or None
+
+
 DEFAULT_SECTIONS: list[Any] = [
     SummarySection(),
+    MetricsSection(),
     ViewsSection(),
     TrainingSection(),
     StageFileSection("Speed against error", "speed_error.png"),
-    StageFileSection("Metrics", "metrics.json"),
 ]
 
 _CSS = """
@@ -394,7 +477,8 @@ body{font-family:system-ui,-apple-system,'Segoe UI',sans-serif;margin:1.5em;colo
 h1{font-size:1.5em}h2{font-size:1.2em;border-bottom:1px solid #ccc;padding-bottom:.2em;margin-top:1.6em}
 table{border-collapse:collapse;margin:.5em 0}th,td{border:1px solid #ddd;padding:4px 8px;text-align:left;
 vertical-align:top}table.kv th{background:#f0f0f0;font-weight:600}table.views img{max-width:320px;display:block}
-img.plot{max-width:100%;border:1px solid #ddd;background:#fff}figure{display:inline-block;margin:.3em}
+img.plot{max-width:100%;border:1px solid #ddd;background:#fff}table.metrics td{text-align:right}
+figure{display:inline-block;margin:.3em}
 figcaption{font-size:.8em;color:#666}.meta{color:#666;font-size:.9em}
 """
 
@@ -438,9 +522,11 @@ REPORT_STAGES = ("fit", "masks", "remove", "inpaint", "refine") if SCENE_STAGE =
 
 class ReportExporter(Exporter):
     name = "report"
-    VERSION = 1
+    VERSION = 2  # 2: evaluate's metrics as tables (and metrics.json beside the report)
     needs = ("ingest", CAMERAS_STAGE, SCENE_STAGE, *REPORT_STAGES)
-    description = "report.html (+ report/ PNGs): inputs, masks, renders, training curve, metrics; offline"
+    optional_needs = ("evaluate",)  # when the run has ground truth; its key then enters export's key
+    description = ("report.html (+ report/ PNGs): inputs, masks, renders, training curve, metrics (with ground "
+                   "truth); offline")
 
     def export(self, ctx: StageContext, out_dir: Path) -> None:
         t0 = time.perf_counter()

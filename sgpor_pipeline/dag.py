@@ -137,6 +137,13 @@ class Stage:
         return cls.inputs
 
     @classmethod
+    def optional_inputs(cls, params: Any) -> tuple[str, ...]:
+        """Stages read only when the run has them: those among these that run by default with the
+        run's inputs (:meth:`wanted`, e.g. ``evaluate`` with ground truth) become inputs, so their
+        keys enter this stage's key; the others are simply absent from ``ctx.inputs``."""
+        return ()
+
+    @classmethod
     def wanted(cls, params: Any, run_inputs: RunInputs) -> bool:
         """Whether an optional stage runs by default with these inputs."""
         return not cls.optional
@@ -155,6 +162,8 @@ class Exporter:
     name: ClassVar[str] = ""
     VERSION: ClassVar[int] = 1
     needs: ClassVar[tuple[str, ...]] = ()
+    # Stages read when the run has them (see Stage.optional_inputs), e.g. evaluate for the report.
+    optional_needs: ClassVar[tuple[str, ...]] = ()
     description: ClassVar[str] = ""
 
     def export(self, ctx: StageContext, out_dir: Path) -> None:  # pragma: no cover - the contract
@@ -194,11 +203,25 @@ def discover_exporters() -> dict[str, type[Exporter]]:
     return _load_group(EXPORTER_GROUP, Exporter, "exporter")
 
 
-def topological_order(stages: dict[str, type[Stage]], config: dict[str, Any]) -> list[str]:
+def upstream_of(stages: dict[str, type[Stage]], config: dict[str, Any], name: str,
+                run_inputs: RunInputs | None = None) -> tuple[str, ...]:
+    """The inputs of stage ``name``: :meth:`Stage.upstream`, plus (given the run's inputs) those of
+    its :meth:`Stage.optional_inputs` that are installed and run by default with these inputs."""
+    cls = stages[name]
+    ups = tuple(cls.upstream(config[name]))
+    if run_inputs is None:
+        return ups
+    extra = tuple(o for o in cls.optional_inputs(config[name])
+                  if o in stages and o not in ups and stages[o].wanted(config[o], run_inputs))
+    return ups + extra
+
+
+def topological_order(stages: dict[str, type[Stage]], config: dict[str, Any],
+                      run_inputs: RunInputs | None = None) -> list[str]:
     """Stages ordered so that every stage comes after its inputs; ties broken by name."""
     graph = {}
-    for name, cls in stages.items():
-        ups = cls.upstream(config[name])
+    for name in stages:
+        ups = upstream_of(stages, config, name, run_inputs)
         missing = [u for u in ups if u not in stages]
         if missing:
             raise PipelineError(f"stage '{name}' needs stage(s) {missing}, which no installed package provides",
@@ -219,7 +242,8 @@ def topological_order(stages: dict[str, type[Stage]], config: dict[str, Any]) ->
     return order
 
 
-def ancestors(stages: dict[str, type[Stage]], config: dict[str, Any], name: str) -> set[str]:
+def ancestors(stages: dict[str, type[Stage]], config: dict[str, Any], name: str,
+              run_inputs: RunInputs | None = None) -> set[str]:
     """``name`` and every stage it depends on."""
     seen: set[str] = set()
     todo = [name]
@@ -228,18 +252,19 @@ def ancestors(stages: dict[str, type[Stage]], config: dict[str, Any], name: str)
         if n in seen:
             continue
         seen.add(n)
-        todo.extend(stages[n].upstream(config[n]))
+        todo.extend(upstream_of(stages, config, n, run_inputs))
     return seen
 
 
-def descendants(stages: dict[str, type[Stage]], config: dict[str, Any], name: str) -> set[str]:
+def descendants(stages: dict[str, type[Stage]], config: dict[str, Any], name: str,
+                run_inputs: RunInputs | None = None) -> set[str]:
     """``name`` and every stage that depends on it."""
     out = {name}
     changed = True
     while changed:
         changed = False
-        for n, cls in stages.items():
-            if n not in out and out.intersection(cls.upstream(config[n])):
+        for n in stages:
+            if n not in out and out.intersection(upstream_of(stages, config, n, run_inputs)):
                 out.add(n)
                 changed = True
     return out

@@ -16,7 +16,16 @@ from typing import Any
 from . import __version__
 from .cache import CHECKPOINT, ITEMS, RunLock, StageCache, folder_size, publish, read_manifest, verify
 from .config import params_to_dict, resolve_config, save_config
-from .dag import RunInputs, Stage, StageContext, ancestors, descendants, discover_stages, topological_order
+from .dag import (
+    RunInputs,
+    Stage,
+    StageContext,
+    ancestors,
+    descendants,
+    discover_stages,
+    topological_order,
+    upstream_of,
+)
 from .errors import PipelineError
 from .hashing import DigestMemo, hash_obj
 
@@ -52,7 +61,7 @@ def compute_keys(stages: dict[str, type[Stage]], order: list[str], config: dict[
         if names is not None and name not in names:
             continue
         cls = stages[name]
-        ups = cls.upstream(config[name])
+        ups = upstream_of(stages, config, name, run_inputs)
         if any(u not in keys for u in ups):
             continue  # an upstream stage is not part of this computation
         keys[name] = hash_obj({
@@ -101,12 +110,12 @@ def select_stages(stages: dict[str, type[Stage]], order: list[str], config: dict
         if until not in stages:
             raise PipelineError(f"unknown stage '{until}' for --until",
                                 fix=f"choose one of: {', '.join(order)}")
-        wanted = ancestors(stages, config, until)
+        wanted = ancestors(stages, config, until, run_inputs)
     else:
         wanted = set()
         for name in order:
             if stages[name].wanted(config[name], run_inputs):
-                wanted |= ancestors(stages, config, name)
+                wanted |= ancestors(stages, config, name, run_inputs)
     return [n for n in order if n in wanted]
 
 
@@ -132,7 +141,7 @@ def run_pipeline(
     out = Path(out).resolve()
     stages = discover_stages() if stages is None else stages
     config = resolve_config({n: c.Params for n, c in stages.items()}, config_file, overrides)
-    order = topological_order(stages, config)
+    order = topological_order(stages, config, run_inputs)
     for f in force:
         if f not in stages:
             raise PipelineError(f"unknown stage '{f}' for --force", fix=f"choose one of: {', '.join(order)}")
@@ -142,7 +151,7 @@ def run_pipeline(
     selected = select_stages(stages, order, config, run_inputs, until)
     forced: set[str] = set()
     for f in force:
-        forced |= descendants(stages, config, f)
+        forced |= descendants(stages, config, f, run_inputs)
 
     cache = StageCache(out / "cache")
     result = RunResult(out)
@@ -165,7 +174,7 @@ def run_pipeline(
 
         for name in selected:
             cls = stages[name]
-            upstream = {u: result.outcomes[u].path for u in cls.upstream(config[name])}
+            upstream = {u: result.outcomes[u].path for u in upstream_of(stages, config, name, run_inputs)}
             outcome = _run_stage(cls, name, keys[name], config, cache, run_inputs, upstream,
                                  force=name in forced, debug=debug, memo=memo)
             result.outcomes[name] = outcome
@@ -265,6 +274,47 @@ def load_run(out: Path, stages: dict[str, type[Stage]]) -> tuple[RunInputs, dict
     return run_inputs, config
 
 
+def rerun_command(out: Path, run_inputs: RunInputs, until: str | None = None) -> str:
+    """The command line that resumes the run in ``out`` (with its saved configuration)."""
+    out = Path(out)
+    tail = f" --config {out / CONFIG_FILE}" + (f" --until {until}" if until else "")
+    if Path(run_inputs.images).parent == out.resolve() / "scene":  # made by `sgpor-pipeline demo`
+        return f"sgpor-pipeline demo --out {out}{tail} (with the demo options the run was made with)"
+    cmd = f"sgpor-pipeline run {run_inputs.images}"
+    if run_inputs.masks is not None:
+        cmd += f" --masks {run_inputs.masks}"
+    if run_inputs.cameras is not None:
+        cmd += f" --cameras {run_inputs.cameras}"
+    return f"{cmd} --out {out}{tail}"
+
+
+def stage_result(out: Path, stage: str) -> tuple[Path, str]:
+    """(published folder, key) of ``stage`` as the last run of ``out`` made it (the key run.json
+    records), verified; nothing is computed. A PipelineError says which command builds it when the
+    run has no such result (not part of the last run, cleaned, damaged)."""
+    out = Path(out)
+    run_file = out / RUN_FILE
+    if not run_file.is_file():
+        raise PipelineError("not a run folder (no run.json)", path=out,
+                            fix="pass the --out folder of a previous 'sgpor-pipeline run'")
+    try:
+        record = json.loads(run_file.read_text())
+        run_inputs = RunInputs.from_dict(record["run_inputs"])
+    except (ValueError, KeyError, TypeError) as e:
+        raise PipelineError(f"run.json is damaged ({e})", path=run_file,
+                            fix="run the pipeline again into this folder") from e
+    key = (record.get("keys") or {}).get(stage)
+    if key is None:
+        why = "the last run did not include it"
+    else:
+        folder, why = StageCache(out / "cache").lookup(stage, key)
+        if folder is not None:
+            return folder, key
+        why = "its cached result was deleted" if why == "missing" else f"its cached result is damaged: {why}"
+    raise PipelineError(f"the run has no '{stage}' result ({why})", path=out,
+                        fix=rerun_command(out, run_inputs, until=stage))
+
+
 def last_run_stages(out: Path) -> list[str]:
     try:
         return list(json.loads((Path(out) / RUN_FILE).read_text()).get("stages", []))
@@ -278,7 +328,7 @@ def pipeline_status(out: Path, stages: dict[str, type[Stage]] | None = None) -> 
     out = Path(out)
     stages = discover_stages() if stages is None else stages
     run_inputs, config = load_run(out, stages)
-    order = topological_order(stages, config)
+    order = topological_order(stages, config, run_inputs)
     memo = DigestMemo(out / "cache" / "digests.json")
     try:
         keys = compute_keys(stages, order, config, run_inputs, memo)
@@ -316,7 +366,7 @@ def clean(out: Path, keep_last: int = 0, stages: dict[str, type[Stage]] | None =
     stages = discover_stages() if stages is None else stages
     try:
         run_inputs, config = load_run(out, stages)
-        order = topological_order(stages, config)
+        order = topological_order(stages, config, run_inputs)
         keys = compute_keys(stages, order, config, run_inputs, DigestMemo(out / "cache" / "digests.json"))
     except PipelineError:
         keys = {}

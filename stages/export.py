@@ -1,8 +1,10 @@
 """export: runs the selected exporters into one folder, copied to ``<out>/export`` for the user.
 
 Exporters are plugins (entry-point group ``sgpor_pipeline.exporters``); each names the stages it
-reads. ``formats = ["all"]`` runs every installed exporter whose stages exist; naming an exporter
-that is missing, or whose stages are missing, is an error.
+reads (``needs``) and those it reads only when the run has them (``optional_needs``: the report
+reads the optional ``evaluate`` stage, which runs when there is ground truth). ``formats = ["all"]``
+runs every installed exporter whose stages exist; naming an exporter that is missing, or whose
+stages are missing, is an error.
 """
 
 from __future__ import annotations
@@ -61,6 +63,15 @@ class ExportStage(Stage):
         needs: set[str] = set()
         for exporter in selected_exporters(params).values():
             needs.update(exporter.needs)
+        return tuple(sorted(needs))
+
+    @classmethod
+    def optional_inputs(cls, params: ExportParams) -> tuple[str, ...]:
+        # e.g. the report shows evaluate's metrics when the run has ground truth: evaluate's key then
+        # enters export's key, so new metrics rebuild the report
+        needs: set[str] = set()
+        for exporter in selected_exporters(params).values():
+            needs.update(exporter.optional_needs)
         return tuple(sorted(needs))
 
     @classmethod

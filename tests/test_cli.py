@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 from conftest import cli_env, make_images, run_cli
 
-COMMANDS = ["run", "demo", "status", "clean"]
+COMMANDS = ["run", "demo", "status", "clean", "render"]
 
 
 def test_version_and_help():

@@ -531,3 +531,90 @@ def test_export_of_a_ply_from_another_trainer(tmp_path):
     assert read_ply(out / "scene.ply").max_sh_degree == 2
     assert (out / "scene.splat").stat().st_size == 32 * 100
     assert all((out / "renders" / f"{c.image}.png").is_file() for c in cams)
+
+
+# --------------------------------------------------------------------------------------------------
+# report: the evaluate stage's metrics (an optional input of export)
+
+
+def _metrics(psnr_final: float) -> dict:
+    def scores(p):
+        return {"psnr_mask": p, "ssim_mask": 0.5, "psnr_bbox": p + 1, "ssim_bbox": 0.6, "psnr_full": p + 2,
+                "ssim_full": 0.7}
+
+    means = {"final": scores(psnr_final), "inpainted_2d": scores(20.0), "delete_only": scores(10.0)}
+    means["delete_only"]["ssim_mask"] = float("nan")  # e.g. an empty mask: shown as a dash
+    return {"views": 2, "means": means, "seconds": {"fit": 12.34, "finetune": 5.0}, "total_seconds": 17.34,
+            "per_view": {"view_00": means, "view_01": means}}
+
+
+def test_report_shows_evaluate_metrics(tmp_path):
+    from sgpor_pipeline.exporters.report import ReportExporter
+
+    ctx = make_run(tmp_path, random_model(100, 0, seed=2, spread=0.5), small_cameras(2))
+    evaluate = tmp_path / "evaluate"
+    evaluate.mkdir()
+    (evaluate / "metrics.json").write_text(json.dumps(_metrics(27.126)))
+    ctx.inputs["evaluate"] = evaluate
+    ReportExporter().export(ctx, ctx.out_dir)
+    page = (ctx.out_dir / "report.html").read_text()
+    assert page.index(">Metrics</h2>") < page.index(">Views</h2>")  # the result first
+    for text in ("<th>PSNR mask</th>", "<th>SSIM bbox</th>", "<th>PSNR full</th>", "<td>27.13</td>",
+                 "<td>28.13</td>", "<td>29.13</td>", "<td>20.00</td>", "<td>10.00</td>", "<td>0.5000</td>",
+                 "<tr><th>fit</th><td>12.3</td></tr>", "<tr><th>total</th><td>17.3</td></tr>", "per view (2)"):
+        assert text in page, text
+    assert ">nan<" not in page.lower()  # NaN shows as a dash
+    for name in ("final", "inpainted_2d", "delete_only"):
+        assert f">{name}</th>" in page
+    # the file itself beside the report, linked, and every link resolves inside the export folder
+    assert json.loads((ctx.out_dir / "metrics.json").read_text())["means"]["final"]["psnr_mask"] == 27.126
+    links = _Links()
+    links.feed(page)
+    assert "metrics.json" in links.refs
+    for ref in links.refs:
+        assert (ctx.out_dir / unquote(ref)).is_file(), ref
+
+
+def test_report_without_evaluation_has_no_metrics_section(tmp_path):
+    from sgpor_pipeline.exporters.report import ReportExporter
+
+    ctx = make_run(tmp_path, random_model(100, 0, seed=2, spread=0.5), small_cameras(2))
+    ReportExporter().export(ctx, ctx.out_dir)
+    assert ">Metrics</h2>" not in (ctx.out_dir / "report.html").read_text()
+    assert not (ctx.out_dir / "metrics.json").exists()
+
+
+def test_evaluate_key_enters_the_export_key_only_with_ground_truth(tmp_path):
+    """The cache rule for the report's optional input: with ground truth, evaluate is an input of
+    export (ordered before it, its key in export's key: new metrics rebuild the report); without,
+    export neither waits for nor depends on it."""
+    from conftest import make_images
+
+    from sgpor_pipeline.config import resolve_config
+    from sgpor_pipeline.dag import discover_stages, topological_order, upstream_of
+    from sgpor_pipeline.hashing import DigestMemo
+    from sgpor_pipeline.runner import compute_keys, select_stages
+
+    stages = discover_stages()
+    config = resolve_config({n: c.Params for n, c in stages.items()})
+    make_images(tmp_path / "images")
+    make_images(tmp_path / "truth")
+    plain = RunInputs(images=tmp_path / "images")
+    truth = RunInputs(images=tmp_path / "images", extra={"groundtruth": tmp_path / "truth"})
+    assert "evaluate" not in upstream_of(stages, config, "export", plain)
+    assert "evaluate" in upstream_of(stages, config, "export", truth)
+    order = topological_order(stages, config, truth)
+    assert order.index("evaluate") < order.index("export")
+    assert "evaluate" in select_stages(stages, order, config, truth, until="export")
+    assert "evaluate" not in select_stages(stages, order, config, plain, until="export")
+
+    def keys(run_inputs):
+        return compute_keys(stages, topological_order(stages, config, run_inputs), config, run_inputs,
+                            DigestMemo(tmp_path / "digests.json"))
+
+    k_plain, k_truth = keys(plain), keys(truth)
+    assert k_plain["finetune"] == k_truth["finetune"] and k_plain["export"] != k_truth["export"]
+    make_images(tmp_path / "truth", seed=1)  # other ground truth: other metrics, another report
+    k_new = keys(truth)
+    assert k_new["evaluate"] != k_truth["evaluate"] and k_new["export"] != k_truth["export"]
+    assert k_new["finetune"] == k_truth["finetune"]

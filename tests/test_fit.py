@@ -27,7 +27,7 @@ from sgpor_pipeline.errors import NonFiniteError
 from sgpor_pipeline.gaussians import strategy as S
 from sgpor_pipeline.gaussians.model import GaussianModel, rgb_to_sh
 from sgpor_pipeline.gaussians.ply import property_names, read_ply, write_ply
-from sgpor_pipeline.gaussians.train import BudgetController, TrainParams, photometric_loss, ssim_map
+from sgpor_pipeline.gaussians.train import BudgetController, TrainParams, photometric_loss, ssim_map, ssim_mean
 from sgpor_pipeline.runner import run_pipeline
 from sgpor_pipeline.stages.fit import FitParams, FitStage, fit_scene, write_known_sfm
 from sgpor_pipeline.synthetic import SceneParams, generate_scene
@@ -143,6 +143,32 @@ def test_ssim_map_equals_kornia():
     assert torch.allclose(ssim_map(x, y), kornia.metrics.ssim(x, y, 11), atol=2e-5)
     img = torch.rand(30, 20, 3, generator=g)
     assert float(photometric_loss(img, img, 0.2)) < 1e-5
+
+
+def test_weighted_loss_ignores_zero_weight_pixels_and_has_exact_gradients():
+    """Per-pixel weights (finetune's observed/unobserved pixels): pixels of weight 0 change neither the
+    loss nor get a gradient; weight 1 everywhere equals the plain loss; the analytic SSIM backward
+    with weights matches autograd through the SSIM map (float64)."""
+    g = torch.Generator().manual_seed(1)
+    x = torch.rand(24, 28, 3, generator=g, dtype=torch.float64)
+    y = torch.rand(24, 28, 3, generator=g, dtype=torch.float64)
+    w = torch.zeros(24, 28, dtype=torch.float64)
+    w[:, :14] = 1.0
+    ones = torch.ones(24, 28, dtype=torch.float64)
+    assert torch.allclose(photometric_loss(x, y, 0.2, ones), photometric_loss(x, y, 0.2))
+    y2 = y.clone()
+    y2[:, 20:] = 0.5  # farther than the SSIM window (5 px) from any weighted pixel
+    assert torch.allclose(photometric_loss(x, y, 0.2, w), photometric_loss(x, y2, 0.2, w))
+    xr = x.clone().requires_grad_(True)
+    photometric_loss(xr, y, 0.2, w).backward()
+    assert float(xr.grad[:, 20:].abs().max()) == 0.0 and float(xr.grad[:, :14].abs().min()) > 0
+    wr = torch.rand(24, 28, generator=g, dtype=torch.float64)
+    a = x.permute(2, 0, 1).clone().requires_grad_(True)
+    ssim_mean(a, y.permute(2, 0, 1), wr).backward()
+    b = x.permute(2, 0, 1).clone().requires_grad_(True)
+    m = ssim_map(b[None], y.permute(2, 0, 1)[None])[0]
+    ((m * wr).sum() / (wr.sum() * 3)).backward()
+    assert torch.allclose(a.grad, b.grad, atol=1e-10)
 
 
 # --------------------------------------------------------------------------------------------------

@@ -99,6 +99,7 @@ class TrainView:
     name: str
     image: torch.Tensor  # [H,W,3] float32 in [0,1]
     camera: Camera
+    weight: torch.Tensor | None = None  # [H,W] float32 per-pixel loss weight (None = all 1)
 
     @property
     def viewmat(self) -> torch.Tensor:
@@ -117,9 +118,11 @@ def training_size(width: int, height: int, max_size: int) -> tuple[int, int]:
     return max(1, round(width * s)), max(1, round(height * s))
 
 
-def make_view(name: str, image: np.ndarray, camera: Camera, max_size: int = 0) -> TrainView:
+def make_view(name: str, image: np.ndarray, camera: Camera, max_size: int = 0,
+              weight: np.ndarray | None = None) -> TrainView:
     """A :class:`TrainView` from an HxWx3 image (uint8 or float in [0,1]), downscaled (INTER_AREA) so
-    its longer side is at most ``max_size``; the intrinsics are scaled with it."""
+    its longer side is at most ``max_size``; the intrinsics are scaled with it. ``weight`` (HxW, the
+    per-pixel loss weight) is resized with the image."""
     import cv2
 
     img = np.asarray(image)
@@ -133,7 +136,15 @@ def make_view(name: str, image: np.ndarray, camera: Camera, max_size: int = 0) -
     if (tw, th) != (w, h):
         img = cv2.resize(img, (tw, th), interpolation=cv2.INTER_AREA)
         camera = camera.scaled(tw, th)
-    return TrainView(name, torch.from_numpy(np.ascontiguousarray(img)), camera)
+    wt = None
+    if weight is not None:
+        wt = np.asarray(weight, np.float32)
+        if wt.shape != (h, w):
+            raise ValueError(f"weight of {name}: shape {wt.shape} != image {(h, w)}")
+        if (tw, th) != (w, h):
+            wt = cv2.resize(wt, (tw, th), interpolation=cv2.INTER_AREA)
+        wt = torch.from_numpy(np.ascontiguousarray(wt))
+    return TrainView(name, torch.from_numpy(np.ascontiguousarray(img)), camera, wt)
 
 
 def scene_extent(cameras: Sequence[Camera]) -> float:
@@ -216,7 +227,8 @@ class _SSIMMean(torch.autograd.Function):
     grouped convolutions on a CPU."""
 
     @staticmethod
-    def forward(ctx, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+    def forward(ctx, x: torch.Tensor, y: torch.Tensor,  # type: ignore[override]
+                weight: torch.Tensor | None = None) -> torch.Tensor:
         g = _gauss_window(x.dtype)
         c = x.shape[0]
         mom = _blur(torch.cat([x, y, x * x, y * y, x * y], dim=0), g)
@@ -231,14 +243,18 @@ class _SSIMMean(torch.autograd.Function):
         D = (e11 - m11) + (e22 - m22) + c2
         den = C * D + 1e-12
         s = A * B / den
-        ctx.save_for_backward(x, y, mu1, mu2, A, B, C, D, den, s)
-        return s.mean()
+        if weight is None:  # plain mean: every SSIM-map entry weighs 1 / numel
+            wmap = torch.full_like(s[:1], 1.0 / s.numel())
+        else:  # weighted mean over pixels (and channels): weight [H,W] >= 0
+            wmap = (weight / (weight.sum().clamp_min(1e-12) * c))[None].to(s.dtype)
+        ctx.save_for_backward(x, y, mu1, mu2, A, B, C, D, den, s, wmap)
+        return (s * wmap).sum()
 
     @staticmethod
     def backward(ctx, grad_out: torch.Tensor):  # type: ignore[override]
-        x, y, mu1, mu2, A, B, C, D, den, s = ctx.saved_tensors
+        x, y, mu1, mu2, A, B, C, D, den, s, wmap = ctx.saved_tensors
         g = _gauss_window(x.dtype)
-        w = grad_out / s.numel()
+        w = grad_out * wmap
         dA = B / den
         dB = A / den
         dC = -s * D / den
@@ -246,22 +262,32 @@ class _SSIMMean(torch.autograd.Function):
         d_mu1 = (2 * mu2) * (dA - dB) + (2 * mu1) * (dC - dD)
         maps = torch.cat([d_mu1, dD, 2 * dB], dim=0) * w  # d/d mu1, d/d e11, d/d e12
         gm, g11, g12 = _blur_adjoint(maps, g).split(x.shape[0], dim=0)
-        return gm + 2 * x * g11 + y * g12, None
+        return gm + 2 * x * g11 + y * g12, None, None
 
 
-def ssim_mean(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """Differentiable (in ``x``) mean SSIM of [C,H,W] images; see :class:`_SSIMMean`."""
+def ssim_mean(x: torch.Tensor, y: torch.Tensor, weight: torch.Tensor | None = None) -> torch.Tensor:
+    """Differentiable (in ``x``) mean SSIM of [C,H,W] images; see :class:`_SSIMMean`. With ``weight``
+    ([H,W], >= 0) the mean is weighted per pixel (the SSIM map is computed on the whole image)."""
     if min(x.shape[-2:]) <= _PAD:  # reflect padding needs more than 5 pixels
-        return ssim_map(x[None], y[None]).mean()
-    return _SSIMMean.apply(x.contiguous(), y.contiguous().detach())
+        m = ssim_map(x[None], y[None])[0]
+        if weight is None:
+            return m.mean()
+        return (m * weight).sum() / (weight.sum().clamp_min(1e-12) * m.shape[0])
+    return _SSIMMean.apply(x.contiguous(), y.contiguous().detach(),
+                           None if weight is None else weight.detach().contiguous())
 
 
-def photometric_loss(render: torch.Tensor, target: torch.Tensor, lambda_dssim: float) -> torch.Tensor:
-    """(1 - lambda) L1 + lambda (1 - SSIM) of HxWx3 images."""
-    l1 = (render - target).abs().mean()
+def photometric_loss(render: torch.Tensor, target: torch.Tensor, lambda_dssim: float,
+                     weight: torch.Tensor | None = None) -> torch.Tensor:
+    """(1 - lambda) L1 + lambda (1 - SSIM) of HxWx3 images; ``weight`` ([H,W], >= 0) makes both
+    terms weighted means over the pixels (0 = the pixel is not supervised)."""
+    if weight is None:
+        l1 = (render - target).abs().mean()
+    else:
+        l1 = ((render - target).abs() * weight[..., None]).sum() / (weight.sum().clamp_min(1e-12) * 3)
     if lambda_dssim <= 0:
         return l1
-    s = ssim_mean(render.permute(2, 0, 1), target.permute(2, 0, 1))
+    s = ssim_mean(render.permute(2, 0, 1), target.permute(2, 0, 1), weight)
     return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - s)
 
 
@@ -627,7 +653,7 @@ class Trainer:
             raise RollbackNeeded(f"non-finite rasterizer input ({e.message})") from None
         info["generator"] = self.gen
         self.strategy.step_pre_backward(self.model, self.optimizers, self.sstate, step, info)
-        loss = photometric_loss(render[0], view.image, self.p.lambda_dssim)
+        loss = photometric_loss(render[0], view.image, self.p.lambda_dssim, view.weight)
         extra = self.strategy.extra_loss(self.model, step)
         if extra is not None:
             loss = loss + extra

@@ -19,6 +19,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.linalg import spsolve
 from scipy.spatial import cKDTree
 
+from ..errors import PipelineError
 from ..gaussians.model import GaussianModel, inverse_sigmoid, rgb_to_sh
 from ..scene import Camera
 from .selection import contribution_scores, in_visual_cone, median_spacing, render_channels
@@ -30,6 +31,9 @@ class RemoveParams:
     min_weight: float = 0.05  # below this total blending weight over all views a Gaussian counts as unseen
     hull_dilate: int = 2  # pixels the masks are dilated by for the visual-hull floater test
     hole_alpha: float = 0.5  # mask pixels whose background opacity is below this are holes
+    # "unseen": holes are the mask pixels no other view showed (the method); "mask": the whole object
+    # mask is a hole in every view (per-view 2D inpainting as in SPIn-NeRF: a baseline)
+    hole_mode: str = "unseen"
     hole_close: int = 2  # morphological closing radius of the hole mask (pixels); removes specks
     seed_stride: int = 3  # one new Gaussian per stride x stride hole pixels per view (before merging)
     seed_opacity: float = 0.7
@@ -66,6 +70,12 @@ def render_background(model: GaussianModel, camera: Camera, backend: str = "auto
 
 
 def hole_mask(object_mask: np.ndarray, alpha: np.ndarray, params: RemoveParams) -> np.ndarray:
+    """The part of ``object_mask`` that the background left after deletion does not cover (opacity
+    below ``hole_alpha``), closed morphologically; with ``hole_mode="mask"`` the whole mask."""
+    if params.hole_mode == "mask":
+        return object_mask.copy()
+    if params.hole_mode != "unseen":
+        raise PipelineError(f"unknown remove.hole_mode {params.hole_mode!r}", fix='use "unseen" or "mask"')
     hole = object_mask & (alpha < params.hole_alpha)
     if params.hole_close > 0 and hole.any():
         k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * params.hole_close + 1,) * 2)

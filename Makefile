@@ -9,12 +9,13 @@ setup: $(VENV)/.installed
 
 # Open3D needs Debian's libusb-1.0-0; torch is pinned to the CPU wheel provided on our machines
 # (a bare torch requirement with no torch installed would pull several GB of CUDA packages).
+# The diffusion extra (~35 MB of wheels, ~20 s) is installed so its tests run (tiny model, no weights).
 $(VENV)/.installed: pyproject.toml setup.py
 	@ldconfig -p | grep -q libusb-1.0.so.0 || ($(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq libusb-1.0-0)
 	@[ -x $(PY) ] || python3 -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip setuptools wheel
 	$(PY) -m pip install -q torch==2.13.0
-	$(PY) -m pip install -q -e ".[test]"
+	$(PY) -m pip install -q -e ".[test,diffusion]"
 	@touch $@
 
 demo: setup

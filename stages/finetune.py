@@ -6,6 +6,13 @@ refine stage's inpainted images. Only the hole Gaussians, the Gaussians within
 every other Gaussian keeps exactly its fitted values (its gradient is zeroed before Adam, whose
 state then stays zero: no drift). Loss L1 + D-SSIM (lambda 0.2), short, no densification.
 
+Optional SDS term (the paper's, DESIGN.md section 7): with ``lambda_sds`` > 0 and local Stable
+Diffusion inpainting weights (``diffusion_model`` or ``$SGPOR_DIFFUSION_MODEL``, extra
+``sgpor-pipeline[diffusion]``), ``sds_steps`` iterations spread over the run add
+``lambda_sds x`` :func:`~sgpor_pipeline.removal.diffusion.sds_loss` on a low-resolution render
+(``sds_resolution``) of one view's hole crop (views taken in turn): gradients flow through the VAE
+encoder into the render and the trainable Gaussians. Off by default (0).
+
 Out: ``gaussians.ply`` (the cleaned scene), ``renders/<view>.png`` (object-free renders of the
 training views), ``curve.json``, ``finetune.json``.
 """
@@ -13,7 +20,9 @@ training views), ``curve.json``, ``finetune.json``.
 from __future__ import annotations
 
 import json
+import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -21,13 +30,17 @@ import torch
 from scipy.spatial import cKDTree
 
 from sgpor_pipeline.dag import Stage, StageContext
+from sgpor_pipeline.errors import PipelineError
 from sgpor_pipeline.gaussians.model import GaussianModel
 from sgpor_pipeline.gaussians.ply import read_ply, write_ply
+from sgpor_pipeline.gaussians.rasterizer import rasterization
 from sgpor_pipeline.gaussians.strategy import Strategy
 from sgpor_pipeline.gaussians.train import Trainer, TrainParams, make_view, render_view, scene_extent
+from sgpor_pipeline.hashing import hash_obj
 from sgpor_pipeline.imageio import read_mask, read_rgb8, write_png
+from sgpor_pipeline.removal import diffusion as sd
 from sgpor_pipeline.removal.selection import contribution_scores, median_spacing
-from sgpor_pipeline.scene import load_cameras
+from sgpor_pipeline.scene import Camera, load_cameras
 
 
 @dataclass
@@ -40,6 +53,31 @@ class FinetuneParams:
     lr_scale: float = 0.5  # x the fit's learning rates: a short correction, not a new fit
     seed: int = 0
     backend: str = "auto"
+    # SDS (needs the diffusion extra and local weights); 0 = off
+    lambda_sds: float = 0.0
+    diffusion_model: str = ""  # SD inpainting weights folder; "" = $SGPOR_DIFFUSION_MODEL
+    sds_steps: int = 10  # iterations (spread evenly over the run) that add an SDS term: a few, it is slow
+    sds_resolution: int = 128  # longer side of the rendered hole crop the SDS term sees
+    sds_context: float = 0.5  # crop = hole bounding box grown by this fraction per side
+    sds_prompt: str = ""
+    sds_guidance: float = 1.0  # classifier-free guidance; 1 = off (one UNet pass per SDS step)
+    sds_min_t: float = 0.02  # timestep range (fractions of the training schedule)
+    sds_max_t: float = 0.5
+
+    def sds(self) -> sd.SDSParams:
+        return sd.SDSParams(prompt=self.sds_prompt, guidance=self.sds_guidance, min_t=self.sds_min_t,
+                            max_t=self.sds_max_t)
+
+    def validate_sds(self) -> None:
+        if self.lambda_sds < 0:
+            raise PipelineError(f"lambda_sds must be >= 0 (got {self.lambda_sds})", fix="use 0 (off) or e.g. 0.1")
+        if self.lambda_sds > 0:
+            if self.sds_steps < 1 or self.sds_resolution < 8:
+                raise PipelineError("sds_steps must be >= 1 and sds_resolution >= 8",
+                                    fix="use e.g. sds_steps = 10, sds_resolution = 128")
+            if not 0.0 <= self.sds_min_t < self.sds_max_t <= 1.0:
+                raise PipelineError(f"need 0 <= sds_min_t < sds_max_t <= 1 (got {self.sds_min_t}, {self.sds_max_t})",
+                                    fix="use e.g. 0.02 and 0.5")
 
 
 class FocusStrategy(Strategy):
@@ -61,6 +99,82 @@ class FocusStrategy(Strategy):
                 mask = self.trainable.to(p.dtype).view((-1,) + (1,) * (p.dim() - 1))
                 p.register_hook(lambda g, m=mask: g * m)
                 p._sgpor_focus_hook = True
+
+
+def crop_camera(cam: Camera, y0: int, y1: int, x0: int, x1: int) -> Camera:
+    """The camera that sees only pixels [y0:y1, x0:x1] of ``cam`` (principal point shifted)."""
+    K = cam.K.copy()
+    K[0, 2] -= x0
+    K[1, 2] -= y0
+    return Camera(cam.name, x1 - x0, y1 - y0, K, cam.cam_from_world.copy(), cam.image)
+
+
+class SDSTerm:
+    """The SDS regulariser: every ``every``-th iteration, render one view's hole crop (views in turn)
+    with gradients and return ``lambda_sds x`` :func:`~sgpor_pipeline.removal.diffusion.sds_loss`.
+
+    Its randomness comes from (seed, iteration) only, so a resumed or rolled-back run draws the same."""
+
+    def __init__(self, dmodel: sd.DiffusionModel, cameras: list[Camera], holes: list[np.ndarray],
+                 params: FinetuneParams):
+        import cv2
+
+        self.model = dmodel
+        self.p = params
+        self.every = max(1, params.iterations // params.sds_steps)
+        self.views: list[tuple[Camera, torch.Tensor]] = []
+        for cam, hole in zip(cameras, holes):
+            if not hole.any():
+                continue
+            if (cam.width, cam.height) != (hole.shape[1], hole.shape[0]):
+                cam = cam.scaled(hole.shape[1], hole.shape[0])
+            y0, y1, x0, x1 = sd.hole_crop(hole, params.sds_context)
+            h, w = sd.work_size(y1 - y0, x1 - x0, params.sds_resolution, dmodel.multiple)
+            small = cv2.resize(hole[y0:y1, x0:x1].astype(np.float32), (w, h), interpolation=cv2.INTER_AREA) > 0
+            self.views.append((crop_camera(cam, y0, y1, x0, x1).scaled(w, h), torch.from_numpy(small)))
+        sp = params.sds()
+        with torch.no_grad():
+            self.embeddings = (dmodel.text_embeddings(sp.prompt),
+                               dmodel.text_embeddings(sp.negative_prompt) if sp.guidance != 1.0 else None)
+        self.calls = 0
+        self.seconds = 0.0
+        self.losses: list[float] = []
+
+    def due(self, step: int) -> bool:
+        return bool(self.views) and step % self.every == 0
+
+    def render(self, model: GaussianModel, cam: Camera) -> torch.Tensor:
+        """Differentiable render [H,W,3] of ``model`` at ``cam``."""
+        act = model.activated()
+        deg = model.max_sh_degree
+        colors = act["colors"][:, : (deg + 1) ** 2]
+        vm = torch.from_numpy(cam.cam_from_world).float()[None]
+        K = torch.from_numpy(cam.K).float()[None]
+        img, _, _ = rasterization(act["means"], act["quats"], act["scales"], act["opacities"], colors, vm, K,
+                                  cam.width, cam.height, sh_degree=deg, backgrounds=torch.zeros(3),
+                                  backend=self.p.backend)
+        return img[0]
+
+    def loss(self, model: GaussianModel, step: int) -> torch.Tensor:
+        t0 = time.perf_counter()
+        cam, hole = self.views[(step // self.every) % len(self.views)]
+        gen = torch.Generator().manual_seed(int(hash_obj(["sds", self.p.seed, step])[:8], 16))
+        value = sd.sds_loss(self.model, self.render(model, cam), hole, self.p.sds(), gen, self.embeddings)
+        self.calls += 1
+        self.seconds += time.perf_counter() - t0
+        self.losses.append(float(value.detach()))
+        return self.p.lambda_sds * value
+
+
+class SDSFocusStrategy(FocusStrategy):
+    """:class:`FocusStrategy` plus the SDS term as the trainer's extra loss."""
+
+    def __init__(self, trainable: torch.Tensor, sds_term: SDSTerm):
+        super().__init__(trainable)
+        self.sds_term = sds_term
+
+    def extra_loss(self, model: GaussianModel, step: int) -> torch.Tensor | None:
+        return self.sds_term.loss(model, step) if self.sds_term.due(step) else None
 
 
 def trainable_gaussians(model: GaussianModel, seed_ids: np.ndarray, cameras: list, holes: list[np.ndarray],
@@ -87,8 +201,27 @@ class FinetuneStage(Stage):
     inputs = ("remove", "refine")
     libraries = ("torch",)
 
+    @classmethod
+    def key_extra(cls, params: FinetuneParams) -> dict[str, Any]:
+        # with SDS the result depends on the weights ($SGPOR_DIFFUSION_MODEL may change between runs)
+        if params.lambda_sds <= 0:
+            return {}
+        raw = sd.configured_model(params.diffusion_model)
+        if not raw:
+            return {"sds": {"folder": None}}  # the run fails with a clear error
+        folder = Path(raw).expanduser().resolve()
+        try:
+            return {"sds": sd.weights_fingerprint(folder)}
+        except OSError as e:
+            return {"sds": {"folder": str(folder), "error": type(e).__name__}}
+
     def run(self, ctx: StageContext) -> None:
         p = ctx.params
+        p.validate_sds()
+        sds_dir = None
+        if p.lambda_sds > 0:  # fail before any work, saying what to provide
+            sd.require_diffusers()
+            sds_dir = sd.resolve_model_dir(p.diffusion_model, "finetune.diffusion_model")
         remove_dir, refine_dir = ctx.inputs["remove"], ctx.inputs["refine"]
         model = read_ply(remove_dir / "gaussians.ply")
         seed_ids = np.load(remove_dir / "seed_ids.npy")
@@ -110,7 +243,15 @@ class FinetuneStage(Stage):
         tp.lr_means_final = base.lr_means_final * p.lr_scale
         for name in ("lr_sh0", "lr_opacities", "lr_scales", "lr_quats"):
             setattr(tp, name, getattr(base, name) * p.lr_scale)
-        strategy = FocusStrategy(torch.from_numpy(trainable))
+        sds_term = None
+        if sds_dir is not None:
+            t0 = time.perf_counter()
+            sds_term = SDSTerm(sd.load_model(sds_dir), cameras, holes, p)
+            ctx.log.info(f"finetune: SDS on {len(sds_term.views)} hole view(s) every {sds_term.every} iterations, "
+                         f"lambda {p.lambda_sds:g} (model loaded in {time.perf_counter() - t0:.1f} s)")
+            strategy: FocusStrategy = SDSFocusStrategy(torch.from_numpy(trainable), sds_term)
+        else:
+            strategy = FocusStrategy(torch.from_numpy(trainable))
         trainer = Trainer(model, strategy, views, [], tp, scene_extent(cameras), checkpoint_dir=ctx.checkpoint_dir,
                           logger=ctx.log, progress=ctx.progress)
         summary = trainer.train()
@@ -118,6 +259,10 @@ class FinetuneStage(Stage):
                 "train_psnr": summary.get("heldout_psnr"), "seconds": summary.get("train_seconds"),
                 "iterations": summary.get("iterations"),
                 "resumed_from_iteration": summary.get("resumed_from_iteration")}
+        if sds_term is not None:
+            info["sds"] = {"lambda": p.lambda_sds, "model": str(sds_dir), "steps": sds_term.calls,
+                           "every": sds_term.every, "seconds": sds_term.seconds,
+                           "mean_loss": float(np.mean(sds_term.losses)) if sds_term.losses else None}
         self._write(ctx, trainer.model, cameras, trainer.curve, info)
 
     @staticmethod

@@ -4,12 +4,22 @@ In: the ``remove`` folder (layout: :mod:`sgpor_pipeline.removal.multiview`). Out
 
 * ``images/<view>.png``: the render with its hole completed (views without a hole: the render);
 * ``filled_from/<view>.png``: 0 = not filled (outside the hole), 1 = projected from the reference
-  view, 2 = inpainted in this view (SBM or the OpenCV baseline);
+  view, 2 = inpainted in this view (SBM, SBM refined by diffusion, or the OpenCV baseline);
 * ``source/<view>.npz``: per target block its corner (``targets``), onion-peel ``layer``, the ranked
   source blocks ``cand`` [T,k,3] = (view index, y, x) (entry 0 was used; the rest are RPR's
   next-best), their colour ``cost`` and feature ``sim``, and ``views`` (the view names the indices
   refer to);
-* ``inpaint.json``: backend, features, reference view, per-view counts and seconds.
+* ``inpaint.json``: the backend that ran (``backend``), the one asked for (``backend_requested``) and
+  why (``backend_reason``), features, reference view, per-view counts and seconds; with diffusion, the
+  weights folder and its fingerprint.
+
+Backends (``backend``): ``sbm`` (default), ``opencv`` (xphoto FSR baseline), ``diffusion`` (optional
+extra ``sgpor-pipeline[diffusion]``, local weights in ``diffusion_model`` or ``$SGPOR_DIFFUSION_MODEL``:
+SBM runs first and its fill is the init image that Stable Diffusion inpainting refines, see
+:mod:`sgpor_pipeline.removal.diffusion`), ``auto`` (diffusion when weights are configured and
+diffusers is installed, else sbm; the report says which ran and why). The default stays ``sbm``: with
+no weights on the machine and no benchmark of the diffusion refinement on ground truth yet, nothing
+supports making a backend with multi-GB weights the default.
 
 Multi-view (``multiview = true`` and the remove folder has cameras and completed depth): the
 reference view (``reference``: ``largest`` hole, ``central`` camera, or a view name) is filled first;
@@ -25,7 +35,7 @@ import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -33,6 +43,7 @@ from sgpor_pipeline.dag import Stage, StageContext
 from sgpor_pipeline.errors import PipelineError
 from sgpor_pipeline.hashing import hash_obj
 from sgpor_pipeline.imageio import read_image, read_mask, write_mask01, write_png
+from sgpor_pipeline.removal import diffusion as sd
 from sgpor_pipeline.removal.multiview import (
     FILLED_INPAINTED,
     choose_reference,
@@ -45,7 +56,9 @@ from sgpor_pipeline.removal.sbm import SBMParams, build_source_bank
 
 @dataclass
 class InpaintParams:
-    backend: Literal["sbm", "opencv"] = "sbm"  # opencv = xphoto FSR per view (baseline)
+    # opencv = xphoto FSR per view (baseline); diffusion = SBM refined by SD inpainting (extra, local
+    # weights); auto = diffusion when its weights are configured and diffusers is installed, else sbm
+    backend: Literal["sbm", "opencv", "diffusion", "auto"] = "sbm"
     block_size: int = 15
     tau: float = 0.1
     stride: int = 0  # target block stride; 0 = block_size // 3
@@ -64,6 +77,16 @@ class InpaintParams:
     projection: Literal["backward", "splat"] = "backward"
     depth_tol: float = 0.02
     seed: int = 0
+    # diffusion backend (see sgpor_pipeline.removal.diffusion); "" = $SGPOR_DIFFUSION_MODEL
+    diffusion_model: str = ""
+    diffusion_prompt: str = ""
+    diffusion_negative_prompt: str = ""
+    diffusion_strength: float = 0.5  # < 1: the SBM fill is refined, not replaced
+    diffusion_steps: int = 20
+    diffusion_guidance: float = 1.0  # classifier-free guidance; 1 = off (half the UNet passes)
+    diffusion_resolution: int = 512  # longer side of the hole's crop as the model sees it
+    diffusion_context: float = 0.5  # crop = hole bounding box grown by this fraction per side
+    diffusion_blend: Literal["poisson", "paste"] = "poisson"
 
     def sbm(self) -> SBMParams:
         return SBMParams(block_size=self.block_size, tau=self.tau, stride=self.stride,
@@ -71,6 +94,36 @@ class InpaintParams:
                          cells=self.cells, features=self.features, dino_model=self.dino_model,
                          metric=self.metric, top_k=self.top_k, rerank=self.rerank, blend=self.blend,
                          seed=self.seed)
+
+    def diffusion(self) -> sd.DiffusionParams:
+        return sd.DiffusionParams(prompt=self.diffusion_prompt, negative_prompt=self.diffusion_negative_prompt,
+                                  strength=self.diffusion_strength, steps=self.diffusion_steps,
+                                  guidance=self.diffusion_guidance, resolution=self.diffusion_resolution,
+                                  context=self.diffusion_context, blend=self.diffusion_blend, seed=self.seed)
+
+
+def resolve_backend(p: InpaintParams) -> tuple[str, str]:
+    """(the backend that runs, why). ``auto`` decides here; an explicitly named ``diffusion`` never
+    falls back (its missing weights or package are errors at run time)."""
+    if p.backend != "auto":
+        return p.backend, ("the default" if p.backend == InpaintParams.backend else "named in the config")
+    use, why = sd.auto_choice(p.diffusion_model)
+    return ("diffusion" if use else "sbm"), f"auto: {why}"
+
+
+def diffusion_key(p: InpaintParams) -> dict[str, Any] | None:
+    """What a diffusion result depends on beyond the params (the resolved weights folder, a content
+    fingerprint of it, the diffusers/transformers versions); None when diffusion does not run."""
+    backend, _ = resolve_backend(p)
+    if backend != "diffusion":
+        return None
+    raw = sd.configured_model(p.diffusion_model)
+    if not raw:
+        return {"folder": None}  # the run fails with a clear error; the key just has to be stable
+    try:
+        return sd.weights_fingerprint(Path(raw).expanduser().resolve())
+    except OSError as e:  # a missing/unreadable folder: reported by the run, not by key computation
+        return {"folder": str(Path(raw).expanduser().resolve()), "error": type(e).__name__}
 
 
 def _link_or_copy(src: Path, dst: Path) -> None:
@@ -93,17 +146,35 @@ class InpaintStage(Stage):
     inputs = ("remove",)
     libraries = ("torch",)
 
+    @classmethod
+    def key_extra(cls, params: InpaintParams) -> dict[str, Any]:
+        # Only when diffusion runs: changing $SGPOR_DIFFUSION_MODEL (or the weights in it, or installing
+        # diffusers under backend = auto) must recompute; the sbm/opencv keys stay as they were.
+        dk = diffusion_key(params)
+        return {} if dk is None else {"backend": "diffusion", "diffusion": dk}
+
     def run(self, ctx: StageContext) -> None:
         p: InpaintParams = ctx.params
         sbm = p.sbm()
         sbm.validate()
-        if p.features != "classical" and p.backend == "sbm":
+        backend, reason = resolve_backend(p)
+        uses_sbm = backend in ("sbm", "diffusion")  # diffusion refines the SBM match
+        dmodel_dir = None
+        if backend == "diffusion":  # fail before any work, saying what to provide
+            p.diffusion().validate()
+            sd.require_diffusers()
+            dmodel_dir = sd.resolve_model_dir(p.diffusion_model, "inpaint.diffusion_model")
+        if p.features != "classical" and uses_sbm:
             from sgpor_pipeline.removal.features import make_backend
 
             make_backend(p.features, p.dino_model or None)  # fail now, with the extra to install
         data = load_remove_folder(ctx.inputs["remove"])
         names = data.names
-        ctx.log.info(f"inpaint backend: {p.backend}" + (f" (features {p.features})" if p.backend == "sbm" else ""))
+        ctx.log.info(f"inpaint backend: {backend}" + (f" (features {p.features})" if uses_sbm else "")
+                     + ("" if p.backend != "auto" else f" [{reason}]"))
+        if p.backend == "auto" and backend == "sbm" and sd.configured_model(p.diffusion_model):
+            ctx.log.warning(f"inpaint: {reason}: SBM runs instead")
+        dkey = diffusion_key(p) if backend == "diffusion" else None
         digests = {v.name: [ctx.file_digest(f) for f in v.files()] for v in data.views}
         cams = {v.name: (None if v.camera is None else v.camera.to_dict()) for v in data.views}
         bank_key = hash_obj({"files": digests, "cameras": cams})
@@ -125,6 +196,13 @@ class InpaintStage(Stage):
                 state["bank_seconds"] = time.perf_counter() - t
             return state["bank"]
 
+        def diffusion_model() -> sd.DiffusionModel:
+            if "diffusion" not in state:  # loaded once, only when a view is not a cache hit
+                t = time.perf_counter()
+                state["diffusion"] = sd.load_model(dmodel_dir)
+                state["diffusion_load_seconds"] = time.perf_counter() - t
+            return state["diffusion"]
+
         def build(folder: Path, i: int, ref_item: Path | None) -> None:
             t0 = time.perf_counter()
             view = data.views[i]
@@ -136,8 +214,19 @@ class InpaintStage(Stage):
                 ref_filled = read_mask(ref_item / "filled_from.png")
                 prior = warp_from_reference(ref_img, rv.camera, rv.depth(), ref_filled, view.camera, view.depth(),
                                             hole, p.projection, p.depth_tol)
-            img, filled_from, res = fill_view(render, hole, p.backend, bank() if p.backend == "sbm" else None,
-                                              sbm, prior)
+            img, filled_from, res = fill_view(render, hole, "sbm" if uses_sbm else backend,
+                                              bank() if uses_sbm else None, sbm, prior)
+            extra: dict[str, Any] = {}
+            if backend == "diffusion":
+                # the multi-view scheme is kept: only what SBM inpainted in THIS view (not the pixels
+                # projected from the reference) is refined, with the SBM fill as the init image
+                region = filled_from == FILLED_INPAINTED
+                td = time.perf_counter()
+                if region.any():
+                    # per-view seed from the stage seed and the view's name: stable under caching
+                    vseed = int(hash_obj([p.seed, view.name])[:8], 16)
+                    img = sd.refine_fill(diffusion_model(), img, region, p.diffusion(), seed=vseed)
+                extra = {"diffusion_pixels": int(region.sum()), "diffusion_seconds": time.perf_counter() - td}
             write_png(folder / "image.png", img)
             ok = _write_u8(folder / "filled_from.png", filled_from)
             assert ok
@@ -149,6 +238,7 @@ class InpaintStage(Stage):
                     "seconds": time.perf_counter() - t0}
             if res is not None:
                 info.update({k: v for k, v in res.info.items() if k in ("targets", "layers", "fallback_pixels")})
+            info.update(extra)
             (folder / "info.json").write_text(json.dumps(info))
 
         for sub in ("images", "filled_from", "source"):
@@ -160,6 +250,8 @@ class InpaintStage(Stage):
             name = names[i]
             key = {"view": name, "files": digests[name], "all": bank_key,
                    "role": "reference" if i == ref else "view", "ref": ref_digest if i != ref else None}
+            if dkey is not None:  # item keys do not include key_extra: the weights must enter here too
+                key["diffusion"] = dkey
             ref_item = items[names[ref]] if (ref >= 0 and i != ref) else None
             items[name] = ctx.cached_item(key, lambda folder, i=i, r=ref_item: build(folder, i, r))
             if i == ref:
@@ -180,8 +272,10 @@ class InpaintStage(Stage):
                 summary[name] = {"hole_pixels": 0, "projected": 0, "inpainted": 0, "seconds": 0.0}
         bank_obj = state.get("bank")
         report = {
-            "backend": p.backend,
-            "features": p.features if p.backend == "sbm" else None,
+            "backend": backend,
+            "backend_requested": p.backend,
+            "backend_reason": reason,
+            "features": p.features if uses_sbm else None,
             "reference": names[ref] if ref >= 0 else None,
             "multiview": ref >= 0,
             "block_size": p.block_size,
@@ -192,10 +286,16 @@ class InpaintStage(Stage):
             "seconds_views": sum(s["seconds"] for s in summary.values()),
             "sources": None if bank_obj is None else {"blocks": len(bank_obj), "stride": bank_obj.stride,
                                                       "seconds": state.get("bank_seconds")},
+            "diffusion": None if dkey is None else {
+                **dkey, "strength": p.diffusion_strength, "steps": p.diffusion_steps,
+                "resolution": p.diffusion_resolution, "guidance": p.diffusion_guidance,
+                "pixels": sum(s.get("diffusion_pixels", 0) for s in summary.values()),
+                "seconds": sum(s.get("diffusion_seconds", 0.0) for s in summary.values()),
+                "load_seconds": state.get("diffusion_load_seconds")},
         }
         (ctx.out_dir / "inpaint.json").write_text(json.dumps(report, indent=1))
-        ctx.notes.update(backend=p.backend, reference=report["reference"], views_with_hole=len(with_hole),
-                         projected=report["projected"], inpainted=report["inpainted"])
+        ctx.notes.update(backend=backend, backend_reason=reason, reference=report["reference"],
+                         views_with_hole=len(with_hole), projected=report["projected"], inpainted=report["inpainted"])
         if not with_hole:
             ctx.log.warning("no view has a hole to inpaint: the renders are passed through")
 

@@ -101,6 +101,22 @@ def test_remove_finds_only_unseen_background_as_hole(scene_and_model):
     assert np.mean(hole_frac) < 0.6, hole_frac
 
 
+def test_hole_modes():
+    """"unseen" keeps only the uncovered mask pixels; "mask" (the per-view 2D baseline) the whole mask;
+    an unknown mode is a clear error."""
+    mask = np.zeros((20, 30), bool)
+    mask[5:15, 5:25] = True
+    alpha = np.ones((20, 30), np.float32)
+    alpha[8:12, 10:20] = 0.1  # uncovered after deletion
+    unseen = hole_mask(mask, alpha, RemoveParams(hole_close=0))
+    assert unseen.sum() == 40 and (unseen <= mask).all()
+    assert (hole_mask(mask, alpha, RemoveParams(hole_mode="mask")) == mask).all()
+    from sgpor_pipeline.errors import PipelineError
+
+    with pytest.raises(PipelineError, match="hole_mode"):
+        hole_mask(mask, alpha, RemoveParams(hole_mode="everything"))
+
+
 def test_depth_completion_is_exact_for_planes():
     h, w = 40, 50
     ys, xs = np.mgrid[0:h, 0:w]

@@ -1,0 +1,613 @@
+"""Removal benchmark: the whole pipeline against ground truth, with its baselines and ablations in one run.
+
+    python benchmarks/removal.py [--quick] [--json] [--out DIR] [--data DIR] [--scenes synthetic,lund,statue,room]
+
+Every number comes from FULL pipeline runs (:func:`sgpor_pipeline.runner.run_pipeline`, ingest ..
+finetune + evaluate, no export). The variants of a scene run in the SAME run folder with different
+config overrides, so the content-addressed cache shares ingest / sfm / fit / masks / remove between
+them (one fit per scene) and a rerun with the same ``--out`` resumes from the cache.
+
+Methods (rows), DESIGN.md sections 7 and 8:
+
+* ``ours``: the default configuration (SBM inpainting, multi-view projection, RPR, finetune).
+* ``delete-only``: the remove stage's render (object Gaussians deleted, holes left as they are); the
+  evaluate stage reports it from the same run as ``delete_only``.
+* ``fsr-refit``: per-view 2D inpainting of the WHOLE object mask with OpenCV xphoto FSR, then re-fit
+  (the SPIn-NeRF-style baseline: no use of what other views saw behind the object):
+  ``remove.hole_mode=mask inpaint.backend=opencv inpaint.multiview=false refine.max_rounds=0``
+  (finetune on). Multi-view projection is switched off too, otherwise the "per-view" baseline would
+  still carry the reference view's fill into the others (stages/inpaint.py does that for any backend).
+* ``no-sbm``: ours with FSR instead of SBM: ``inpaint.backend=opencv`` (multi-view + RPR + finetune;
+  RPR then retrieves source blocks itself for the FSR fill, see stages/refine.py).
+* ``no-rpr``: ours without RPR: ``refine.max_rounds=0`` (stages/removal/rpr.py ``refine_view`` then
+  returns the inpainted image unchanged; the refine stage still re-projects the unchanged reference).
+
+Protocols:
+
+(a) ``synthetic``: the embedded demo scene (``SceneParams()``: 24 views 256x192, inward rig, generated
+    by :func:`sgpor_pipeline.demo.ensure_demo_scene`), with the generator's exact cameras, all masks
+    and the object-free renders as ground truth, i.e. exactly ``sgpor-pipeline demo``.
+    ``demo_seconds`` = the sum of the stage build times ingest..finetune of the ``ours`` run (from
+    the cache manifests, so it is the cold-run time even when this run resumed).
+(b) ``lund``: a synthetic object inserted into the real lund photos. First our SfM runs on the
+    untouched photos at full size (pipeline until ``sfm``; with ``ingest.max_size`` 160 only 2, with
+    640 only 15 of the 29 photos register); its undistorted PINHOLE images are then downscaled to 320 px (240 px
+    with ``--quick``) with their intrinsics scaled alike. A textured box is composited into them with
+    :func:`sgpor_pipeline.synthetic.insert_object` (which needs known cameras; placed at the SfM point
+    seen near the image centre by the most cameras, moved 15 % towards those cameras so it hovers in
+    front of the facade and nothing real can occlude it; see ``place_object``). The pipeline
+    then runs on the photos with the object + the exact masks of every view, importing those cameras
+    as known cameras (``RunInputs.cameras`` = a cameras.json, the ``--cameras`` route: poses are not
+    re-estimated, points are re-triangulated with them, so the truth matches pixel for pixel), and
+    evaluate compares with the untouched (undistorted, downscaled) photos: the truth.
+(c) ``statue`` (SPIn-NeRF statue, 29 views, ingest 384 px) and ``room`` (mip-NeRF 360 room, 24 views
+    256x256), our own SfM, no ground truth: mask propagation from only 1, 2 or 4 given masks
+    (``masks.max_given``, the first N views in name order), IoU of the propagated mask against the
+    given mask (both in the undistorted sfm pixels) on the views whose mask was NOT given; then the
+    full removal with 2 given masks, multi-view consistency of its result, and a contact sheet
+    (input | propagated mask | delete-only | result) of a few views.
+
+Multi-view consistency (``cons``, lower = more consistent): for up to 6 views with the largest
+object masks, every ordered pair: the colours inside the object mask of view i are carried into view
+j through the remove stage's completed depth (:func:`~sgpor_pipeline.removal.multiview.warp_from_reference`,
+the same warp the inpaint stage uses) and the mean absolute difference to view j's own colours is
+taken; measured on the final renders and on the 2D inpainted views before the re-fit (``cons2d``).
+Lighting is Lambertian in (a) and (b), so the ground truth itself scores close to 0 there.
+
+Sizes (to fit ~60 min on a shared 2-core CPU): the synthetic scene and its configuration are the
+defaults (demo); the real scenes are downscaled at ingest (320 / 384 px) and fitted with
+``fit.iterations=1500``. ``--quick`` = a smoke run: 12 synthetic views, fit 300 and finetune 100
+iterations everywhere, lund at 240 px, statue at 192 px, masks 1 and 2 only.
+
+Out (``--out``, default a temporary folder): one run folder per scene, ``*_sheet.png`` contact sheets
+(input | mask | delete-only | result | truth for the evaluated scenes), ``removal_benchmark.json``.
+With ``--json`` the last printed line is one JSON object (see ``summary_keys`` in the code).
+"""
+
+from __future__ import annotations
+
+import os
+
+# See benchmarks/fit.py: torch's OpenMP runtime must not spin beside the rasterizer's threads.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import logging  # noqa: E402
+import math  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Any  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+ROOT = Path(__file__).resolve().parent.parent
+DEFAULT_DATA = ROOT.parent / "shared" / "data"
+STAGES = ("ingest", "sfm", "fit", "masks", "remove", "inpaint", "refine", "finetune")
+METRICS = ("psnr_mask", "psnr_bbox", "psnr_full", "ssim_mask", "ssim_bbox", "ssim_full")
+
+# name, overrides, JSON suffix
+VARIANTS: list[tuple[str, list[str], str]] = [
+    ("ours", [], ""),
+    ("fsr-refit", ["remove.hole_mode=mask", "inpaint.backend=opencv", "inpaint.multiview=false",
+                   "refine.max_rounds=0"], "_fsr_refit"),
+    ("no-sbm", ["inpaint.backend=opencv"], "_no_sbm"),
+    ("no-rpr", ["refine.max_rounds=0"], "_no_rpr"),
+]
+SUFFIX = {name: suf for name, _, suf in VARIANTS} | {"delete-only": "_delete_only"}
+TARGET_GAIN_DB = 1.0
+HELPS_DB = 0.1  # an ablation "helps" when removing it costs at least this much mask PSNR
+TARGET_IOU = 0.85
+TARGET_DEMO_SECONDS = 600.0
+LUND_SFM_SIZE = 0  # full 1024x768: at 640 px only 15 of the 29 photos register
+
+log = logging.getLogger("sgpor_pipeline.bench.removal")
+
+
+# --------------------------------------------------------------------------------------------------
+# helpers
+
+
+def _img_u8(img: np.ndarray) -> np.ndarray:
+    img = np.asarray(img)
+    if img.dtype != np.uint8:
+        img = np.clip(np.round(np.asarray(img, np.float32) * 255), 0, 255).astype(np.uint8)
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, axis=2)
+    return img
+
+
+def mask_overlay(image: np.ndarray, mask: np.ndarray, colour=(255, 40, 40)) -> np.ndarray:
+    import cv2
+
+    out = _img_u8(image).astype(np.float32)
+    m = np.asarray(mask, bool)
+    out[m] = 0.5 * out[m] + 0.5 * np.array(colour, np.float32)
+    edge = cv2.morphologyEx(m.astype(np.uint8), cv2.MORPH_GRADIENT, np.ones((3, 3), np.uint8)) > 0
+    out[edge] = colour
+    return out.astype(np.uint8)
+
+
+def contact_sheet(rows: list[list[np.ndarray]], labels: list[str], path: Path, height: int = 160) -> None:
+    """rows of equally many images (any sizes) -> one PNG, columns labelled."""
+    import cv2
+
+    if not rows:
+        return
+    lines = []
+    for row in rows:
+        cells = []
+        for img in row:
+            img = _img_u8(img)
+            h, w = img.shape[:2]
+            cells.append(cv2.resize(img, (max(1, round(w * height / h)), height), interpolation=cv2.INTER_AREA))
+        lines.append(np.concatenate([np.pad(c, ((2, 2), (2, 2), (0, 0)), constant_values=255) for c in cells], 1))
+    width = max(line.shape[1] for line in lines)
+    lines = [np.pad(line, ((0, 0), (0, width - line.shape[1]), (0, 0)), constant_values=255) for line in lines]
+    cell_w = lines[0].shape[1] // max(1, len(rows[0]))
+    head = np.full((22, width, 3), 255, np.uint8)
+    for i, label in enumerate(labels):
+        cv2.putText(head, label, (i * cell_w + 4, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    sheet = np.concatenate([head] + lines, 0)
+    cv2.imwrite(str(path), sheet[..., ::-1])
+
+
+def consistency(images: dict[str, np.ndarray], remove_dir: Path, max_views: int = 6) -> float:
+    """Mean absolute colour difference of the object-mask pixels carried between views (see the doc)."""
+    from sgpor_pipeline.imageio import read_mask
+    from sgpor_pipeline.removal.multiview import warp_from_reference
+    from sgpor_pipeline.scene import load_cameras
+
+    cams = {c.image: c for c in load_cameras(remove_dir / "cameras.json") if c.image is not None}
+    names = [n for n in images if n in cams and (remove_dir / "depth" / f"{n}.npy").is_file()]
+    masks = {n: read_mask(remove_dir / "masks" / f"{n}.png") for n in names}
+    names = sorted((n for n in names if masks[n].sum() > 50), key=lambda n: -int(masks[n].sum()))[:max_views]
+    depth = {n: np.load(remove_dir / "depth" / f"{n}.npy") for n in names}
+    errs = []
+    for a in names:
+        for b in names:
+            if a == b:
+                continue
+            cols, got = warp_from_reference(images[a], cams[a], depth[a], masks[a], cams[b], depth[b], masks[b],
+                                            "backward", 0.01)
+            if got.sum() > 20:
+                errs.append(float(np.abs(cols[got] - images[b][got]).mean()))
+    return float(np.mean(errs)) if errs else float("nan")
+
+
+def hole_psnr(images: dict[str, np.ndarray], remove_dir: Path, truth_dir: Path) -> float:
+    """PSNR over the remove stage's hole pixels (the part no view saw: where inpainting matters),
+    pooled over all views (one MSE), against the ground truth."""
+    from sgpor_pipeline.imageio import read_image, read_mask
+
+    se, n = 0.0, 0
+    for name, img in images.items():
+        hole = read_mask(remove_dir / "holes" / f"{name}.png")
+        truth = truth_dir / f"{name}.png"
+        if not hole.any() or not truth.is_file():
+            continue
+        d = (img[hole] - read_image(truth)[hole]) ** 2
+        se += float(d.sum())
+        n += d.size
+    return float(10 * np.log10(1.0 / max(se / n, 1e-12))) if n else float("nan")
+
+
+def read_folder(folder: Path, names: list[str]) -> dict[str, np.ndarray]:
+    from sgpor_pipeline.imageio import read_image
+
+    return {n: read_image(folder / f"{n}.png") for n in names if (folder / f"{n}.png").is_file()}
+
+
+# --------------------------------------------------------------------------------------------------
+# one scene with ground truth: every variant in the same run folder
+
+
+def run_variants(scene: str, run_out: Path, inputs: Any, base: list[str], out: Path) -> dict[str, Any]:
+    from sgpor_pipeline.imageio import read_image, read_mask
+    from sgpor_pipeline.runner import run_pipeline
+
+    rows: list[dict[str, Any]] = []
+    truth_dir = Path(inputs.extra["groundtruth"])
+    t_scene = time.perf_counter()
+    ours_paths: dict[str, Path] = {}
+    for name, overrides, _ in VARIANTS:
+        t0 = time.perf_counter()
+        log.warning(f"[{scene}] variant {name}: {' '.join(overrides) or '(defaults)'}")
+        res = run_pipeline(run_out, inputs, overrides=base + overrides, until="evaluate")
+        wall = time.perf_counter() - t0
+        ev = json.loads((res.path("evaluate") / "metrics.json").read_text())
+        remove_dir = res.path("remove")
+        names = sorted(ev["per_view"])
+        final = read_folder(res.path("finetune") / "renders", names)
+        inpainted = read_folder(res.path("refine") / "images", names)
+        row = {"method": name, "overrides": overrides, **{k: ev["means"]["final"][k] for k in METRICS},
+               "psnr_hole": hole_psnr(final, remove_dir, truth_dir),
+               "seconds": ev["seconds"], "total_seconds": ev["total_seconds"], "wall_seconds": wall,
+               "ran": res.ran, "views": ev["views"],
+               "cons": consistency(final, remove_dir), "cons2d": consistency(inpainted, remove_dir),
+               "inpainted_2d": {k: ev["means"]["inpainted_2d"][k] for k in METRICS}}
+        rows.append(row)
+        if name == "ours":
+            ours_paths = {s: res.path(s) for s in ("sfm", "masks", "remove", "refine", "finetune")}
+            deleted = read_folder(remove_dir / "renders", names)
+            secs = {s: v for s, v in ev["seconds"].items() if s in STAGES[:5]}
+            rows.append({"method": "delete-only", "overrides": [],
+                         **{k: ev["means"]["delete_only"][k] for k in METRICS},
+                         "psnr_hole": hole_psnr(deleted, remove_dir, truth_dir),
+                         "seconds": secs, "total_seconds": sum(secs.values()), "wall_seconds": None, "ran": [],
+                         "views": ev["views"], "cons": consistency(deleted, remove_dir), "cons2d": None})
+        log.warning(f"[{scene}] {name}: PSNR mask {row['psnr_mask']:.2f} (wall {wall:.0f} s, ran {res.ran})")
+    # before / after pictures of the default method
+    rm = json.loads((ours_paths["remove"] / "remove.json").read_text())
+    hole_info = {"hole_fraction_of_mask": rm.get("hole_fraction_of_mask"), "hole_pixels": rm.get("hole_pixels"),
+                 "mask_pixels": rm.get("mask_pixels")}
+    names = sorted(json.loads((ours_paths["remove"] / "remove.json").read_text())["views"].items(),
+                   key=lambda kv: -kv[1]["mask_pixels"])
+    pick = [n for n, _ in names[:4]]
+    sheet = []
+    for n in pick:
+        img = read_image(ours_paths["sfm"] / "images" / f"{n}.png")
+        mask = read_mask(ours_paths["masks"] / "masks" / f"{n}.png")
+        truth = next((p for p in (truth_dir / f"{n}.png", truth_dir / f"{n}.jpg") if p.is_file()), None)
+        sheet.append([img, mask_overlay(img, mask), read_image(ours_paths["remove"] / "renders" / f"{n}.png"),
+                      read_image(ours_paths["refine"] / "images" / f"{n}.png"),
+                      read_image(ours_paths["finetune"] / "renders" / f"{n}.png"),
+                      read_image(truth) if truth is not None else np.zeros_like(img)])
+    sheet_path = out / f"{scene}_sheet.png"
+    contact_sheet(sheet, ["input", "mask", "delete-only", "inpainted 2D", "ours (final)", "truth"], sheet_path)
+    return {"scene": scene, "rows": rows, "wall_seconds": time.perf_counter() - t_scene, "sheet": str(sheet_path),
+            **hole_info}
+
+
+# --------------------------------------------------------------------------------------------------
+# protocols
+
+
+def protocol_synthetic(out: Path, quick: bool) -> dict[str, Any]:
+    from sgpor_pipeline.dag import RunInputs
+    from sgpor_pipeline.demo import ensure_demo_scene
+    from sgpor_pipeline.synthetic import SceneParams
+
+    params = SceneParams(n_views=12) if quick else SceneParams()
+    scene_dir = ensure_demo_scene(out / "synthetic" / "scene", params)
+    inputs = RunInputs(images=scene_dir / "images", masks=scene_dir / "masks", cameras=scene_dir / "cameras.json",
+                       extra={"groundtruth": scene_dir / "groundtruth"})
+    base = ["fit.iterations=300", "finetune.iterations=100"] if quick else []
+    r = run_variants("synthetic", out / "synthetic" / "run", inputs, base, out)
+    ours = next(x for x in r["rows"] if x["method"] == "ours")
+    r["demo_seconds"] = float(sum(ours["seconds"].get(s, 0.0) for s in STAGES))
+    r["note"] = f"{params.n_views} views {params.width}x{params.height}, demo configuration" + (
+        " (quick: fit 300 / finetune 100 iterations)" if quick else "")
+    return r
+
+
+def place_object(sfm_dir: Path, cams: list) -> tuple[np.ndarray, float]:
+    """A point in view of as many cameras as possible, hovering in front of the scene.
+
+    Among the SfM points, the one that projects into the central 60 % of the most images (ties: the
+    one nearest the median of the tied points) is moved 15 % of the way towards the mean centre of
+    those cameras (so the real surface is behind it and nothing can occlude it); the object's size is
+    0.12 x the median distance of those cameras to it."""
+    pts = np.load(sfm_dir / "points.npz")["xyz"]
+    if len(pts) > 5000:
+        pts = pts[np.random.default_rng(0).choice(len(pts), 5000, replace=False)]
+    seen = np.zeros((len(cams), len(pts)), bool)
+    for i, c in enumerate(cams):
+        pc = pts @ c.cam_from_world[:3, :3].T + c.cam_from_world[:3, 3]
+        z = pc[:, 2]
+        uv = (pc @ c.K.T)[:, :2] / np.maximum(z, 1e-9)[:, None]
+        seen[i] = ((z > 0) & (np.abs(uv[:, 0] / c.width - 0.5) < 0.3) & (np.abs(uv[:, 1] / c.height - 0.5) < 0.3))
+    count = seen.sum(0)
+    best = np.flatnonzero(count == count.max())
+    med = np.median(pts[best], axis=0)
+    p = pts[best[np.argmin(np.linalg.norm(pts[best] - med, axis=1))]]
+    viewers = np.flatnonzero(seen[:, best[np.argmin(np.linalg.norm(pts[best] - med, axis=1))]])
+    centres = np.array([cams[i].center for i in viewers])
+    pos = p + 0.15 * (centres.mean(0) - p)
+    size = 0.12 * float(np.median(np.linalg.norm(centres - pos, axis=1)))
+    return pos, size
+
+
+def protocol_lund(data: Path, out: Path, quick: bool) -> dict[str, Any]:
+    import cv2
+
+    from sgpor_pipeline.dag import RunInputs
+    from sgpor_pipeline.imageio import read_rgb8
+    from sgpor_pipeline.runner import run_pipeline
+    from sgpor_pipeline.scene import Camera, load_cameras, save_cameras
+    from sgpor_pipeline.synthetic import insert_object
+
+    folder = data / "lund" / "images"
+    if not folder.is_dir():
+        return {"scene": "lund", "skipped": f"{folder} not found"}
+    size = 240 if quick else 320
+    t0 = time.perf_counter()
+    # SIFT needs more pixels than the removal: SfM at full size, then the undistorted photos and their
+    # cameras are scaled down to ``size`` for the removal run.
+    base_sfm = run_pipeline(out / "lund" / "sfm_run", RunInputs(images=folder),
+                            overrides=[f"ingest.max_size={LUND_SFM_SIZE}"], until="sfm")
+    sfm_dir = base_sfm.path("sfm")
+    cams = [c for c in load_cameras(sfm_dir / "cameras.json") if c.image is not None]
+    n_images = len([p for p in folder.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png")])
+    sfm_seconds = time.perf_counter() - t0
+    if len(cams) < 3:
+        return {"scene": "lund", "skipped": f"our SfM registered only {len(cams)} of {n_images} photos"}
+    scene_dir = out / "lund" / "inserted"
+    stamp = scene_dir / "stamp.json"
+    want = json.dumps({"sfm": base_sfm.outcomes["sfm"].key, "seed": 0, "size": size, "version": 3})
+    if not (stamp.is_file() and stamp.read_text() == want):
+        small, photos = [], []
+        for c in cams:
+            photo = read_rgb8(sfm_dir / "images" / f"{c.image}.png")
+            s = size / max(c.width, c.height)
+            w, h = max(1, round(c.width * s)), max(1, round(c.height * s))
+            K = np.diag([w / c.width, h / c.height, 1.0]) @ c.K
+            small.append(Camera(c.image, w, h, K, c.cam_from_world, image=c.image))
+            photos.append(cv2.resize(photo, (w, h), interpolation=cv2.INTER_AREA))
+        pos, obj_size = place_object(sfm_dir, small)
+        with_obj, masks = insert_object(photos, small, seed=0, position=pos, size=obj_size, kind="box")
+        for sub in ("images", "masks", "groundtruth"):
+            (scene_dir / sub).mkdir(parents=True, exist_ok=True)
+        for c, photo, img, m in zip(small, photos, with_obj, masks):
+            cv2.imwrite(str(scene_dir / "images" / f"{c.image}.png"), img[..., ::-1])
+            cv2.imwrite(str(scene_dir / "groundtruth" / f"{c.image}.png"), photo[..., ::-1])
+            cv2.imwrite(str(scene_dir / "masks" / f"{c.image}.png"), m.astype(np.uint8) * 255)
+        save_cameras(scene_dir / "cameras.json", small)
+        (scene_dir / "object.json").write_text(json.dumps({"position": pos.tolist(), "size": obj_size,
+                                                           "coverage": [float(m.mean()) for m in masks],
+                                                           "size_px": [small[0].width, small[0].height]}))
+        stamp.write_text(want)
+    coverage = json.loads((scene_dir / "object.json").read_text())["coverage"]
+    inputs = RunInputs(images=scene_dir / "images", masks=scene_dir / "masks", cameras=scene_dir / "cameras.json",
+                       extra={"groundtruth": scene_dir / "groundtruth"})
+    base = ["fit.iterations=300", "finetune.iterations=100"] if quick else ["fit.iterations=1500"]
+    r = run_variants("lund", out / "lund" / "run", inputs, base, out)
+    r["wall_seconds"] += sfm_seconds
+    wh = json.loads((scene_dir / "object.json").read_text())["size_px"]
+    r["note"] = (f"{len(cams)}/{n_images} photos registered by our SfM at {cams[0].width}x{cams[0].height}, "
+                 f"removal at {wh[0]}x{wh[1]}; "
+                 f"object in {sum(c > 0 for c in coverage)} views, mean coverage {np.mean(coverage) * 100:.1f} %")
+    r["registered"], r["images"] = len(cams), n_images
+    return r
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    union = np.logical_or(a, b).sum()
+    return float(np.logical_and(a, b).sum() / union) if union else 1.0
+
+
+def protocol_propagation(scene: str, folder: Path, out: Path, quick: bool) -> dict[str, Any]:
+    from sgpor_pipeline.dag import RunInputs
+    from sgpor_pipeline.imageio import read_image, read_mask
+    from sgpor_pipeline.runner import run_pipeline
+
+    if not (folder / "images").is_dir() or not (folder / "masks").is_dir():
+        return {"scene": scene, "skipped": f"{folder}/images or masks not found"}
+    t_scene = time.perf_counter()
+    run_out = out / scene / "run"
+    inputs = RunInputs(images=folder / "images", masks=folder / "masks")
+    base = []
+    if scene == "statue":
+        base.append(f"ingest.max_size={192 if quick else 384}")
+    base += ["fit.iterations=300", "finetune.iterations=100"] if quick else ["fit.iterations=1500"]
+    counts = (1, 2) if quick else (1, 2, 4)
+    result: dict[str, Any] = {"scene": scene, "iou": {}, "iou_min": {}, "given": {}, "seconds": {}}
+    for n in counts:
+        t0 = time.perf_counter()
+        log.warning(f"[{scene}] mask propagation from {n} given mask(s)")
+        res = run_pipeline(run_out, inputs, overrides=base + [f"masks.max_given={n}"], until="masks")
+        sfm_dir, masks_dir = res.path("sfm"), res.path("masks")
+        info = json.loads((masks_dir / "masks.json").read_text())
+        given = set(info["given"])
+        scores = []
+        for view in info["views"]:
+            if view in given or not (sfm_dir / "masks" / f"{view}.png").is_file():
+                continue
+            scores.append(iou(read_mask(masks_dir / "masks" / f"{view}.png"),
+                              read_mask(sfm_dir / "masks" / f"{view}.png")))
+        result["iou"][n] = float(np.mean(scores)) if scores else float("nan")
+        result["iou_min"][n] = float(np.min(scores)) if scores else float("nan")
+        result["given"][n] = sorted(given)
+        result["seconds"][n] = time.perf_counter() - t0
+        result["registered"] = len(info["views"])
+        result["evaluated_views"] = len(scores)
+        log.warning(f"[{scene}] IoU from {n} mask(s): {result['iou'][n]:.3f} over {len(scores)} views")
+    # the full removal from 2 given masks: consistency and pictures
+    n = 2
+    res = run_pipeline(run_out, inputs, overrides=base + [f"masks.max_given={n}"], until="finetune")
+    info = json.loads((res.path("masks") / "masks.json").read_text())
+    names = sorted(info["views"])
+    final = read_folder(res.path("finetune") / "renders", names)
+    result["cons"] = consistency(final, res.path("remove"))
+    result["cons2d"] = consistency(read_folder(res.path("refine") / "images", names), res.path("remove"))
+    result["stage_seconds"] = {s: float(json.loads((res.path(s) / "manifest.json").read_text())["seconds"])
+                               for s in STAGES}
+    not_given = [v for v in names if v not in set(info["given"])]
+    pick = [not_given[i] for i in np.linspace(0, len(not_given) - 1, min(4, len(not_given))).round().astype(int)]
+    sheet = []
+    for v in pick:
+        img = read_image(res.path("sfm") / "images" / f"{v}.png")
+        sheet.append([img, mask_overlay(img, read_mask(res.path("masks") / "masks" / f"{v}.png")),
+                      mask_overlay(img, read_mask(res.path("sfm") / "masks" / f"{v}.png"), (40, 200, 40)),
+                      read_image(res.path("remove") / "renders" / f"{v}.png"), final[v]])
+    sheet_path = out / f"{scene}_sheet.png"
+    contact_sheet(sheet, ["input", "propagated (2 given)", "given mask (ref)", "delete-only", "result"], sheet_path)
+    result["sheet"] = str(sheet_path)
+    result["wall_seconds"] = time.perf_counter() - t_scene
+    return result
+
+
+# --------------------------------------------------------------------------------------------------
+# tables and summary
+
+
+def _f(v: Any, fmt: str) -> str:
+    return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, fmt)
+
+
+def format_removal_table(r: dict[str, Any]) -> str:
+    if "skipped" in r:
+        return f"## {r['scene']}: skipped: {r['skipped']}"
+    head = (f"{'method':<12} {'PSNR mask':>9} {'bbox':>6} {'full':>6} {'SSIM mask':>9} {'bbox':>6} {'full':>6} "
+            f"{'hole':>6} {'cons':>6} {'cons2d':>6} | seconds: " + " ".join(f"{s[:6]:>6}" for s in STAGES)
+            + f" {'total':>6} {'wall':>6}")
+    hole = ""
+    if r.get("hole_fraction_of_mask") is not None:
+        hole = (f"\nholes (object pixels no view saw, what inpainting fills): {r['hole_pixels']} of {r['mask_pixels']} "
+                f"mask pixels ({100 * r['hole_fraction_of_mask']:.1f} %); 'hole' = PSNR over those pixels only")
+    lines = [f"## {r['scene']}" + (f" ({r['note']})" if r.get("note") else "") + hole, head, "-" * len(head)]
+    for x in r["rows"]:
+        secs = " ".join(f"{_f(x['seconds'].get(s), '.0f'):>6}" for s in STAGES)
+        lines.append(f"{x['method']:<12} {_f(x['psnr_mask'], '.2f'):>9} {_f(x['psnr_bbox'], '.2f'):>6} "
+                     f"{_f(x['psnr_full'], '.2f'):>6} {_f(x['ssim_mask'], '.4f'):>9} {_f(x['ssim_bbox'], '.3f'):>6} "
+                     f"{_f(x['ssim_full'], '.3f'):>6} {_f(x.get('psnr_hole'), '.2f'):>6} {_f(x['cons'], '.4f'):>6} "
+                     f"{_f(x.get('cons2d'), '.4f'):>6} | "
+                     f"seconds: {secs} {_f(x['total_seconds'], '.0f'):>6} {_f(x.get('wall_seconds'), '.0f'):>6}")
+    return "\n".join(lines)
+
+
+def format_propagation_table(rows: list[dict[str, Any]]) -> str:
+    lines = ["## mask propagation (IoU on the views whose mask was not given) and removal from 2 masks",
+             f"{'scene':<8} {'IoU 1':>6} {'IoU 2':>6} {'IoU 4':>6} {'min 2':>6} {'views':>5} {'cons':>6} {'cons2d':>6} "
+             f"{'wall s':>7}"]
+    for r in rows:
+        if "skipped" in r:
+            lines.append(f"{r['scene']:<8} skipped: {r['skipped']}")
+            continue
+        iou_ = r["iou"]
+        lines.append(f"{r['scene']:<8} {_f(iou_.get(1), '.3f'):>6} {_f(iou_.get(2), '.3f'):>6} "
+                     f"{_f(iou_.get(4), '.3f'):>6} {_f(r['iou_min'].get(2), '.3f'):>6} "
+                     f"{r.get('evaluated_views', 0):>5} {_f(r.get('cons'), '.4f'):>6} "
+                     f"{_f(r.get('cons2d'), '.4f'):>6} {r['wall_seconds']:>7.0f}")
+        if r.get("stage_seconds"):
+            lines.append(f"{'':<8} stage seconds (2 masks): "
+                         + ", ".join(f"{k} {v:.0f}" for k, v in r["stage_seconds"].items()))
+    return "\n".join(lines)
+
+
+def summarise(results: dict[str, dict[str, Any]]) -> tuple[dict[str, Any], list[str]]:
+    summary: dict[str, Any] = {}
+    checks: list[str] = []
+    for scene, prefix in (("synthetic", "synthetic"), ("lund", "lund_inserted")):
+        r = results.get(scene)
+        if r is None:
+            continue
+        if "skipped" in r:
+            summary[f"{prefix}_skipped"] = r["skipped"]
+            continue
+        by = {x["method"]: x for x in r["rows"]}
+        for method, x in by.items():
+            suf = SUFFIX[method]
+            summary[f"{prefix}_mask_psnr{suf}"] = x["psnr_mask"]
+            for m in METRICS:
+                kind, region = m.split("_")
+                if m != "psnr_mask":
+                    summary[f"{prefix}_{region}_{kind}{suf}"] = x[m]
+            summary[f"{prefix}_cons{suf}"] = x["cons"]
+            summary[f"{prefix}_hole_psnr{suf}"] = x.get("psnr_hole")
+            summary[f"{prefix}_seconds{suf}"] = x["seconds"]
+        summary[f"{prefix}_wall_seconds"] = r["wall_seconds"]
+        summary[f"{prefix}_hole_fraction_of_mask"] = r.get("hole_fraction_of_mask")
+        ours = by["ours"]["psnr_mask"]
+        gains = {m: ours - x["psnr_mask"] for m, x in by.items() if m != "ours"}
+        ok = all(g >= TARGET_GAIN_DB for g in gains.values())
+        summary[f"{prefix}_target_beats_baselines"] = ok
+        checks.append(f"[{'PASS' if ok else 'FAIL'}] {scene}: ours beats every baseline by >= {TARGET_GAIN_DB} dB "
+                      "mask PSNR: " + ", ".join(f"{m} {g:+.2f} dB" for m, g in gains.items()))
+        for ablation, what in (("no-sbm", "SBM"), ("no-rpr", "RPR")):
+            g = gains[ablation]
+            ok = g >= HELPS_DB
+            checks.append(f"[{'PASS' if ok else 'FAIL'}] {scene}: {what} helps (ours - {ablation} = {g:+.3f} dB "
+                          f"mask PSNR; 'helps' = >= {HELPS_DB} dB)")
+            summary[f"{prefix}_{what.lower()}_helps"] = bool(ok)
+        if scene == "synthetic":
+            summary["demo_seconds"] = r["demo_seconds"]
+            ok = r["demo_seconds"] <= TARGET_DEMO_SECONDS
+            checks.append(f"[{'PASS' if ok else 'FAIL'}] demo (ingest..finetune, default settings) "
+                          f"{r['demo_seconds']:.0f} s <= {TARGET_DEMO_SECONDS:.0f} s")
+    for scene in ("statue", "room"):
+        r = results.get(scene)
+        if r is None:
+            continue
+        if "skipped" in r:
+            summary[f"{scene}_skipped"] = r["skipped"]
+            continue
+        for n, v in r["iou"].items():
+            summary[f"{scene}_mask_iou_{n}view" + ("s" if n > 1 else "")] = v
+        summary[f"{scene}_cons"] = r.get("cons")
+        summary[f"{scene}_wall_seconds"] = r["wall_seconds"]
+    if "statue_mask_iou_2views" in summary:
+        v = summary["statue_mask_iou_2views"]
+        checks.append(f"[{'PASS' if v >= TARGET_IOU else 'FAIL'}] statue mask IoU from 2 views {v:.3f} >= {TARGET_IOU}")
+    return summary, checks
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="a smoke run (fewer views and iterations)")
+    ap.add_argument("--json", action="store_true", help="print one JSON object as the last line")
+    ap.add_argument("--out", type=Path, default=None, help="output folder (default: a temporary folder); "
+                                                             "reusing one resumes from its cache")
+    ap.add_argument("--data", type=Path, default=DEFAULT_DATA, help="folder holding lund/, statue/, mip360-room/")
+    ap.add_argument("--scenes", default="synthetic,lund,statue,room",
+                    help="comma-separated: synthetic, lund, statue, room")
+    ap.add_argument("--verbose", action="store_true", help="log every stage")
+    args = ap.parse_args(argv)
+    scenes = [s.strip() for s in args.scenes.split(",") if s.strip()]
+    unknown = set(scenes) - {"synthetic", "lund", "statue", "room"}
+    if unknown:
+        ap.error(f"unknown scene(s): {', '.join(sorted(unknown))}")
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                        format="%(asctime)s %(name)s: %(message)s", datefmt="%H:%M:%S")
+    os.environ.setdefault("TQDM_DISABLE", "1")
+    out = (args.out or Path(tempfile.mkdtemp(prefix="sgpor-bench-removal-"))).resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    data = args.data.resolve()
+
+    results: dict[str, dict[str, Any]] = {}
+    for scene in scenes:
+        t0 = time.perf_counter()
+        if scene == "synthetic":
+            r = protocol_synthetic(out, args.quick)
+        elif not data.is_dir():
+            r = {"scene": scene, "skipped": f"data folder {data} not found (pass --data)"}
+        elif scene == "lund":
+            r = protocol_lund(data, out, args.quick)
+        else:
+            folder = data / ("statue" if scene == "statue" else "mip360-room")
+            r = protocol_propagation(scene, folder, out, args.quick)
+        r.setdefault("wall_seconds", time.perf_counter() - t0)
+        results[scene] = r
+        print(format_removal_table(r) if scene in ("synthetic", "lund") else format_propagation_table([r]),
+              flush=True)
+        (out / "removal_benchmark.json").write_text(json.dumps(results, indent=1, default=str))
+
+    print("\n# removal benchmark" + (" (quick)" if args.quick else "") + f": {out}")
+    for scene in ("synthetic", "lund"):
+        if scene in results:
+            print()
+            print(format_removal_table(results[scene]))
+    prop = [results[s] for s in ("statue", "room") if s in results]
+    if prop:
+        print()
+        print(format_propagation_table(prop))
+    summary, checks = summarise(results)
+    summary["quick"] = args.quick
+    summary["protocol_wall_seconds"] = {s: r.get("wall_seconds") for s, r in results.items()}
+    if checks:
+        print("\n# targets")
+        print("\n".join(checks))
+    sheets = [r["sheet"] for r in results.values() if r.get("sheet")]
+    if sheets:
+        print("\npictures: " + ", ".join(sheets))
+    (out / "removal_benchmark.json").write_text(json.dumps({"results": results, "summary": summary}, indent=1,
+                                                           default=str))
+    if args.json:
+        print(json.dumps(summary, default=str))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

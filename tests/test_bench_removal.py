@@ -1,0 +1,63 @@
+"""Smoke test of benchmarks/removal.py's tables and summary on fake rows (no pipeline run)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+BENCH = Path(__file__).resolve().parent.parent / "benchmarks" / "removal.py"
+
+
+@pytest.fixture(scope="module")
+def bench():
+    spec = importlib.util.spec_from_file_location("sgpor_bench_removal", BENCH)
+    mod = importlib.util.module_from_spec(spec)
+    assert spec.loader is not None
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _row(method: str, psnr: float) -> dict:
+    return {"method": method, "psnr_mask": psnr, "psnr_bbox": psnr + 1, "psnr_full": psnr + 5, "ssim_mask": 0.5,
+            "ssim_bbox": 0.6, "ssim_full": 0.8, "psnr_hole": psnr - 3, "cons": 0.01, "cons2d": None,
+            "seconds": {"fit": 10.0, "finetune": 3.0}, "total_seconds": 13.0, "wall_seconds": None}
+
+
+def test_tables_and_summary(bench, capsys):
+    methods = ["ours", "delete-only", "fsr-refit", "no-sbm", "no-rpr"]
+    scene = {"scene": "synthetic", "rows": [_row(m, 25.0 - 1.5 * i) for i, m in enumerate(methods)],
+             "wall_seconds": 100.0, "demo_seconds": 300.0, "hole_fraction_of_mask": 0.2, "hole_pixels": 20,
+             "mask_pixels": 100}
+    table = bench.format_removal_table(scene)
+    assert all(m in table for m in methods) and "PSNR mask" in table and "20 of 100" in table
+    prop = {"scene": "statue", "iou": {1: 0.8, 2: 0.9}, "iou_min": {2: 0.7}, "wall_seconds": 5.0,
+            "evaluated_views": 27}
+    assert "0.900" in bench.format_propagation_table([prop, {"scene": "room", "skipped": "no data"}])
+    assert "skipped: x" in bench.format_removal_table({"scene": "lund", "skipped": "x"})
+    summary, checks = bench.summarise({"synthetic": scene, "lund": {"scene": "lund", "skipped": "x"},
+                                       "statue": prop})
+    for suf in ("", "_delete_only", "_fsr_refit", "_no_sbm", "_no_rpr"):
+        assert f"synthetic_mask_psnr{suf}" in summary
+    assert summary["synthetic_target_beats_baselines"] and summary["synthetic_sbm_helps"]
+    assert summary["statue_mask_iou_2views"] == 0.9 and summary["demo_seconds"] == 300.0
+    assert any("PASS" in c for c in checks)
+    json.dumps(summary)
+
+
+def test_iou_and_sheet(bench, tmp_path):
+    a = np.zeros((8, 8), bool)
+    a[:4] = True
+    assert bench.iou(a, a) == 1.0 and bench.iou(a, ~a) == 0.0
+    img = np.random.default_rng(0).random((20, 30, 3)).astype(np.float32)
+    bench.contact_sheet([[img, bench.mask_overlay(img, np.ones((20, 30), bool))]], ["a", "b"], tmp_path / "s.png",
+                        height=40)
+    assert (tmp_path / "s.png").is_file()
+
+
+def test_parser_rejects_unknown_scene(bench):
+    with pytest.raises(SystemExit):
+        bench.main(["--scenes", "nope"])

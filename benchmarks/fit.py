@@ -123,7 +123,9 @@ def run_lund(data: Path, out: Path) -> dict[str, Any]:
         assert spec.loader is not None
         spec.loader.exec_module(mod)
         if hasattr(mod, "run_lund"):
-            r = mod.run_lund(data / "lund", out / "lund_run")
+            r = mod.run_lund(data, out / "lund_run")  # (data = the folder holding lund/)
+            if "skipped" in r:
+                return {"scene": "lund", "skipped": r["skipped"]}
             return {"scene": "lund", "registered": r.get("registered"), "images": r.get("images"),
                     "seconds": r.get("seconds")}
     from sgpor_pipeline.dag import RunInputs, discover_stages

@@ -12,7 +12,9 @@ from sgpor_pipeline.gaussians.model import GaussianModel, rgb_to_sh
 from sgpor_pipeline.removal.holes import (
     RemoveParams,
     complete_depth,
+    concat_models,
     hole_mask,
+    initial_colour,
     objects_to_delete,
     render_background,
     seed_hole_gaussians,
@@ -22,6 +24,7 @@ from sgpor_pipeline.removal.selection import (
     SelectionParams,
     contribution_scores,
     iou,
+    median_spacing,
     refine_mask,
     render_object_probability,
     select_object,
@@ -145,3 +148,75 @@ def test_seeded_gaussians_lie_on_the_completed_surface(scene_and_model):
     assert mask[v, u].all()
     assert np.allclose(pc[:, 2], depth[v, u], rtol=1e-4)
     assert torch.isfinite(seeds.params["scales"]).all()
+
+
+# --------------------------------------------------------------------------------------------------
+# the remove stage's edge cases (issue: empty mask, a mask covering most of the image, an unseen hole)
+
+
+def _remove(model, cameras, masks, object_ids, params=None):
+    """What the remove stage does per run: delete, find holes, complete depth, seed the holes."""
+    params = params or RemoveParams()
+    delete, _ = objects_to_delete(model, cameras, masks, object_ids, params)
+    background = subset(model, ~delete)
+    holes, depths, colours = [], [], []
+    for cam, mask in zip(cameras, masks):
+        rgb, alpha, depth = render_background(background, cam)
+        hole = hole_mask(mask, alpha, params)
+        holes.append(hole)
+        depths.append(complete_depth(depth, alpha >= params.hole_alpha, hole))
+        colours.append(initial_colour(rgb, hole))
+    spacing = median_spacing(background.means.detach().double().numpy())
+    seeds = seed_hole_gaussians(cameras, holes, depths, colours, spacing, model.max_sh_degree, params)
+    return delete, background, holes, depths, seeds
+
+
+def test_empty_mask_passes_the_scene_through_unchanged(scene_and_model):
+    scene, model, _ = scene_and_model
+    empty = [np.zeros_like(m) for m in scene.masks]
+    delete, background, holes, _, seeds = _remove(model, scene.cameras, empty, np.array([], np.int64))
+    assert not delete.any() and len(background) == len(model)
+    assert not any(h.any() for h in holes) and len(seeds) == 0
+    assert torch.equal(background.means, model.means)
+
+
+def test_mask_covering_most_of_the_image_still_finishes(scene_and_model):
+    """Masks of 90 % of every image: everything in the views' centres counts as object. The stage's
+    steps must finish with finite results, holes inside the masks and seeds on finite depths."""
+    scene, model, _ = scene_and_model
+    big = []
+    for m in scene.masks:
+        b = np.zeros_like(m)
+        h, w = m.shape
+        b[h // 20: h - h // 20, w // 20: w - w // 20] = True
+        big.append(b)
+    delete, background, holes, depths, seeds = _remove(model, scene.cameras, big, np.array([], np.int64))
+    assert delete.any() and len(background) > 0
+    for hole, mask, depth in zip(holes, big, depths):
+        assert not (hole & ~mask).any()
+        assert np.isfinite(depth[hole]).all()
+    assert torch.isfinite(seeds.means).all() and torch.isfinite(seeds.params["scales"]).all()
+
+
+def test_a_hole_no_view_sees_is_filled(scene_and_model):
+    """Take the floor under the object away as well (no view can see it: the object stands on it):
+    after deleting the object, that part of the masks is a hole; its seeds cover it in the views."""
+    scene, model, truth = scene_and_model
+    lo, hi = scene.object_bounds
+    xyz = model.means.detach().double().numpy()
+    pad = 0.05 * (hi - lo)
+    footprint = np.all((xyz >= lo - pad) & (xyz <= hi + pad), axis=1) & ~truth
+    keep = ~footprint
+    m = subset(model, keep)
+    ids = np.flatnonzero(truth[keep])
+    delete, background, holes, _, seeds = _remove(m, scene.cameras, list(scene.masks), ids)
+    assert sum(h.sum() for h in holes) > 20, "the unseen footprint must show up as a hole"
+    assert len(seeds) > 0
+    cleaned = concat_models(background, seeds)
+    covered = []
+    for cam, hole in zip(scene.cameras, holes):
+        if hole.sum() < 5:
+            continue
+        _, alpha, _ = render_background(cleaned, cam)
+        covered.append(float((alpha[hole] >= 0.5).mean()))
+    assert covered and np.mean(covered) > 0.8, covered

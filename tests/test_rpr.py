@@ -3,16 +3,12 @@
 from __future__ import annotations
 
 import json
-import logging
-import shutil
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from stage_helpers import stage_ctx
 
-from sgpor_pipeline.dag import RunInputs, StageContext
-from sgpor_pipeline.hashing import hash_obj
 from sgpor_pipeline.imageio import read_image
 from sgpor_pipeline.removal.multiview import write_remove_fixture
 from sgpor_pipeline.removal.rpr import RPRParams, block_energies, hf_energy, refine_view, refined_overlay
@@ -101,22 +97,6 @@ def test_rounds_are_bounded(setup):
     assert res.rounds == 0 and np.array_equal(res.image, flat)
 
 
-def stage_ctx(root: Path, stage: str, params, inputs: dict[str, Path]) -> StageContext:
-    out = root / stage
-    shutil.rmtree(out, ignore_errors=True)
-    out.mkdir(parents=True)
-
-    def item(key, build):
-        folder = root / "items" / stage / hash_obj(key)
-        if not folder.exists():
-            tmp = folder.with_name(folder.name + ".tmp")
-            tmp.mkdir(parents=True)
-            build(tmp)
-            tmp.rename(folder)
-        return folder
-
-    return StageContext(stage=stage, params=params, out_dir=out, inputs=inputs, run_inputs=RunInputs(images=root),
-                        log=logging.getLogger(f"test.{stage}"), seed_key="test", _item_cache=item)
 
 
 def test_refine_stage_sharpens_a_smooth_baseline_fill(setup, tmp_path):

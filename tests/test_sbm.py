@@ -3,16 +3,13 @@
 from __future__ import annotations
 
 import json
-import logging
-import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
+from stage_helpers import stage_ctx
 
-from sgpor_pipeline.dag import RunInputs, StageContext
 from sgpor_pipeline.errors import PipelineError
-from sgpor_pipeline.hashing import hash_obj
 from sgpor_pipeline.imageio import read_image
 from sgpor_pipeline.removal.features import (
     BlockFeatures,
@@ -187,25 +184,6 @@ def test_lift_project_round_trip(scene):
 # ---------------------------------------------------------------------------------------------- stages
 
 
-def stage_ctx(root: Path, stage: str, params, inputs: dict[str, Path], builds: list | None = None) -> StageContext:
-    out = root / stage
-    if out.exists():
-        shutil.rmtree(out)
-    out.mkdir(parents=True)
-
-    def item(key, build):
-        folder = root / "items" / stage / hash_obj(key)
-        if not folder.exists():
-            tmp = folder.with_name(folder.name + ".tmp")
-            tmp.mkdir(parents=True)
-            build(tmp)
-            tmp.rename(folder)
-            if builds is not None:
-                builds.append(key)
-        return folder
-
-    return StageContext(stage=stage, params=params, out_dir=out, inputs=inputs, run_inputs=RunInputs(images=root),
-                        log=logging.getLogger(f"test.{stage}"), seed_key="test", _item_cache=item)
 
 
 def consistency_error(scene, out: Path) -> float:

@@ -34,8 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sgpor_pipeline.dag import RunInputs, StageContext
-from sgpor_pipeline.hashing import hash_obj
+from sgpor_pipeline.dag import StageContext
 from sgpor_pipeline.imageio import read_image, read_rgb8, write_mask01, write_png
 from sgpor_pipeline.removal.features import default_dino_model, dinov2_available
 from sgpor_pipeline.removal.multiview import warp_from_reference, write_remove_fixture
@@ -169,23 +168,6 @@ def statue_scene(root: Path, data: Path, views: int, seed: int) -> Scene | None:
 # ------------------------------------------------------------------------------------------- methods
 
 
-def stage_ctx(root: Path, stage: str, params, inputs: dict[str, Path]) -> StageContext:
-    out = root / stage
-    shutil.rmtree(out, ignore_errors=True)
-    out.mkdir(parents=True)
-
-    def item(key, build):
-        folder = root / "items" / stage / hash_obj(key)
-        if not folder.exists():
-            tmp = folder.with_name(folder.name + ".tmp")
-            shutil.rmtree(tmp, ignore_errors=True)
-            tmp.mkdir(parents=True)
-            build(tmp)
-            tmp.rename(folder)
-        return folder
-
-    return StageContext(stage=stage, params=params, out_dir=out, inputs=inputs, run_inputs=RunInputs(images=root),
-                        log=logging.getLogger(f"bench.{stage}"), seed_key="bench", _item_cache=item)
 
 
 def run_method(scene: Scene, work: Path, inpaint: InpaintParams | None, refine: RefineParams | None
@@ -193,12 +175,12 @@ def run_method(scene: Scene, work: Path, inpaint: InpaintParams | None, refine: 
     if inpaint is None:  # delete-only
         return [read_image(scene.remove / "renders" / f"{n}.png") for n in scene.names], 0.0, {}
     t0 = time.perf_counter()
-    ctx = stage_ctx(work, "inpaint", inpaint, {"remove": scene.remove})
+    ctx = StageContext.standalone(work, "inpaint", inpaint, {"remove": scene.remove})
     InpaintStage().run(ctx)
     out = ctx.out_dir
     extra = json.loads((out / "inpaint.json").read_text())
     if refine is not None:
-        ctx2 = stage_ctx(work, "refine", refine, {"inpaint": out, "remove": scene.remove})
+        ctx2 = StageContext.standalone(work, "refine", refine, {"inpaint": out, "remove": scene.remove})
         RefineStage().run(ctx2)
         out = ctx2.out_dir
         r = json.loads((out / "refined.json").read_text())

@@ -81,6 +81,38 @@ class StageContext:
     _stage_config: dict[str, Any] = field(default_factory=dict)
     _memo: DigestMemo = field(default_factory=DigestMemo)
 
+    @classmethod
+    def standalone(cls, root: Path, stage: str, params: Any, inputs: dict[str, Path],
+                   builds: list | None = None, log: logging.Logger | None = None) -> StageContext:
+        """A context for calling one stage's ``run`` outside a pipeline run (tests, benchmarks): a fresh
+        ``root/stage`` output folder; per-item results under ``root/items/stage`` (built in a tmp folder,
+        then renamed, as the runner does), reused while their key is the same; ``builds`` (if given)
+        collects the keys of the items built."""
+        import shutil
+
+        from .hashing import hash_obj
+
+        root = Path(root)
+        out = root / stage
+        shutil.rmtree(out, ignore_errors=True)
+        out.mkdir(parents=True)
+
+        def item(key: Any, build: Callable[[Path], None]) -> Path:
+            folder = root / "items" / stage / hash_obj(key)
+            if not folder.exists():
+                tmp = folder.with_name(folder.name + ".tmp")
+                shutil.rmtree(tmp, ignore_errors=True)
+                tmp.mkdir(parents=True)
+                build(tmp)
+                tmp.rename(folder)
+                if builds is not None:
+                    builds.append(key)
+            return folder
+
+        return cls(stage=stage, params=params, out_dir=out, inputs=inputs, run_inputs=RunInputs(images=root),
+                   log=log or logging.getLogger(f"sgpor_pipeline.{stage}"), seed_key="standalone",
+                   _item_cache=item)
+
     @property
     def checkpoint_dir(self) -> Path:
         """A folder inside the build folder that survives a killed run of the same configuration."""

@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from stage_helpers import stage_ctx
 
+from sgpor_pipeline.dag import StageContext
 from sgpor_pipeline.errors import PipelineError
 from sgpor_pipeline.hashing import hash_obj
 from sgpor_pipeline.imageio import read_image, write_mask01, write_png
@@ -160,10 +160,11 @@ def test_missing_diffusers_is_a_clear_error(tmp_path, monkeypatch):
     assert backend == "sbm" and "not installed" in why and "sgpor-pipeline[diffusion]" in why
     assert InpaintStage.key_extra(InpaintParams(backend="auto")) == {}
     # the remove folder does not exist: the error must come first, before reading anything
-    ctx = stage_ctx(tmp_path, "inpaint", InpaintParams(backend="diffusion"), {"remove": tmp_path / "none"})
+    ctx = StageContext.standalone(tmp_path, "inpaint", InpaintParams(backend="diffusion"),
+                                  {"remove": tmp_path / "none"})
     with pytest.raises(PipelineError, match="diffusers"):
         InpaintStage().run(ctx)
-    ctx = stage_ctx(tmp_path, "finetune", FinetuneParams(lambda_sds=0.1),
+    ctx = StageContext.standalone(tmp_path, "finetune", FinetuneParams(lambda_sds=0.1),
                     {"remove": tmp_path / "none", "refine": tmp_path / "none"})
     with pytest.raises(PipelineError, match=r"sgpor-pipeline\[diffusion\]"):
         FinetuneStage().run(ctx)
@@ -204,7 +205,7 @@ def test_inpaint_stage_diffusion_backend_multiview_and_cache(weights, tiny, tmp_
     small = {"diffusion_resolution": 32, "diffusion_steps": 4, "block_size": 9}
     builds: list = []
     params = InpaintParams(backend="diffusion", diffusion_model=str(weights[0]), **small)
-    ctx = stage_ctx(tmp_path, "inpaint", params, {"remove": remove}, builds)
+    ctx = StageContext.standalone(tmp_path, "inpaint", params, {"remove": remove}, builds)
     InpaintStage().run(ctx)
     report = json.loads((ctx.out_dir / "inpaint.json").read_text())
     assert report["backend"] == "diffusion" and report["backend_requested"] == "diffusion"
@@ -213,7 +214,8 @@ def test_inpaint_stage_diffusion_backend_multiview_and_cache(weights, tiny, tmp_
     assert report["diffusion"]["folder"] == str(weights[0]) and report["diffusion"]["pixels"] > 0
     ref = report["reference"]
     assert report["views"][ref]["diffusion_pixels"] == report["views"][ref]["hole_pixels"]
-    sbm_ctx = stage_ctx(tmp_path / "sbm", "inpaint", InpaintParams(backend="sbm", **small), {"remove": remove})
+    sbm_ctx = StageContext.standalone(tmp_path / "sbm", "inpaint", InpaintParams(backend="sbm", **small),
+                                      {"remove": remove})
     InpaintStage().run(sbm_ctx)
     for i, cam in enumerate(scene.cameras):
         img = read_image(ctx.out_dir / "images" / f"{cam.name}.png")
@@ -228,13 +230,13 @@ def test_inpaint_stage_diffusion_backend_multiview_and_cache(weights, tiny, tmp_
             assert np.abs(img[hole] - sbm_img[hole]).mean() > 1e-3  # the diffusion step ran on top of SBM
     n = len(builds)
     assert n == 3
-    InpaintStage().run(stage_ctx(tmp_path, "inpaint", params, {"remove": remove}, builds))
+    InpaintStage().run(StageContext.standalone(tmp_path, "inpaint", params, {"remove": remove}, builds))
     assert len(builds) == n  # cached items
     # the same configuration with the weights named by the environment variable instead: another
     # folder means other items (item keys do not contain key_extra, the stage adds the weights itself)
     monkeypatch.setenv(sd.ENV_VAR, str(weights[1]))
     p_env = InpaintParams(backend="auto", **small)
-    ctx_b = stage_ctx(tmp_path, "inpaint", p_env, {"remove": remove}, builds)
+    ctx_b = StageContext.standalone(tmp_path, "inpaint", p_env, {"remove": remove}, builds)
     InpaintStage().run(ctx_b)
     report_b = json.loads((ctx_b.out_dir / "inpaint.json").read_text())
     assert report_b["backend"] == "diffusion" and report_b["backend_requested"] == "auto"
@@ -328,7 +330,7 @@ def test_finetune_stage_with_sds_runs(weights, tmp_path, monkeypatch):
         write_png(refine / "images" / f"{cam.image}.png", textured(cam.height, cam.width))
     monkeypatch.setenv(sd.ENV_VAR, str(weights[0]))
     p = FinetuneParams(iterations=6, lambda_sds=0.5, sds_steps=3, sds_resolution=32, max_size=0, backend="cpu")
-    ctx = stage_ctx(tmp_path, "finetune", p, {"remove": remove, "refine": refine})
+    ctx = StageContext.standalone(tmp_path, "finetune", p, {"remove": remove, "refine": refine})
     FinetuneStage().run(ctx)
     info = json.loads((ctx.out_dir / "finetune.json").read_text())
     assert info["trainable"] > 0 and info["iterations"] == 6
@@ -339,4 +341,5 @@ def test_finetune_stage_with_sds_runs(weights, tmp_path, monkeypatch):
     # without weights, lambda_sds > 0 is a clear error
     monkeypatch.delenv(sd.ENV_VAR)
     with pytest.raises(PipelineError, match="finetune.diffusion_model"):
-        FinetuneStage().run(stage_ctx(tmp_path / "x", "finetune", p, {"remove": remove, "refine": refine}))
+        FinetuneStage().run(StageContext.standalone(tmp_path / "x", "finetune", p,
+                                                    {"remove": remove, "refine": refine}))

@@ -7,8 +7,8 @@ import json
 import cv2
 import numpy as np
 import pytest
-from stage_helpers import stage_ctx
 
+from sgpor_pipeline.dag import StageContext
 from sgpor_pipeline.imageio import read_image
 from sgpor_pipeline.removal.multiview import write_remove_fixture
 from sgpor_pipeline.removal.rpr import RPRParams, block_energies, hf_energy, refine_view, refined_overlay
@@ -105,9 +105,9 @@ def test_refine_stage_sharpens_a_smooth_baseline_fill(setup, tmp_path):
 
     sc = setup[0]
     remove = write_remove_fixture(sc, tmp_path / "remove", holes="mask")
-    ctx = stage_ctx(tmp_path, "inpaint", InpaintParams(backend="opencv"), {"remove": remove})
+    ctx = StageContext.standalone(tmp_path, "inpaint", InpaintParams(backend="opencv"), {"remove": remove})
     InpaintStage().run(ctx)
-    ctx2 = stage_ctx(tmp_path, "refine", RefineParams(), {"inpaint": ctx.out_dir, "remove": remove})
+    ctx2 = StageContext.standalone(tmp_path, "refine", RefineParams(), {"inpaint": ctx.out_dir, "remove": remove})
     RefineStage().run(ctx2)
     report = json.loads((ctx2.out_dir / "refined.json").read_text())
     assert report["low_before"] > 0 and report["refined_blocks"] > 0

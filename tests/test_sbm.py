@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from stage_helpers import stage_ctx
 
+from sgpor_pipeline.dag import StageContext
 from sgpor_pipeline.errors import PipelineError
 from sgpor_pipeline.imageio import read_image
 from sgpor_pipeline.removal.features import (
@@ -206,7 +206,7 @@ def test_inpaint_stage_multiview_is_consistent_and_cached(scene, tmp_path):
 
     remove = write_remove_fixture(scene, tmp_path / "remove", holes="mask")
     builds: list = []
-    ctx = stage_ctx(tmp_path, "inpaint", InpaintParams(), {"remove": remove}, builds)
+    ctx = StageContext.standalone(tmp_path, "inpaint", InpaintParams(), {"remove": remove}, builds)
     InpaintStage().run(ctx)
     out = ctx.out_dir
     report = json.loads((out / "inpaint.json").read_text())
@@ -226,11 +226,11 @@ def test_inpaint_stage_multiview_is_consistent_and_cached(scene, tmp_path):
     assert len(builds) == 4
     mv_err = consistency_error(scene, out)
 
-    ctx2 = stage_ctx(tmp_path, "inpaint", InpaintParams(), {"remove": remove}, builds)
+    ctx2 = StageContext.standalone(tmp_path, "inpaint", InpaintParams(), {"remove": remove}, builds)
     InpaintStage().run(ctx2)
     assert len(builds) == 4  # every view was a cached item
 
-    ctx3 = stage_ctx(tmp_path / "single", "inpaint", InpaintParams(multiview=False), {"remove": remove})
+    ctx3 = StageContext.standalone(tmp_path / "single", "inpaint", InpaintParams(multiview=False), {"remove": remove})
     InpaintStage().run(ctx3)
     single_err = consistency_error(scene, ctx3.out_dir)
     assert mv_err < 0.6 * single_err, (mv_err, single_err)
@@ -240,7 +240,8 @@ def test_opencv_backend_respects_the_mask_convention(scene, tmp_path):
     from sgpor_pipeline.stages.inpaint import InpaintParams, InpaintStage
 
     remove = write_remove_fixture(scene, tmp_path / "remove", holes="mask", fill="object")
-    ctx = stage_ctx(tmp_path, "inpaint", InpaintParams(backend="opencv", multiview=False), {"remove": remove})
+    ctx = StageContext.standalone(tmp_path, "inpaint", InpaintParams(backend="opencv", multiview=False),
+                                  {"remove": remove})
     InpaintStage().run(ctx)
     for i, cam in enumerate(scene.cameras):
         img = read_image(ctx.out_dir / "images" / f"{cam.name}.png")

@@ -168,8 +168,6 @@ def statue_scene(root: Path, data: Path, views: int, seed: int) -> Scene | None:
 # ------------------------------------------------------------------------------------------- methods
 
 
-
-
 def run_method(scene: Scene, work: Path, inpaint: InpaintParams | None, refine: RefineParams | None
                ) -> tuple[list[np.ndarray], float, dict]:
     if inpaint is None:  # delete-only

@@ -31,7 +31,7 @@ from typing import Any, Literal
 import numpy as np
 
 from .errors import PipelineError
-from .orientation import Similarity
+from .orientation import Similarity, umeyama
 from .scene import Camera, load_cameras, save_cameras
 
 log = logging.getLogger("sgpor_pipeline.render")
@@ -64,27 +64,6 @@ class RenderParams:
 
 # --------------------------------------------------------------------------------------------------
 # alignment
-
-
-def umeyama(src: np.ndarray, dst: np.ndarray, scale: bool = True) -> Similarity:
-    """The similarity ``x -> s R x + t`` minimising ``sum |s R src_i + t - dst_i|^2`` (Umeyama 1991).
-
-    ``src``, ``dst``: [N,3] corresponding points, N >= 3 not all collinear for a unique rotation.
-    ``scale=False`` fixes s = 1 (a rigid transform).
-    """
-    src = np.asarray(src, np.float64).reshape(-1, 3)
-    dst = np.asarray(dst, np.float64).reshape(-1, 3)
-    if len(src) != len(dst) or len(src) < 2:
-        raise ValueError("umeyama needs two equally long lists of at least 2 points")
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    xs, xd = src - mu_s, dst - mu_d
-    U, S, Vt = np.linalg.svd(xd.T @ xs / len(src))
-    D = np.eye(3)
-    D[2, 2] = np.sign(np.linalg.det(U @ Vt)) or 1.0  # a proper rotation, never a reflection
-    R = U @ D @ Vt
-    var_s = (xs ** 2).sum() / len(src)
-    s = float((S * np.diag(D)).sum() / var_s) if scale and var_s > 0 else 1.0
-    return Similarity(s, R, mu_d - s * R @ mu_s)
 
 
 def _mean_rotation(rotations: list[np.ndarray]) -> np.ndarray:

@@ -19,6 +19,7 @@ import pytest
 from sgpor_pipeline.dag import RunInputs
 from sgpor_pipeline.errors import PipelineError
 from sgpor_pipeline.imageio import read_mask, read_rgb8
+from sgpor_pipeline.orientation import umeyama
 from sgpor_pipeline.runner import run_pipeline
 from sgpor_pipeline.scene import Camera, load_cameras, save_cameras
 from sgpor_pipeline.sfm import (
@@ -38,18 +39,6 @@ SCENE = SceneParams(seed=1, rig="forward", n_views=16, width=256, height=192)
 
 # --------------------------------------------------------------------------------------------------
 # helpers
-
-
-def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Similarity (s, R, t) minimising |s R src + t - dst|^2 (Umeyama 1991)."""
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    xs, xd = src - mu_s, dst - mu_d
-    U, S, Vt = np.linalg.svd(xd.T @ xs / len(src))
-    D = np.eye(3)
-    D[2, 2] = np.sign(np.linalg.det(U @ Vt))
-    R = U @ D @ Vt
-    s = float((S * np.diag(D)).sum() / ((xs ** 2).sum() / len(src)))
-    return s, R, mu_d - s * R @ mu_s
 
 
 def scene_extent(scene) -> float:
@@ -139,7 +128,8 @@ def test_sfm_recovers_cameras(sfm_run):
     true = {c.name: c for c in scene.cameras}
     est = np.array([c.center for c in sfm.cameras])
     gt = np.array([true[c.image].center for c in sfm.cameras])
-    s, R, t = umeyama(est, gt)
+    sim = umeyama(est, gt)
+    s, R, t = sim.s, sim.R, sim.t
     err = np.linalg.norm(s * est @ R.T + t - gt, axis=1)
     assert err.max() < 0.01 * scene_extent(scene), (err.max(), scene_extent(scene))
     # orientations too: R_est R^T should equal the true rotation (angle of the difference)
@@ -183,7 +173,8 @@ def test_sfm_masks_undistorted_and_aligned(sfm_run):
     scene, _, _, _, sfm = sfm_run
     true = {c.name: c for c in scene.cameras}
     est = np.array([c.center for c in sfm.cameras])
-    s, R, t = umeyama(est, np.array([true[c.image].center for c in sfm.cameras]))
+    sim = umeyama(est, np.array([true[c.image].center for c in sfm.cameras]))
+    s, R, t = sim.s, sim.R, sim.t
     ious = []
     for cam in sfm.cameras:
         path = sfm.mask_path(cam.image)

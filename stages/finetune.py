@@ -237,26 +237,26 @@ class FinetuneStage(Stage):
         if p.lambda_sds > 0:  # fail before any work, saying what to provide
             sd.require_diffusers()
             sds_dir = sd.resolve_model_dir(p.diffusion_model, "finetune.diffusion_model")
+        if p.targets not in ("photos", "inpainted"):
+            raise PipelineError(f"unknown finetune.targets {p.targets!r}", fix='use "photos" or "inpainted"')
         remove_dir = ctx.inputs["remove"]
         model = read_ply(remove_dir / "gaussians.ply")
         seed_ids = np.load(remove_dir / "seed_ids.npy")
         cameras = [c for c in load_cameras(remove_dir / "cameras.json") if c.image is not None]
         holes = [read_mask(remove_dir / "holes" / f"{c.image}.png") for c in cameras]
-        if p.targets not in ("photos", "inpainted"):
-            raise PipelineError(f"unknown finetune.targets {p.targets!r}", fix='use "photos" or "inpainted"')
         hole_px = int(sum(h.sum() for h in holes))
+        trainable = None
         if hole_px < p.min_hole_pixels:  # everything behind the object was seen: deletion is the answer
-            ctx.log.info(f"finetune: {hole_px} hole pixel(s) over {len(cameras)} views (< min_hole_pixels "
-                         f"{p.min_hole_pixels}): nothing to re-fit, the scene after deletion is kept as it is")
+            skipped = (f"{hole_px} hole pixel(s) over {len(cameras)} views (< min_hole_pixels "
+                       f"{p.min_hole_pixels}): nothing to re-fit")
+        else:
+            trainable = trainable_gaussians(model, seed_ids, cameras, holes, p)
+            skipped = "" if trainable.any() else "no hole Gaussians to train"
+        if skipped:
+            ctx.log.info(f"finetune: {skipped}; the scene after deletion is kept as it is")
             self._write(ctx, model, cameras, [], {"trainable": 0, "gaussians": len(model),
                                                   "hole_gaussians": int(len(seed_ids)), "hole_pixels": hole_px,
-                                                  "iterations": 0, "skipped": "negligible holes"})
-            return
-        trainable = trainable_gaussians(model, seed_ids, cameras, holes, p)
-        if not trainable.any():  # nothing was unseen: the scene after deletion is already the answer
-            ctx.log.info("finetune: no hole Gaussians to train; the scene after deletion is kept as it is")
-            self._write(ctx, model, cameras, [], {"trainable": 0, "gaussians": len(model), "hole_gaussians": 0,
-                                                  "hole_pixels": hole_px, "iterations": 0})
+                                                  "iterations": 0, "skipped": skipped})
             return
         views = [self._view(ctx, c, h, p) for c, h in zip(cameras, holes)]
         tp = TrainParams(iterations=p.iterations, sh_degree=model.max_sh_degree, sh_degree_every=0,

@@ -243,18 +243,20 @@ class _SSIMMean(torch.autograd.Function):
         D = (e11 - m11) + (e22 - m22) + c2
         den = C * D + 1e-12
         s = A * B / den
-        if weight is None:  # plain mean: every SSIM-map entry weighs 1 / numel
-            wmap = torch.full_like(s[:1], 1.0 / s.numel())
-        else:  # weighted mean over pixels (and channels): weight [H,W] >= 0
-            wmap = (weight / (weight.sum().clamp_min(1e-12) * c))[None].to(s.dtype)
+        if weight is None:  # plain mean (the training hot path: no weight map)
+            ctx.save_for_backward(x, y, mu1, mu2, A, B, C, D, den, s)
+            ctx.count = s.numel()
+            return s.mean()
+        # weighted mean over pixels (and channels): weight [H,W] >= 0
+        wmap = (weight / (weight.sum().clamp_min(1e-12) * c))[None].to(s.dtype)
         ctx.save_for_backward(x, y, mu1, mu2, A, B, C, D, den, s, wmap)
         return (s * wmap).sum()
 
     @staticmethod
     def backward(ctx, grad_out: torch.Tensor):  # type: ignore[override]
-        x, y, mu1, mu2, A, B, C, D, den, s, wmap = ctx.saved_tensors
+        x, y, mu1, mu2, A, B, C, D, den, s, *wmap = ctx.saved_tensors
         g = _gauss_window(x.dtype)
-        w = grad_out * wmap
+        w = grad_out * wmap[0] if wmap else grad_out / ctx.count
         dA = B / den
         dB = A / den
         dC = -s * D / den

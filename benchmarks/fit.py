@@ -26,23 +26,17 @@ fit only had about one core).
 
 from __future__ import annotations
 
+import argparse
+import importlib.util
+import json
+import logging
 import os
-
-# torch's bundled OpenMP runtime spins its idle threads by default; with the rasterizer kernel's own
-# OpenMP threads on the same 2 cores that makes training steps several times slower (measured 3-10x on
-# a busy machine). The policy is read once, when torch loads: set it before anything imports torch.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-
-import argparse  # noqa: E402
-import importlib.util  # noqa: E402
-import json  # noqa: E402
-import logging  # noqa: E402
-import sys  # noqa: E402
-import tempfile  # noqa: E402
-import time  # noqa: E402
-from dataclasses import replace  # noqa: E402
-from pathlib import Path  # noqa: E402
-from typing import Any  # noqa: E402
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_DATA = ROOT.parent / "shared" / "data"

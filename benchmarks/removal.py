@@ -66,22 +66,18 @@ With ``--json`` the last printed line is one JSON object (see ``summary_keys`` i
 
 from __future__ import annotations
 
+import argparse
+import json
+import logging
+import math
 import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
 
-# See benchmarks/fit.py: torch's OpenMP runtime must not spin beside the rasterizer's threads.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-
-import argparse  # noqa: E402
-import json  # noqa: E402
-import logging  # noqa: E402
-import math  # noqa: E402
-import sys  # noqa: E402
-import tempfile  # noqa: E402
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
-from typing import Any  # noqa: E402
-
-import numpy as np  # noqa: E402
+import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_DATA = ROOT.parent / "shared" / "data"

@@ -74,6 +74,7 @@ import os
 import sys
 import tempfile
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -261,7 +262,7 @@ def run_variants(scene: str, run_out: Path, inputs: Any, base: list[str], out: P
 # protocols
 
 
-def protocol_synthetic(out: Path, quick: bool) -> dict[str, Any]:
+def protocol_synthetic(out: Path, quick: bool, extra: Sequence[str] = ()) -> dict[str, Any]:
     from sgpor_pipeline.dag import RunInputs
     from sgpor_pipeline.demo import ensure_demo_scene
     from sgpor_pipeline.synthetic import SceneParams
@@ -270,7 +271,7 @@ def protocol_synthetic(out: Path, quick: bool) -> dict[str, Any]:
     scene_dir = ensure_demo_scene(out / "synthetic" / "scene", params)
     inputs = RunInputs(images=scene_dir / "images", masks=scene_dir / "masks", cameras=scene_dir / "cameras.json",
                        extra={"groundtruth": scene_dir / "groundtruth"})
-    base = ["fit.iterations=300", "finetune.iterations=100"] if quick else []
+    base = (["fit.iterations=300", "finetune.iterations=100"] if quick else []) + list(extra)
     r = run_variants("synthetic", out / "synthetic" / "run", inputs, base, out)
     ours = next(x for x in r["rows"] if x["method"] == "ours")
     r["demo_seconds"] = float(sum(ours["seconds"].get(s, 0.0) for s in STAGES))
@@ -306,7 +307,7 @@ def place_object(sfm_dir: Path, cams: list) -> tuple[np.ndarray, float]:
     return pos, size
 
 
-def protocol_lund(data: Path, out: Path, quick: bool) -> dict[str, Any]:
+def protocol_lund(data: Path, out: Path, quick: bool, extra: Sequence[str] = ()) -> dict[str, Any]:
     import cv2
 
     from sgpor_pipeline.dag import RunInputs
@@ -358,7 +359,7 @@ def protocol_lund(data: Path, out: Path, quick: bool) -> dict[str, Any]:
     coverage = json.loads((scene_dir / "object.json").read_text())["coverage"]
     inputs = RunInputs(images=scene_dir / "images", masks=scene_dir / "masks", cameras=scene_dir / "cameras.json",
                        extra={"groundtruth": scene_dir / "groundtruth"})
-    base = ["fit.iterations=300", "finetune.iterations=100"] if quick else ["fit.iterations=1500"]
+    base = (["fit.iterations=300", "finetune.iterations=100"] if quick else ["fit.iterations=1500"]) + list(extra)
     r = run_variants("lund", out / "lund" / "run", inputs, base, out)
     r["wall_seconds"] += sfm_seconds
     wh = json.loads((scene_dir / "object.json").read_text())["size_px"]
@@ -550,6 +551,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenes", default="synthetic,lund,statue,room",
                     help="comma-separated: synthetic, lund, statue, room")
     ap.add_argument("--verbose", action="store_true", help="log every stage")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="config override added to every variant of the ground-truth scenes "
+                         "(e.g. remove.min_views=2); repeatable")
     args = ap.parse_args(argv)
     scenes = [s.strip() for s in args.scenes.split(",") if s.strip()]
     unknown = set(scenes) - {"synthetic", "lund", "statue", "room"}
@@ -566,11 +570,11 @@ def main(argv: list[str] | None = None) -> int:
     for scene in scenes:
         t0 = time.perf_counter()
         if scene == "synthetic":
-            r = protocol_synthetic(out, args.quick)
+            r = protocol_synthetic(out, args.quick, args.set)
         elif not data.is_dir():
             r = {"scene": scene, "skipped": f"data folder {data} not found (pass --data)"}
         elif scene == "lund":
-            r = protocol_lund(data, out, args.quick)
+            r = protocol_lund(data, out, args.quick, args.set)
         else:
             folder = data / ("statue" if scene == "statue" else "mip360-room")
             r = protocol_propagation(scene, folder, out, args.quick)

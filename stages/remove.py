@@ -4,12 +4,13 @@ Out (the contract the inpaint and refine stages read):
 
 - ``cameras.json``: the training cameras (PINHOLE; novel cameras dropped),
 - ``renders/<view>.png``: RGB render of the scene after deletion (before any new Gaussian),
-- ``holes/<view>.png``: 0/1, object pixels the remaining background does not cover: what to inpaint,
+- ``holes/<view>.png``: 0/1, object pixels the remaining background does not cover (opacity below
+  ``hole_alpha``; with ``min_views`` > 0 also those fewer other views observed): what to inpaint,
 - ``masks/<view>.png``: 0/1 object mask of every view (from the masks stage); holes are inside it,
 - ``depth/<view>.npy``: float32 z-depth of the background with the hole completed from its surroundings,
 - ``gaussians.ply``: the background Gaussians followed by the new hole Gaussians,
   ``seed_ids.npy``: indices of the new ones; ``object.ply``: the deleted Gaussians (a reusable asset),
-- ``remove.json``: counts and per-view hole sizes.
+- ``remove.json``: counts and per-view hole sizes (``hole_pixels_by_opacity``: before ``min_views``).
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from sgpor_pipeline.removal.holes import (
     initial_colour,
     median_spacing,
     objects_to_delete,
+    observing_views,
     render_background,
     seed_hole_gaussians,
     subset,
@@ -46,7 +48,7 @@ class RemoveStageParams(RemoveParams):
 
 class RemoveStage(Stage):
     name = "remove"
-    VERSION = 1
+    VERSION = 2
     Params = RemoveStageParams
     inputs = ("sfm", "fit", "masks")
 
@@ -64,21 +66,36 @@ class RemoveStage(Stage):
         save_cameras(ctx.out_dir / "cameras.json", cameras)
         for sub in ("renders", "holes", "masks", "depth"):
             (ctx.out_dir / sub).mkdir()
-        holes, depths, colours = [], [], []
-        per_view = {}
-        for cam, mask in ctx.progress(list(zip(cameras, masks)), total=len(cameras), desc="remove"):
+        renders, alphas, raw_depths = [], [], []
+        for cam in ctx.progress(cameras, total=len(cameras), desc="remove: render"):
             rgb, alpha, depth = render_background(background, cam, p.backend)
-            hole = hole_mask(mask, alpha, p)
-            valid = alpha >= p.hole_alpha
-            filled_depth = complete_depth(depth, valid, hole)
+            renders.append(rgb)
+            alphas.append(alpha)
+            raw_depths.append(depth)
+        holes = [hole_mask(m, a, p) for m, a in zip(masks, alphas)]
+        depths = [complete_depth(d, a >= p.hole_alpha, h) for d, a, h in zip(raw_depths, alphas, holes)]
+        if p.min_views > 0 and p.hole_mode == "unseen":
+            # second pass: mask pixels that too few other views observed become holes too
+            unobserved = []
+            for i, mask in enumerate(masks):
+                ys, xs = np.nonzero(mask & ~holes[i])
+                count = observing_views(cameras, masks, depths, i, ys, xs, p)
+                u = np.zeros_like(mask)
+                u[ys[count < p.min_views], xs[count < p.min_views]] = True
+                unobserved.append(u)
+            holes = [hole_mask(m, a, p, u) for m, a, u in zip(masks, alphas, unobserved)]
+            depths = [complete_depth(d, (a >= p.hole_alpha) & ~h, h)
+                      for d, a, h in zip(raw_depths, alphas, holes)]
+        colours = []
+        per_view = {}
+        for cam, mask, rgb, alpha, hole, filled_depth in zip(cameras, masks, renders, alphas, holes, depths):
             write_png(ctx.out_dir / "renders" / f"{cam.image}.png", rgb)
             write_mask01(ctx.out_dir / "holes" / f"{cam.image}.png", hole)
             shutil.copyfile(masks_dir / f"{cam.image}.png", ctx.out_dir / "masks" / f"{cam.image}.png")
             np.save(ctx.out_dir / "depth" / f"{cam.image}.npy", filled_depth)
-            holes.append(hole)
-            depths.append(filled_depth)
             colours.append(initial_colour(rgb, hole))
-            per_view[cam.image] = {"mask_pixels": int(mask.sum()), "hole_pixels": int(hole.sum())}
+            per_view[cam.image] = {"mask_pixels": int(mask.sum()), "hole_pixels": int(hole.sum()),
+                                   "hole_pixels_by_opacity": int((mask & (alpha < p.hole_alpha)).sum())}
         spacing = median_spacing(background.means.detach().double().numpy())
         seeds = seed_hole_gaussians(cameras, holes, depths, colours, spacing, model.max_sh_degree, p, p.seed)
         cleaned = concat_models(background, seeds)

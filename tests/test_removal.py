@@ -16,6 +16,7 @@ from sgpor_pipeline.removal.holes import (
     hole_mask,
     initial_colour,
     objects_to_delete,
+    observing_views,
     render_background,
     seed_hole_gaussians,
     subset,
@@ -118,6 +119,40 @@ def test_hole_modes():
 
     with pytest.raises(PipelineError, match="hole_mode"):
         hole_mask(mask, alpha, RemoveParams(hole_mode="everything"))
+
+
+def test_observing_views_finds_the_background_no_other_view_saw(scene_and_model):
+    """With the true background depths: mask pixels whose background point is the floor under the
+    object (inside its footprint) are observed by no other view, the rest of the mask by some."""
+    scene, _, _ = scene_and_model
+    lo, hi = scene.object_bounds
+    masks, depths = list(scene.masks), list(scene.depth_gt)
+    params = RemoveParams(min_views=1, view_mask_dilate=1)
+    under, elsewhere = [], []
+    for i, cam in enumerate(scene.cameras):
+        ys, xs = np.nonzero(masks[i])
+        if len(ys) == 0:
+            continue
+        count = observing_views(scene.cameras, masks, depths, i, ys, xs, params)
+        assert count.shape == ys.shape and count.min() >= 0 and count.max() <= len(scene.cameras) - 1
+        wfc = cam.world_from_cam
+        z = depths[i][ys, xs]
+        pc = np.stack([(xs + 0.5 - cam.K[0, 2]) / cam.K[0, 0] * z, (ys + 0.5 - cam.K[1, 2]) / cam.K[1, 1] * z, z], 1)
+        X = pc @ wfc[:3, :3].T + wfc[:3, 3]
+        shrink = 0.1 * (hi - lo)  # away from the footprint's edge (pixel-sized mask errors)
+        inside = np.all((X[:, :2] > lo[:2] + shrink[:2]) & (X[:, :2] < hi[:2] - shrink[:2]), axis=1)
+        under.append(count[inside])
+        elsewhere.append(count[~inside])
+    under, elsewhere = np.concatenate(under), np.concatenate(elsewhere)
+    assert len(under) > 20 and len(elsewhere) > 100
+    assert (under == 0).mean() > 0.9, (under == 0).mean()
+    assert (elsewhere >= 1).mean() > 0.8, (elsewhere >= 1).mean()
+    # the hole rule: unobserved mask pixels join the opacity holes, nothing outside the mask does
+    mask = masks[0]
+    unobserved = np.zeros_like(mask)
+    unobserved[: mask.shape[0] // 2] = True
+    hole = hole_mask(mask, np.ones(mask.shape, np.float32), RemoveParams(hole_close=0), unobserved)
+    assert (hole == (mask & unobserved)).all()
 
 
 def test_depth_completion_is_exact_for_planes():

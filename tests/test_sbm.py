@@ -18,7 +18,7 @@ from sgpor_pipeline.removal.features import (
     block_descriptors,
     make_backend,
 )
-from sgpor_pipeline.removal.multiview import lift, project, warp_from_reference, write_remove_fixture
+from sgpor_pipeline.removal.multiview import lift, project, sample_bilinear, warp_from_reference, write_remove_fixture
 from sgpor_pipeline.removal.rpr import hf_energy
 from sgpor_pipeline.removal.sbm import (
     SBMParams,
@@ -265,3 +265,17 @@ def test_dinov2_tokens_and_maps():
     be.prepare([img, texture(56, 84, seed=2)])
     maps = be.maps(img)
     assert maps.shape == (56, 84, 8) and np.isfinite(maps).all()
+
+
+def test_sample_bilinear_takes_more_points_than_remap_rows():
+    """cv2.remap refuses maps of 32767 rows or more: a 520x520 view's mask has more pixels than that
+    (a kitchen capture crashed the inpaint stage). Values: exact at pixel centres, the mean midway,
+    0 outside."""
+    rng = np.random.default_rng(0)
+    img = rng.random((300, 200, 3)).astype(np.float32)
+    ys, xs = np.nonzero(np.ones((300, 200), bool))  # 60000 points
+    got = sample_bilinear(img, xs.astype(np.float64), ys.astype(np.float64))
+    assert got.shape == (60000, 3) and np.array_equal(got, img[ys, xs])
+    mid = sample_bilinear(img[..., 0], np.array([0.5, -5.0]), np.array([0.0, 0.0]))
+    assert mid.shape == (2,)
+    assert mid[0] == pytest.approx(0.5 * (img[0, 0, 0] + img[0, 1, 0]), abs=1e-3) and mid[1] == 0.0

@@ -148,6 +148,21 @@ def project(points: np.ndarray, cam: Camera) -> tuple[np.ndarray, np.ndarray, np
     return u, v, z
 
 
+def sample_bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray, row: int = 1024) -> np.ndarray:
+    """``image`` (HxW or HxWxC float32) bilinearly sampled at N points (x, y: pixel-index coordinates,
+    0 = centre of the first pixel; outside = 0): [N] or [N,C]. The maps are laid out in rows of
+    ``row`` points because cv2.remap takes maps of fewer than 32767 rows (large masks have more points)."""
+    n = len(x)
+    rows = max(1, -(-n // row))
+    mx = np.full(rows * row, -1e4, np.float32)
+    my = np.full(rows * row, -1e4, np.float32)
+    mx[:n] = x
+    my[:n] = y
+    out = cv2.remap(np.asarray(image, np.float32), mx.reshape(rows, row), my.reshape(rows, row), cv2.INTER_LINEAR,
+                    borderMode=cv2.BORDER_CONSTANT)
+    return out.reshape(rows * row, *image.shape[2:])[:n]
+
+
 def warp_from_reference(ref_image: np.ndarray, ref_cam: Camera, ref_depth: np.ndarray, ref_filled: np.ndarray,
                         cam: Camera, depth: np.ndarray, target: np.ndarray, mode: str = "backward",
                         depth_tol: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
@@ -177,10 +192,8 @@ def warp_from_reference(ref_image: np.ndarray, ref_cam: Camera, ref_depth: np.nd
         # bilinear sample, restricted to filled reference pixels (normalised weights)
         src = np.where(ref_filled[..., None], ref_image, 0.0).astype(np.float32)
         wmap = ref_filled.astype(np.float32)
-        mx = (u - 0.5).astype(np.float32).reshape(-1, 1)
-        my = (v - 0.5).astype(np.float32).reshape(-1, 1)
-        col = cv2.remap(src, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT).reshape(-1, 3)
-        wt = cv2.remap(wmap, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT).reshape(-1)
+        col = sample_bilinear(src, u - 0.5, v - 0.5)
+        wt = sample_bilinear(wmap, u - 0.5, v - 0.5)
         good = wt > 1e-3
         out[ys[good], xs[good]] = col[good] / wt[good, None]
         got[ys[good], xs[good]] = True

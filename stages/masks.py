@@ -29,6 +29,7 @@ from sgpor_pipeline.imageio import read_image, read_mask, write_mask01, write_pn
 from sgpor_pipeline.removal.selection import (
     SelectionParams,
     TightParams,
+    grabcut_mask,
     mask_confidence,
     refine_mask,
     render_object_probability,
@@ -54,12 +55,18 @@ class MasksParams:
     # margin: ``margin`` px (-1 = the median margin measured on the given masks, 0 = none).
     tighten: bool = True
     margin: int = -1
+    # Propagated masks snapped to the object in each photo (GrabCut, selection.grabcut_mask), then the
+    # object selected again from ALL views' masks (the visual hull of many views instead of the cone
+    # of a few): parts one given view could not see are found in the views that see them.
+    grabcut: bool = True
+    grabcut_band: float = 0.3  # the band GrabCut may grow into: this x sqrt(mask area), in px
+    reselect: bool = True
     backend: str = "auto"
 
 
 class MasksStage(Stage):
     name = "masks"
-    VERSION = 3
+    VERSION = 6
     Params = MasksParams
     inputs = ("sfm", "fit")
 
@@ -99,29 +106,61 @@ class MasksStage(Stage):
             raise PipelineError("no Gaussian of the fitted scene falls inside the given masks",
                                 path=ctx.run_inputs.masks,
                                 fix="check that the masks cover the object (non-zero = object)")
+        given_names = {c.image for c in cams}
+        given_mask = {c.image: m for c, m in given}
+        given_index = {c.image: i for i, c in enumerate(cams)}
+        propagated: dict[str, tuple[np.ndarray, np.ndarray, dict]] = {}  # view -> (mask, prob, info)
+        for cam in ctx.progress(posed, total=len(posed), desc="masks"):
+            if cam.image in given_names:
+                continue
+            prob = render_object_probability(model, selection.is_object, cam, p.backend)
+            image = read_image(sfm.image_path(cam.image))
+            mask = refine_mask(prob, image, sel_params)
+            info = {"source": "propagated", "confidence": round(mask_confidence(prob, mask), 4)}
+            if p.grabcut:
+                snapped = grabcut_mask(prob, mask, image, band=p.grabcut_band)
+                info["grabcut"] = snapped is not None
+                if snapped is not None:
+                    mask = snapped
+            propagated[cam.image] = (mask, prob, info)
+        first = selection
+        if p.reselect and propagated and (p.grabcut or len(given) == 1):
+            # every view's mask now bounds the object: select again from all of them
+            all_cams = [c for c in posed if c.image in given_names or propagated[c.image][0].any()]
+            all_masks = [tight[given_index[c.image]] if c.image in given_names else propagated[c.image][0]
+                         for c in all_cams]
+            cone = [given_mask[c.image] if c.image in given_names else propagated[c.image][0] for c in all_cams]
+            depths = [behind[given_index[c.image]] if (behind is not None and c.image in given_names) else None
+                      for c in all_cams]
+            again = select_object(model, all_cams, all_masks, sel_params, sfm_pts,
+                                  [sfm.index(c.image) for c in all_cams], cone_masks=cone,
+                                  background_depths=depths if behind is not None else None,
+                                  depth_tol=TightParams.depth_tol)
+            if again.is_object.any():
+                selection = again
         np.save(ctx.out_dir / "object_ids.npy", np.flatnonzero(selection.is_object))
         np.save(ctx.out_dir / "scores.npy", selection.score.astype(np.float32))
         (ctx.out_dir / "masks").mkdir()
         (ctx.out_dir / "prob").mkdir()
-        given_names = {c.image for c in cams}
         per_view = {}
-        for cam in ctx.progress(posed, total=len(posed), desc="masks"):
-            prob = render_object_probability(model, selection.is_object, cam, p.backend)
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin + 1,) * 2) if margin > 0 else None
+        for cam in posed:
             if cam.image in given_names:
-                mask = next(m for c, m in given if c.image == cam.image)
+                mask, prob = given_mask[cam.image], render_object_probability(model, selection.is_object, cam,
+                                                                               p.backend)
                 info = {"source": "given", "confidence": 1.0}
             else:
-                image = read_image(sfm.image_path(cam.image))
-                mask = refine_mask(prob, image, sel_params)
-                info = {"source": "propagated", "confidence": round(mask_confidence(prob, mask), 4)}
-                if margin > 0 and mask.any():
-                    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin + 1,) * 2)
-                    mask = cv2.dilate(mask.astype(np.uint8), k) > 0
+                mask, prob, info = propagated[cam.image]
+                if selection is not first:
+                    prob = render_object_probability(model, selection.is_object, cam, p.backend)
+                if kernel is not None and mask.any():
+                    mask = cv2.dilate(mask.astype(np.uint8), kernel) > 0
             info["pixels"] = int(mask.sum())
             write_mask01(ctx.out_dir / "masks" / f"{cam.image}.png", mask)
             write_png(ctx.out_dir / "prob" / f"{cam.image}.png", prob)
             per_view[cam.image] = info
         summary = {"views": per_view, "object_gaussians": int(selection.is_object.sum()),
+                   "object_gaussians_first_pass": int(first.is_object.sum()), "reselected": selection is not first,
                    "gaussians": len(model), "seeds": selection.seeds, "from_sfm_points": selection.from_points,
                    "grown": selection.grown, "given": sorted(given_names),
                    "given_margin_px": [round(w, 2) for w in widths], "margin_px": margin,

@@ -291,3 +291,24 @@ def test_a_hole_no_view_sees_is_filled(scene_and_model):
         _, alpha, _ = render_background(cleaned, cam)
         covered.append(float((alpha[hole] >= 0.5).mean()))
     assert covered and np.mean(covered) > 0.8, covered
+
+
+def test_grabcut_snaps_a_partial_mask_to_the_object_in_the_photo():
+    """The object's far side was missed by the selection (the mask covers 70 % of it): GrabCut on the
+    photo completes it without taking the background; a tiny mask is left alone (None)."""
+    from sgpor_pipeline.removal.selection import grabcut_mask
+
+    rng = np.random.default_rng(0)
+    h, w = 120, 160
+    image = np.empty((h, w, 3), np.float32)
+    image[:] = (0.35, 0.45, 0.6)
+    image += rng.normal(0, 0.04, image.shape).astype(np.float32)
+    yy, xx = np.mgrid[0:h, 0:w]
+    disc = (yy - 60) ** 2 + (xx - 80) ** 2 < 35 ** 2
+    image[disc] = (0.9, 0.75, 0.1) + rng.normal(0, 0.04, (int(disc.sum()), 3))
+    image = image.clip(0, 1)
+    partial = disc & (xx < 80 + 0.4 * 35)  # the left 70 %
+    snapped = grabcut_mask(partial.astype(np.float32), partial, image)
+    assert snapped is not None
+    assert iou(snapped, disc) > 0.9 > iou(partial, disc), (iou(snapped, disc), iou(partial, disc))
+    assert grabcut_mask(np.zeros((h, w), np.float32), np.zeros((h, w), bool), image) is None

@@ -192,7 +192,9 @@ def select_object(model: GaussianModel, cameras: list[Camera], masks: list[np.nd
             n_from_points = int((near & ~seeds).sum())
             seeds |= near
     if background_depths is not None:
-        seeds &= in_front_of(means, cameras, background_depths, depth_tol)
+        front = seeds & in_front_of(means, cameras, background_depths, depth_tol)
+        if front.any():  # (a filter, never the reason nothing is selected)
+            seeds = front
     # Link length from the object's own point spacing (the seeds), not the scene's: background
     # touching the object (the floor under it) must not be reachable through coarser links.
     seed_spacing = median_spacing(means[seeds]) if seeds.sum() >= 2 else spacing
@@ -260,21 +262,25 @@ def tighten_mask(model: GaussianModel, camera: Camera, mask: np.ndarray, params:
 
 def in_front_of(points: np.ndarray, cameras: list[Camera], depths: list[np.ndarray | None],
                 tol: float) -> np.ndarray:
-    """Points nearer than ``depths`` x (1 - tol) wherever they project onto a pixel with a depth
-    (0 = no constraint): in a given view, the object lies in front of the background that continues
-    under its mask; the floor behind or under it does not."""
-    ok = np.ones(len(points), bool)
+    """Points that lie nearer than ``depths`` x (1 - tol) in most of the views where they project
+    onto a pixel with a depth (0 = no constraint; points no view constrains pass): in a given view the
+    object lies in front of the background that continues under its mask; the floor behind or under
+    it does not. A majority, not every view: one view's carried depth can be wrong (a ring crossing
+    another object)."""
+    behind_votes = np.zeros(len(points), np.int32)
+    votes = np.zeros(len(points), np.int32)
     for cam, depth in zip(cameras, depths):
         if depth is None:
             continue
         uv, z = project(points, cam)
         px = np.floor(uv).astype(np.int64)
         inside = (z > 0) & (px[:, 0] >= 0) & (px[:, 1] >= 0) & (px[:, 0] < cam.width) & (px[:, 1] < cam.height)
-        behind = np.zeros(len(points), bool)
-        d = depth[px[inside, 1], px[inside, 0]]
-        behind[inside] = (d > 0) & (z[inside] >= d * (1 - tol))
-        ok &= ~behind
-    return ok
+        d = np.zeros(len(points), np.float32)
+        d[inside] = depth[px[inside, 1], px[inside, 0]]
+        constrained = inside & (d > 0)
+        votes += constrained
+        behind_votes += constrained & (z >= d * (1 - tol))
+    return 2 * behind_votes <= votes
 
 
 def render_object_probability(model: GaussianModel, is_object: np.ndarray, camera: Camera,
@@ -291,6 +297,36 @@ def refine_mask(prob: np.ndarray, image: np.ndarray, params: SelectionParams) ->
     if params.guided_radius > 0 and hasattr(cv2, "ximgproc"):
         p = cv2.ximgproc.guidedFilter(image.astype(np.float32), p, params.guided_radius, params.guided_eps)
     return p >= params.render_threshold
+
+
+def grabcut_mask(prob: np.ndarray, mask: np.ndarray, image: np.ndarray, band: float = 0.3,
+                 iterations: int = 4) -> np.ndarray | None:
+    """The propagated mask snapped to the object in the photo (OpenCV GrabCut): colour models of the
+    object (the mask, certain where ``prob`` > 0.9) and of a band around it (``band`` x the mask's
+    size); outside the band is background. Parts of the object the selection missed but that look
+    like it and touch it (a far side one given view could not see, a foot at the floor's depth) join;
+    margin pixels leave. None when GrabCut gives up or its result is implausible (under 30 % or over
+    twice the mask): keep the mask then."""
+    mask = np.asarray(mask, bool)
+    area = int(mask.sum())
+    if area < 50:
+        return None
+    r = max(5, int(band * np.sqrt(area)))
+    ring = cv2.dilate(mask.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2)) > 0
+    gc = np.full(mask.shape, cv2.GC_BGD, np.uint8)
+    gc[ring] = cv2.GC_PR_BGD
+    gc[mask] = cv2.GC_PR_FGD
+    sure = cv2.erode(((prob > 0.9) & mask).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    gc[sure] = cv2.GC_FGD
+    img8 = np.ascontiguousarray((np.clip(image[..., :3], 0, 1) * 255 + 0.5).astype(np.uint8)[..., ::-1])
+    try:
+        cv2.grabCut(img8, gc, None, np.zeros((1, 65)), np.zeros((1, 65)), iterations, cv2.GC_INIT_WITH_MASK)
+    except cv2.error:
+        return None
+    out = (gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD)
+    if not 0.3 * area <= out.sum() <= 2.0 * area:
+        return None
+    return out
 
 
 def mask_confidence(prob: np.ndarray, mask: np.ndarray) -> float:

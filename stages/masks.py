@@ -12,6 +12,14 @@ dilated by ~15 px at 520 px): the object is selected from their pixels in FRONT 
 carried in from around them (``tighten``, :func:`~sgpor_pipeline.removal.selection.tighten_mask`),
 and the propagated masks get the measured margin back. Without it, the margin's floor seeded the
 selection and the kitchen's propagated masks leaked onto the table (blobs away from the object).
+
+Each propagated mask is then snapped to the object in its photo (``grabcut``,
+:func:`~sgpor_pipeline.removal.selection.grabcut_mask`) and the object is selected again from ALL
+views' masks (``reselect``): with one given view, the parts it cannot see (the kitchen bulldozer's far
+track, its bucket teeth at the table's depth) were left in the scene after deletion; the views that
+see them now say so. Measured: statue IoU against its own masks 0.946 from 1, 2 or 4 given masks
+(0.951 without GrabCut, 0.954-0.961 before the tightening): GrabCut follows the object's edges, the
+dataset's masks are drawn a little wider.
 """
 
 from __future__ import annotations
@@ -124,7 +132,7 @@ class MasksStage(Stage):
                     mask = snapped
             propagated[cam.image] = (mask, prob, info)
         first = selection
-        if p.reselect and propagated and (p.grabcut or len(given) == 1):
+        if p.reselect and p.grabcut and propagated:  # (without the photo's evidence it would be circular)
             # every view's mask now bounds the object: select again from all of them
             all_cams = [c for c in posed if c.image in given_names or propagated[c.image][0].any()]
             all_masks = [tight[given_index[c.image]] if c.image in given_names else propagated[c.image][0]

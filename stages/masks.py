@@ -38,6 +38,7 @@ from sgpor_pipeline.removal.selection import (
     SelectionParams,
     TightParams,
     grabcut_mask,
+    margin_width,
     mask_confidence,
     refine_mask,
     render_object_probability,
@@ -68,13 +69,14 @@ class MasksParams:
     # of a few): parts one given view could not see are found in the views that see them.
     grabcut: bool = True
     grabcut_band: float = 0.3  # the band GrabCut may grow into: this x sqrt(mask area), in px
+    grabcut_max_growth: float = 1.3  # a GrabCut result larger than this x the mask is rejected
     reselect: bool = True
     backend: str = "auto"
 
 
 class MasksStage(Stage):
     name = "masks"
-    VERSION = 6
+    VERSION = 9
     Params = MasksParams
     inputs = ("sfm", "fit")
 
@@ -99,14 +101,11 @@ class MasksStage(Stage):
         if p.use_sfm_points and len(sfm.points):
             pts = sfm.points
             sfm_pts = (pts.xyz, pts.obs_point, pts.obs_view, pts.obs_xy)
-        tight, widths, behind = masks, [0.0] * len(masks), None
+        tight, widths, behind = masks, [0.0] * len(masks), None  # widths: margin of each given mask, px
         if p.tighten:
             tp = TightParams()
             triples = [tighten_mask(model, c, m, tp, p.backend) for c, m in given]
             tight, widths, behind = [t[0] for t in triples], [t[1] for t in triples], [t[2] for t in triples]
-        # (a median margin under MIN_MARGIN px is the edge blur of a mask drawn tight: no margin)
-        measured = float(np.median(widths))
-        margin = p.margin if p.margin >= 0 else (int(round(measured)) if measured >= MIN_MARGIN else 0)
         selection = select_object(model, cams, tight, sel_params, sfm_pts, [sfm.index(c.image) for c in cams],
                                   cone_masks=masks, background_depths=behind,
                                   depth_tol=TightParams.depth_tol)
@@ -126,8 +125,8 @@ class MasksStage(Stage):
             mask = refine_mask(prob, image, sel_params)
             info = {"source": "propagated", "confidence": round(mask_confidence(prob, mask), 4)}
             if p.grabcut:
-                snapped = grabcut_mask(prob, mask, image, band=p.grabcut_band)
-                info["grabcut"] = snapped is not None
+                snapped = grabcut_mask(prob, mask, image, band=p.grabcut_band, max_growth=p.grabcut_max_growth)
+                info["grabcut"] = None if snapped is None else round(float(snapped.sum()) / max(1, int(mask.sum())), 3)
                 if snapped is not None:
                     mask = snapped
             propagated[cam.image] = (mask, prob, info)
@@ -146,6 +145,20 @@ class MasksStage(Stage):
                                   depth_tol=TightParams.depth_tol)
             if again.is_object.any():
                 selection = again
+        if p.grabcut:
+            # the margin in the style of the given masks: how far each reaches beyond the mask this
+            # stage would have propagated to its view (also where depth cannot tell: a flat object)
+            for i, (c, m) in enumerate(given):
+                prob = render_object_probability(model, selection.is_object, c, p.backend)
+                image = read_image(sfm.image_path(c.image))
+                own = refine_mask(prob, image, sel_params)
+                own = (grabcut_mask(prob, own, image, band=p.grabcut_band, max_growth=p.grabcut_max_growth)
+                       if own.any() else None)
+                if own is not None:
+                    widths[i] = max(widths[i], margin_width(m, own & m))
+        # (a median margin under MIN_MARGIN px is the edge blur of a mask drawn tight: no margin)
+        measured = float(np.median(widths))
+        margin = p.margin if p.margin >= 0 else (int(round(measured)) if measured >= MIN_MARGIN else 0)
         np.save(ctx.out_dir / "object_ids.npy", np.flatnonzero(selection.is_object))
         np.save(ctx.out_dir / "scores.npy", selection.score.astype(np.float32))
         (ctx.out_dir / "masks").mkdir()

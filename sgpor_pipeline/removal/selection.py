@@ -255,9 +255,7 @@ def tighten_mask(model: GaussianModel, camera: Camera, mask: np.ndarray, params:
     front = cv2.morphologyEx(front.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8)) > 0
     if front.sum() < params.min_keep * mask.sum():
         return mask, 0.0, None
-    contours, _ = cv2.findContours(front.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-    perimeter = max(1.0, sum(cv2.arcLength(c, True) for c in contours))
-    return front, float(mask.sum() - front.sum()) / perimeter, np.where(mask, background, 0.0).astype(np.float32)
+    return front, margin_width(mask, front), np.where(mask, background, 0.0).astype(np.float32)
 
 
 def in_front_of(points: np.ndarray, cameras: list[Camera], depths: list[np.ndarray | None],
@@ -300,13 +298,14 @@ def refine_mask(prob: np.ndarray, image: np.ndarray, params: SelectionParams) ->
 
 
 def grabcut_mask(prob: np.ndarray, mask: np.ndarray, image: np.ndarray, band: float = 0.3,
-                 iterations: int = 4) -> np.ndarray | None:
+                 iterations: int = 4, max_growth: float = 1.3) -> np.ndarray | None:
     """The propagated mask snapped to the object in the photo (OpenCV GrabCut): colour models of the
     object (the mask, certain where ``prob`` > 0.9) and of a band around it (``band`` x the mask's
     size); outside the band is background. Parts of the object the selection missed but that look
     like it and touch it (a far side one given view could not see, a foot at the floor's depth) join;
-    margin pixels leave. None when GrabCut gives up or its result is implausible (under 30 % or over
-    twice the mask): keep the mask then."""
+    margin pixels leave. None when GrabCut gives up or its result is implausible (under 30 % of the
+    mask, or over ``max_growth`` x: a floor of the object's colour around it, as the beige slippers on
+    the light rug of mip-NeRF 360 room): keep the mask then."""
     mask = np.asarray(mask, bool)
     area = int(mask.sum())
     if area < 50:
@@ -324,9 +323,20 @@ def grabcut_mask(prob: np.ndarray, mask: np.ndarray, image: np.ndarray, band: fl
     except cv2.error:
         return None
     out = (gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD)
-    if not 0.3 * area <= out.sum() <= 2.0 * area:
+    if not 0.3 * area <= out.sum() <= max_growth * area:
         return None
     return out
+
+
+def margin_width(given: np.ndarray, inner: np.ndarray) -> float:
+    """Mean width in pixels of the band ``given`` has beyond ``inner``: their area difference over
+    ``inner``'s perimeter (0 when ``inner`` is empty)."""
+    inner = np.asarray(inner, bool)
+    if not inner.any():
+        return 0.0
+    contours, _ = cv2.findContours(inner.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    perimeter = max(1.0, sum(cv2.arcLength(c, True) for c in contours))
+    return float((np.asarray(given, bool) & ~inner).sum()) / perimeter
 
 
 def mask_confidence(prob: np.ndarray, mask: np.ndarray) -> float:

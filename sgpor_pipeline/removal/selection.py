@@ -298,14 +298,14 @@ def refine_mask(prob: np.ndarray, image: np.ndarray, params: SelectionParams) ->
 
 
 def grabcut_mask(prob: np.ndarray, mask: np.ndarray, image: np.ndarray, band: float = 0.3,
-                 iterations: int = 4, max_growth: float = 1.3) -> np.ndarray | None:
+                 iterations: int = 4, max_growth: float = 2.0) -> np.ndarray | None:
     """The propagated mask snapped to the object in the photo (OpenCV GrabCut): colour models of the
     object (the mask, certain where ``prob`` > 0.9) and of a band around it (``band`` x the mask's
     size); outside the band is background. Parts of the object the selection missed but that look
     like it and touch it (a far side one given view could not see, a foot at the floor's depth) join;
     margin pixels leave. None when GrabCut gives up or its result is implausible (under 30 % of the
-    mask, or over ``max_growth`` x: a floor of the object's colour around it, as the beige slippers on
-    the light rug of mip-NeRF 360 room): keep the mask then."""
+    mask, or over ``max_growth`` x): keep the mask then. What it adds must still be checked against
+    the given views (:func:`inside_given_cone`)."""
     mask = np.asarray(mask, bool)
     area = int(mask.sum())
     if area < 50:
@@ -325,6 +325,27 @@ def grabcut_mask(prob: np.ndarray, mask: np.ndarray, image: np.ndarray, band: fl
     out = (gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD)
     if not 0.3 * area <= out.sum() <= max_growth * area:
         return None
+    return out
+
+
+def inside_given_cone(model: GaussianModel, camera: Camera, pixels: np.ndarray, cameras: list[Camera],
+                      masks: list[np.ndarray], dilate: int, backend: str = "auto") -> np.ndarray:
+    """Of ``pixels`` (a HxW bool map of ``camera``), those whose surface point (rendered depth) lies in
+    the visual cone of the given masks: GrabCut may add what the given views could not see or showed
+    inside their masks, never what a given view showed outside its mask (a floor of the object's
+    colour)."""
+    from .holes import lift  # (holes imports this module)
+
+    pixels = np.asarray(pixels, bool)
+    if not pixels.any():
+        return pixels
+    img, alpha, _ = render_channels(model, camera, model.colors_dc(), backend, depth=True)
+    ys, xs = np.nonzero(pixels & (alpha > 0.5) & (img[..., 3] > 0))
+    out = np.zeros_like(pixels)
+    if len(ys):
+        points = lift(camera, ys, xs, img[ys, xs, 3].astype(np.float64))
+        ok = in_visual_cone(points, cameras, masks, dilate)
+        out[ys[ok], xs[ok]] = True
     return out
 
 

@@ -154,7 +154,7 @@ class MasksStage(Stage):
                                   depth_tol=TightParams.depth_tol)
             if again.is_object.any():
                 selection = again
-        if p.grabcut:
+        if p.grabcut and propagated:
             # the margin in the style of the given masks: how far each reaches beyond the mask this
             # stage would have propagated to its view (also where depth cannot tell: a flat object)
             for i, (c, m) in enumerate(given):

@@ -80,6 +80,11 @@ class SfmParams:
     max_image_size: int = 1600
     max_num_features: int = 8192  # SIFT features per image (matching time grows with its square)
     min_registered_fraction: float = 0.8  # warn when fewer images than this register
+    # Incremental mapping that registers fewer than min_registered_fraction of the images is run once
+    # more with relaxed thresholds (RELAXED_MAPPER) and the larger model is kept. Small or narrow-angle
+    # images (mip-NeRF 360 room's 256 px crops) have pairs COLMAP classifies as planar/panoramic and
+    # too few inliers for its default initialisation: 7 of 24 registered, 17 relaxed (direct pycolmap).
+    retry_relaxed: bool = True
     seed: int = 0  # pycolmap's random seed (RANSAC, mapper)
     num_threads: int = -1  # feature extraction, matching, undistortion; -1 = all cores
     # Mapping on one thread: multi-threaded bundle adjustment sums in a varying order, so poses differ
@@ -343,7 +348,7 @@ def _match(db: Path, matcher: str, params: SfmParams) -> None:
                                   verification_options=verification, device=pycolmap.Device.cpu)
 
 
-def _map(db: Path, image_dir: Path, out: Path, params: SfmParams) -> dict[int, Any]:
+def _map(db: Path, image_dir: Path, out: Path, params: SfmParams, relaxed: bool = False) -> dict[int, Any]:
     import pycolmap
 
     out.mkdir(parents=True, exist_ok=True)
@@ -355,11 +360,15 @@ def _map(db: Path, image_dir: Path, out: Path, params: SfmParams) -> dict[int, A
         options.mapper.random_seed = params.seed
         options.mapper.num_threads = threads
         return pycolmap.global_mapping(db, image_dir, out, options=options)
-    options = incremental_options(params)
+    options = incremental_options(params, relaxed)
     return pycolmap.incremental_mapping(db, image_dir, out, options=options)
 
 
-def incremental_options(params: SfmParams) -> Any:
+# COLMAP's defaults: init_min_num_inliers 100, abs_pose_min_num_inliers 30, init_min_tri_angle 16 deg
+RELAXED_MAPPER = {"init_min_num_inliers": 30, "abs_pose_min_num_inliers": 15, "init_min_tri_angle": 4.0}
+
+
+def incremental_options(params: SfmParams, relaxed: bool = False) -> Any:
     import pycolmap
 
     options = pycolmap.IncrementalPipelineOptions()
@@ -371,6 +380,9 @@ def incremental_options(params: SfmParams) -> Any:
     options.triangulation.random_seed = params.seed
     # COLMAP drops models of fewer than 10 images; a small capture (3-9 photos) would then always fail.
     options.min_model_size = 3
+    if relaxed:
+        for key, value in RELAXED_MAPPER.items():
+            setattr(options.mapper, key, value)
     return options
 
 
@@ -482,6 +494,18 @@ def estimate_cameras(ingest_dir: Path, views: Sequence[View], out_dir: Path, par
             _match(db, matcher, params)
         with timings.step("map", f"sfm: {params.mapper} mapping"):
             models = _map(db, image_dir, work / "models", params)
+        retry = None
+        registered_first = max((m.num_reg_images() for m in models.values()), default=0)
+        if (params.retry_relaxed and params.mapper == "incremental"
+                and registered_first < params.min_registered_fraction * n):
+            with timings.step("map_relaxed", f"sfm: {registered_first}/{n} registered; mapping again with "
+                                             f"relaxed thresholds {RELAXED_MAPPER}"):
+                relaxed = _map(db, image_dir, work / "models_relaxed", params, relaxed=True)
+            registered_relaxed = max((m.num_reg_images() for m in relaxed.values()), default=0)
+            retry = {"registered_default": registered_first, "registered_relaxed": registered_relaxed,
+                     "kept": "relaxed" if registered_relaxed > registered_first else "default"}
+            if registered_relaxed > registered_first:
+                models = relaxed
         if not models:
             stats = database_stats(db)
             raise PipelineError(
@@ -538,6 +562,7 @@ def estimate_cameras(ingest_dir: Path, views: Sequence[View], out_dir: Path, par
         "registered": len(cameras),
         "unregistered": unregistered,
         "models": len(models),
+        "relaxed_retry": retry,
         "seconds": timings.seconds,
     }
     _write_outputs(out_dir, cameras, rec, summary)

@@ -151,6 +151,7 @@ def test_sfm_outputs_layout_and_points(sfm_run):
     assert not (folder / "colmap").exists() and not (folder / "stereo").exists()
     notes = json.loads((folder / "manifest.json").read_text())["notes"]
     assert notes["registered"] == len(scene.cameras) and set(notes["seconds"]) >= {"extract", "match", "map"}
+    assert sfm.summary["relaxed_retry"] is None  # everything registered: no second mapping
     for cam in sfm.cameras:
         img = read_rgb8(sfm.image_path(cam.image))
         assert img.shape == (cam.height, cam.width, 3)
@@ -231,6 +232,8 @@ def test_warns_when_few_images_register(scene_dir, tmp_path, caplog):
         _, sfm = run_sfm(tmp_path / "out", images=images)
     assert sfm.summary["registered"] == 12
     assert sfm.summary["unregistered"] == [f"zz_blank{i}" for i in range(4)]
+    # too few registered: mapped once more with relaxed thresholds; blank photos gain nothing from it
+    assert sfm.summary["relaxed_retry"] == {"registered_default": 12, "registered_relaxed": 12, "kept": "default"}
     assert all(not sfm.image_path(f"zz_blank{i}").exists() for i in range(4))
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert any("only 12 of 16 images registered" in w and "zz_blank3" in w for w in warnings), warnings
@@ -331,6 +334,14 @@ def test_known_distorted_cameras_are_undistorted(scene_dir, tmp_path):
 
 # --------------------------------------------------------------------------------------------------
 # small units
+
+
+def test_relaxed_mapper_options():
+    from sgpor_pipeline.sfm import RELAXED_MAPPER, incremental_options
+
+    default, relaxed = incremental_options(SfmParams()), incremental_options(SfmParams(), relaxed=True)
+    for key, value in RELAXED_MAPPER.items():
+        assert getattr(relaxed.mapper, key) == value and getattr(default.mapper, key) > value
 
 
 def test_choose_matcher_and_params():

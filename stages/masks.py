@@ -154,11 +154,12 @@ class MasksStage(Stage):
                                   depth_tol=TightParams.depth_tol)
             if again.is_object.any():
                 selection = again
+        given_prob: dict[str, np.ndarray] = {}  # rendered with the final selection, written below
         if p.grabcut and propagated:
             # the margin in the style of the given masks: how far each reaches beyond the mask this
             # stage would have propagated to its view (also where depth cannot tell: a flat object)
             for i, (c, m) in enumerate(given):
-                prob = render_object_probability(model, selection.is_object, c, p.backend)
+                prob = given_prob[c.image] = render_object_probability(model, selection.is_object, c, p.backend)
                 image = read_image(sfm.image_path(c.image))
                 own = refine_mask(prob, image, sel_params)
                 own = (grabcut_mask(prob, own, image, band=p.grabcut_band, max_growth=p.grabcut_max_growth)
@@ -176,8 +177,10 @@ class MasksStage(Stage):
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin + 1,) * 2) if margin > 0 else None
         for cam in posed:
             if cam.image in given_names:
-                mask, prob = given_mask[cam.image], render_object_probability(model, selection.is_object, cam,
-                                                                               p.backend)
+                mask = given_mask[cam.image]
+                prob = given_prob.get(cam.image)
+                if prob is None:
+                    prob = render_object_probability(model, selection.is_object, cam, p.backend)
                 info = {"source": "given", "confidence": 1.0}
             else:
                 mask, prob, info = propagated[cam.image]

@@ -76,13 +76,9 @@ class RemoveStage(Stage):
         depths = [complete_depth(d, a >= p.hole_alpha, h) for d, a, h in zip(raw_depths, alphas, holes)]
         if p.min_views > 0 and p.hole_mode == "unseen":
             # second pass: mask pixels that too few other views observed become holes too
-            unobserved = []
-            for i, mask in enumerate(masks):
-                ys, xs = np.nonzero(mask & ~holes[i])
-                count = observing_views(cameras, masks, depths, i, ys, xs, p)
-                u = np.zeros_like(mask)
-                u[ys[count < p.min_views], xs[count < p.min_views]] = True
-                unobserved.append(u)
+            seen = [m & ~h for m, h in zip(masks, holes)]
+            counts = observing_views(cameras, masks, depths, seen, p)
+            unobserved = [s & (c < p.min_views) for s, c in zip(seen, counts)]
             holes = [hole_mask(m, a, p, u) for m, a, u in zip(masks, alphas, unobserved)]
             depths = [complete_depth(d, (a >= p.hole_alpha) & ~h, h)
                       for d, a, h in zip(raw_depths, alphas, holes)]

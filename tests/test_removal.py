@@ -165,12 +165,14 @@ def test_observing_views_finds_the_background_no_other_view_saw(scene_and_model)
     masks, depths = list(scene.masks), list(scene.depth_gt)
     params = RemoveParams(min_views=1, view_mask_dilate=1)
     under, elsewhere = [], []
+    counts = observing_views(scene.cameras, masks, depths, masks, params)
     for i, cam in enumerate(scene.cameras):
         ys, xs = np.nonzero(masks[i])
         if len(ys) == 0:
             continue
-        count = observing_views(scene.cameras, masks, depths, i, ys, xs, params)
-        assert count.shape == ys.shape and count.min() >= 0 and count.max() <= len(scene.cameras) - 1
+        assert counts[i].shape == masks[i].shape and (counts[i][~masks[i]] == 0).all()
+        count = counts[i][ys, xs]
+        assert count.min() >= 0 and count.max() <= len(scene.cameras) - 1
         wfc = cam.world_from_cam
         z = depths[i][ys, xs]
         pc = np.stack([(xs + 0.5 - cam.K[0, 2]) / cam.K[0, 0] * z, (ys + 0.5 - cam.K[1, 2]) / cam.K[1, 1] * z, z], 1)

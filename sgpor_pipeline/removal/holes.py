@@ -22,7 +22,7 @@ from scipy.spatial import cKDTree
 from ..errors import PipelineError
 from ..gaussians.model import GaussianModel, inverse_sigmoid, rgb_to_sh
 from ..scene import Camera
-from .selection import contribution_scores, in_visual_cone, median_spacing, render_channels
+from .selection import contribution_scores, in_visual_cone, median_spacing, pixels_in_image, render_channels
 
 
 @dataclass
@@ -101,36 +101,36 @@ def hole_mask(object_mask: np.ndarray, alpha: np.ndarray, params: RemoveParams,
     return hole
 
 
-def observing_views(cameras: list[Camera], masks: list[np.ndarray], depths: list[np.ndarray], i: int,
-                    ys: np.ndarray, xs: np.ndarray, params: RemoveParams) -> np.ndarray:
-    """Per pixel (ys, xs) of view ``i``: how many OTHER views show its background point (lifted with
-    ``depths[i]``): it projects inside the image, outside that view's (dilated) object mask, and not
-    behind that view's own surface (``depths``: completed background z-depth of every view)."""
-    count = np.zeros(len(ys), np.int32)
-    if len(ys) == 0:
-        return count
-    z = depths[i][ys, xs].astype(np.float64)
-    good = np.isfinite(z) & (z > 0)
-    X = lift(cameras[i], ys, xs, np.where(good, z, 1.0))
+def observing_views(cameras: list[Camera], masks: list[np.ndarray], depths: list[np.ndarray],
+                    pixels: list[np.ndarray], params: RemoveParams) -> list[np.ndarray]:
+    """Per view i, for its ``pixels[i]`` (HxW bool): how many OTHER views show the pixel's background
+    point (lifted with ``depths[i]``): it projects inside their image, outside their (dilated) object
+    mask, and not behind their own surface (``depths``: completed background z-depth of every view).
+    HxW int32 maps, 0 outside ``pixels``."""
     d = max(0, params.view_mask_dilate)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * d + 1, 2 * d + 1)) if d else None
-    for j, cam in enumerate(cameras):
-        if j == i:
+    dilated = [m if kernel is None else cv2.dilate(m.astype(np.uint8), kernel) > 0 for m in masks]
+    counts = []
+    for i, cam_i in enumerate(cameras):
+        out = np.zeros(pixels[i].shape, np.int32)
+        ys, xs = np.nonzero(pixels[i])
+        counts.append(out)
+        if len(ys) == 0:
             continue
-        mask = masks[j] if kernel is None else cv2.dilate(masks[j].astype(np.uint8), kernel) > 0
-        pc = X @ cam.cam_from_world[:3, :3].T + cam.cam_from_world[:3, 3]
-        zj = pc[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = cam.K[0, 0] * pc[:, 0] / zj + cam.K[0, 2]
-            v = cam.K[1, 1] * pc[:, 1] / zj + cam.K[1, 2]
-        h, w = mask.shape
-        ok = good & (zj > 1e-9) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        iu = np.clip(np.floor(np.where(ok, u, 0)).astype(np.int64), 0, w - 1)
-        iv = np.clip(np.floor(np.where(ok, v, 0)).astype(np.int64), 0, h - 1)
-        surface = depths[j][iv, iu]
-        ok &= ~mask[iv, iu] & ~(zj > surface * (1 + params.view_depth_tol))
-        count += ok
-    return count
+        z = depths[i][ys, xs].astype(np.float64)
+        good = np.isfinite(z) & (z > 0)
+        X = lift(cam_i, ys, xs, np.where(good, z, 1.0))
+        count = np.zeros(len(ys), np.int32)
+        for j, cam in enumerate(cameras):
+            if j == i:
+                continue
+            px, zj, inside = pixels_in_image(X, cam)
+            ok = good & inside
+            u, v = px[ok, 0], px[ok, 1]
+            ok[ok] = ~dilated[j][v, u] & ~(zj[ok] > depths[j][v, u] * (1 + params.view_depth_tol))
+            count += ok
+        out[ys, xs] = count
+    return counts
 
 
 def complete_depth(depth: np.ndarray, valid: np.ndarray, hole: np.ndarray) -> np.ndarray:

@@ -51,6 +51,11 @@ def selected_exporters(params: ExportParams) -> dict[str, type[Exporter]]:
     return out
 
 
+def _needs_of_selected(params: ExportParams, attribute: str) -> tuple[str, ...]:
+    """The union of the selected exporters' ``needs`` or ``optional_needs``, sorted."""
+    return tuple(sorted({stage for e in selected_exporters(params).values() for stage in getattr(e, attribute)}))
+
+
 class ExportStage(Stage):
     name = "export"
     VERSION = 1
@@ -60,19 +65,13 @@ class ExportStage(Stage):
 
     @classmethod
     def upstream(cls, params: ExportParams) -> tuple[str, ...]:
-        needs: set[str] = set()
-        for exporter in selected_exporters(params).values():
-            needs.update(exporter.needs)
-        return tuple(sorted(needs))
+        return _needs_of_selected(params, "needs")
 
     @classmethod
     def optional_inputs(cls, params: ExportParams) -> tuple[str, ...]:
         # e.g. the report shows evaluate's metrics when the run has ground truth: evaluate's key then
         # enters export's key, so new metrics rebuild the report
-        needs: set[str] = set()
-        for exporter in selected_exporters(params).values():
-            needs.update(exporter.optional_needs)
-        return tuple(sorted(needs))
+        return _needs_of_selected(params, "optional_needs")
 
     @classmethod
     def key_extra(cls, params: ExportParams) -> dict[str, Any]:

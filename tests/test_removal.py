@@ -141,6 +141,33 @@ def test_remove_finds_only_unseen_background_as_hole(scene_and_model):
     assert np.mean(hole_frac) < 0.6, hole_frac
 
 
+def test_a_large_gaussian_centred_in_the_hull_is_deleted_despite_its_tails(scene_and_model):
+    """A big Gaussian whose centre every view shows inside the mask, but whose tails peek out of the
+    object's silhouette (so most of its seen weight is outside the masks: a background-like score),
+    would smear across the hole once the object is gone: it is deleted (``hull_centre_views``)."""
+    scene, model, truth = scene_and_model
+    obj = model.means.detach().double().numpy()[truth]
+    centre = obj.mean(0)
+    radius = float(np.linalg.norm(obj - centre, axis=1).max())
+    big = GaussianModel.empty(1, 0)
+    with torch.no_grad():
+        big.params["means"].copy_(torch.from_numpy(centre).float()[None])
+        big.params["scales"].fill_(float(np.log(1.5 * radius)))
+        big.params["opacities"].fill_(0.0)
+        big.params["sh0"].copy_(rgb_to_sh(torch.tensor([[0.1, 0.1, 0.1]]))[:, None, :])
+    both = concat_models(model, big)
+    masks = list(scene.masks)
+    inside, total = contribution_scores(both, scene.cameras, masks)
+    assert total[-1] >= RemoveParams().min_weight and inside[-1] / total[-1] < 0.5  # looks like background
+    ids = np.flatnonzero(truth)
+    kept, _ = objects_to_delete(both, scene.cameras, masks, ids, RemoveParams(hull_centre_views=0))
+    assert not kept[-1]  # the score alone spares it
+    delete, stats = objects_to_delete(both, scene.cameras, masks, ids, RemoveParams())
+    assert delete[-1] and stats["hull_centres"] >= 1
+    # (the background's own Gaussians centred in every mask are the floor under the object, unseen)
+    assert (delete[:-1] & ~truth).sum() < 0.02 * (~truth).sum()
+
+
 def test_hole_modes():
     """"unseen" keeps only the uncovered mask pixels; "mask" (the per-view 2D baseline) the whole mask;
     an unknown mode is a clear error."""

@@ -30,6 +30,12 @@ class RemoveParams:
     score_threshold: float = 0.6  # a Gaussian with this share of its weight inside the masks is object
     min_weight: float = 0.05  # below this total blending weight over all views a Gaussian counts as unseen
     hull_dilate: int = 2  # pixels the masks are dilated by for the visual-hull floater test
+    # A Gaussian whose CENTRE lies inside every view's (undilated) mask, in at least this many views,
+    # is deleted even when much of its weight showed outside the masks: large Gaussians behind the
+    # object peek out of its silhouette with their tails (a low object score) and, once the object is
+    # gone, smear across the hole. Synthetic scene: 8 such Gaussians; deleting them takes delete-only
+    # mask PSNR 23.21 -> 24.78. 0 = off (only the score decides inside the hull).
+    hull_centre_views: int = 2
     # Mask pixels whose background opacity after deletion is below this are holes. 0.9, not 0.5: a
     # half-covered pixel renders darkened over the background colour. Measured (mask PSNR, final):
     # 0.5 / 0.9 / 0.95 / 0.99 -> synthetic inward 23.11 / 23.51 / 23.36 / 22.83, lund + box 13.90 /
@@ -57,7 +63,8 @@ class RemoveParams:
 def objects_to_delete(model: GaussianModel, cameras: list[Camera], masks: list[np.ndarray],
                       object_ids: np.ndarray, params: RemoveParams) -> tuple[np.ndarray, dict]:
     """The object's Gaussians (from the masks stage, confirmed with every view's mask) plus floaters
-    inside the object's visual hull that no view shows outside the masks."""
+    inside the object's visual hull that no view shows outside the masks, plus every Gaussian whose
+    centre no view shows outside its mask (``hull_centre_views``)."""
     inside, total = contribution_scores(model, cameras, masks, params.backend)
     with np.errstate(invalid="ignore", divide="ignore"):
         score = np.where(total > 0, inside / total, np.nan)
@@ -67,10 +74,14 @@ def objects_to_delete(model: GaussianModel, cameras: list[Camera], masks: list[n
     means = model.means.detach().double().numpy()
     hull = in_visual_cone(means, cameras, masks, params.hull_dilate)
     floaters = hull & ~((total >= params.min_weight) & (score < 0.5))
+    centred = (in_visual_cone(means, cameras, masks, 0, min_views=params.hull_centre_views)
+               if params.hull_centre_views > 0 else np.zeros(len(model), bool))
     stats = {"from_masks_stage": int(delete.sum()), "by_score": int((by_score & ~delete).sum())}
     delete |= by_score
     stats["floaters"] = int((floaters & ~delete).sum())
     delete |= floaters
+    stats["hull_centres"] = int((centred & ~delete).sum())
+    delete |= centred
     stats["deleted"] = int(delete.sum())
     return delete, stats
 

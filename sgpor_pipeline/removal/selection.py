@@ -102,11 +102,12 @@ def pixels_in_image(points: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.
     return px, z, inside
 
 
-def in_visual_cone(points: np.ndarray, cameras: list[Camera], masks: list[np.ndarray], dilate: int) -> np.ndarray:
-    """Points that project inside every given (dilated) mask whose image they fall in, and are in front
-    of at least one of those cameras."""
+def in_visual_cone(points: np.ndarray, cameras: list[Camera], masks: list[np.ndarray], dilate: int,
+                   min_views: int = 1) -> np.ndarray:
+    """Points that project inside every given (dilated) mask whose image they fall in, and fall in at
+    least ``min_views`` of those images."""
     ok = np.ones(len(points), bool)
-    seen = np.zeros(len(points), bool)
+    seen = np.zeros(len(points), np.int64)
     kernel = np.ones((2 * dilate + 1, 2 * dilate + 1), np.uint8)
     for cam, mask in zip(cameras, masks):
         m = cv2.dilate(mask.astype(np.uint8), kernel) > 0 if dilate > 0 else mask.astype(bool)
@@ -114,8 +115,8 @@ def in_visual_cone(points: np.ndarray, cameras: list[Camera], masks: list[np.nda
         hit = np.zeros(len(points), bool)
         hit[inside] = m[px[inside, 1], px[inside, 0]]
         ok &= ~inside | hit
-        seen |= inside
-    return ok & seen
+        seen += inside
+    return ok & (seen >= min_views)
 
 
 def object_points(points_xyz: np.ndarray, obs_point: np.ndarray, obs_view: np.ndarray, obs_xy: np.ndarray,

@@ -84,6 +84,16 @@ def test_blurred_block_is_detected_and_replaced_textured_blocks_left_alone(setup
     assert vis.shape == (168, 224, 3) and vis.dtype == np.uint8
 
 
+
+def test_a_view_without_target_blocks_passes_through(setup):
+    """A view whose hole the reference's projection filled has no blocks of its own (an empty candidate
+    array as saved by the inpaint stage): nothing to refine, the image comes back unchanged."""
+    sc, renders, hole, _, _ = setup
+    for cand in (np.zeros((0,), np.int64), np.zeros((0, 4, 3), np.int64)):
+        res = refine_view(sc.images_gt[0], hole, np.zeros((0, 2), np.int64), cand, renders, RPRParams(), S)
+        assert np.array_equal(res.image, sc.images_gt[0].astype(np.float32))
+        assert len(res.count) == 0 and res.rounds == 0
+
 def test_rounds_are_bounded(setup):
     sc, renders, hole, targets, cand = setup
     flat = sc.images_gt[0].copy()

@@ -121,7 +121,9 @@ def refine_view(image: np.ndarray, hole: np.ndarray, targets: np.ndarray, cand: 
     cur = np.asarray(image, np.float32).copy()
     hole = np.asarray(hole, bool)
     targets = np.asarray(targets, np.int64).reshape(-1, 2)
-    cand = np.asarray(cand, np.int64).reshape(len(targets), -1, 3)
+    cand = np.asarray(cand, np.int64)
+    # (a view whose hole needed no block of its own, e.g. filled from the reference, saves no candidates)
+    cand = cand.reshape(len(targets), -1, 3) if len(targets) else np.zeros((0, 1, 3), np.int64)
     nt, k = cand.shape[:2]
     if source_energy is None:
         source_energy = [hf_energy(im) for im in source_images]

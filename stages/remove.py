@@ -27,6 +27,7 @@ from sgpor_pipeline.imageio import read_mask, write_mask01, write_png
 from sgpor_pipeline.removal.holes import (
     RemoveParams,
     complete_depth,
+    complete_depths_jointly,
     concat_models,
     hole_mask,
     initial_colour,
@@ -44,6 +45,12 @@ from sgpor_pipeline.sfm import load_sfm
 @dataclass
 class RemoveStageParams(RemoveParams):
     seed: int = 0
+
+
+def complete_hole_depths(cameras, depths, valids, holes, p: RemoveParams) -> list[np.ndarray]:
+    if p.consistent_depth:
+        return complete_depths_jointly(cameras, depths, valids, holes)
+    return [complete_depth(d, v, h) for d, v, h in zip(depths, valids, holes)]
 
 
 class RemoveStage(Stage):
@@ -73,15 +80,15 @@ class RemoveStage(Stage):
             alphas.append(alpha)
             raw_depths.append(depth)
         holes = [hole_mask(m, a, p) for m, a in zip(masks, alphas)]
-        depths = [complete_depth(d, a >= p.hole_alpha, h) for d, a, h in zip(raw_depths, alphas, holes)]
+        depths = complete_hole_depths(cameras, raw_depths, [a >= p.hole_alpha for a in alphas], holes, p)
         if p.min_views > 0 and p.hole_mode == "unseen":
             # second pass: mask pixels that too few other views observed become holes too
             seen = [m & ~h for m, h in zip(masks, holes)]
             counts = observing_views(cameras, masks, depths, seen, p)
             unobserved = [s & (c < p.min_views) for s, c in zip(seen, counts)]
             holes = [hole_mask(m, a, p, u) for m, a, u in zip(masks, alphas, unobserved)]
-            depths = [complete_depth(d, (a >= p.hole_alpha) & ~h, h)
-                      for d, a, h in zip(raw_depths, alphas, holes)]
+            depths = complete_hole_depths(cameras, raw_depths, [(a >= p.hole_alpha) & ~h for a, h in
+                                                                zip(alphas, holes)], holes, p)
         colours = []
         per_view = {}
         for cam, mask, rgb, alpha, hole, filled_depth in zip(cameras, masks, renders, alphas, holes, depths):

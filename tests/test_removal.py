@@ -233,6 +233,48 @@ def test_depth_completion_is_exact_for_planes():
     assert np.abs(filled[hole] - depth[hole]).max() < 1e-4
 
 
+def test_joint_depth_completion_gives_the_views_one_hole_surface():
+    """Large holes (object masks grown to span the floor and what stands behind it): completed view by
+    view, the hole surfaces disagree between views; completed jointly (smallest hole first), every
+    later view takes the surface the earlier ones completed where it sees it."""
+    import cv2
+
+    from sgpor_pipeline.removal.holes import complete_depths_jointly, lift
+    from sgpor_pipeline.removal.selection import pixels_in_image
+
+    scene = generate_scene(SceneParams(seed=3, n_views=8, width=96, height=72))
+    k = np.ones((21, 21), np.uint8)
+    holes = [cv2.dilate(m.astype(np.uint8), k) > 0 for m in scene.masks]
+    depths = [d.copy() for d in scene.depth_gt]
+    valids = [~h for h in holes]
+    alone = [complete_depth(d, v, h) for d, v, h in zip(depths, valids, holes)]
+    joint = complete_depths_jointly(scene.cameras, depths, valids, holes)
+    for d, j, h in zip(depths, joint, holes):
+        assert np.isfinite(j).all() and (j[h] > 0).all()
+        assert np.array_equal(j[~h], d[~h])  # only holes change
+    smallest = int(np.argmin([h.sum() for h in holes]))
+    assert np.array_equal(joint[smallest], alone[smallest])  # the smallest hole is completed on its own
+    first = int(np.argmax([h.sum() for h in holes]))
+
+    def disagreement(completed):
+        """Median relative depth difference of the other views' hole points against the first view's
+        hole surface, where they land in its hole."""
+        ref, diffs = scene.cameras[first], []
+        for i, cam in enumerate(scene.cameras):
+            if i == first:
+                continue
+            ys, xs = np.nonzero(holes[i])
+            px, z, inside = pixels_in_image(lift(cam, ys, xs, completed[i][ys, xs].astype(np.float64)), ref)
+            px, z = px[inside], z[inside]
+            hit = holes[first][px[:, 1], px[:, 0]]
+            zr = completed[first][px[hit, 1], px[hit, 0]]
+            diffs.append(np.abs(z[hit] - zr) / zr)
+        return float(np.median(np.concatenate(diffs)))
+
+    assert disagreement(alone) > 0.03, disagreement(alone)
+    assert disagreement(joint) < 0.5 * disagreement(alone), (disagreement(joint), disagreement(alone))
+
+
 def test_seeded_gaussians_lie_on_the_completed_surface(scene_and_model):
     scene, _, _ = scene_and_model
     cam, mask, depth = scene.cameras[0], scene.masks[0], scene.depth_gt[0]

@@ -54,6 +54,10 @@ class RemoveParams:
     min_views: int = 0
     view_depth_tol: float = 0.05  # relative: a point deeper than another view's surface is occluded there
     view_mask_dilate: int = 2  # px: other views' object masks are dilated by this (their edge pixels mix)
+    # Hole depths completed view by view, smallest hole first, each constrained by the hole surfaces
+    # already completed (one surface for what no photo saw, so the views' fills and seeds agree; see
+    # complete_depths_jointly); False = every view's hole completed on its own.
+    consistent_depth: bool = True
     seed_stride: int = 3  # one new Gaussian per stride x stride hole pixels per view (before merging)
     seed_opacity: float = 0.7
     max_seeds: int = 30000
@@ -194,6 +198,47 @@ def complete_depth(depth: np.ndarray, valid: np.ndarray, hole: np.ndarray) -> np
     return out.astype(np.float32)
 
 
+def complete_depths_jointly(cameras: list[Camera], depths: list[np.ndarray], valids: list[np.ndarray],
+                            holes: list[np.ndarray]) -> list[np.ndarray]:
+    """:func:`complete_depth` for every view, the smallest hole first; the hole surfaces completed so
+    far are splatted into each later view's hole (nearest point per pixel) and fixed there, so the
+    views complete one surface instead of one each, and the inpaint stage's reference fill can be
+    carried into the other views (its projection needs the depths to agree within 2 %).
+
+    Smallest first: a small hole is completed from a nearby boundary, the best-known part of the
+    surface; the largest hole (the inpaint reference) then inherits it. Measured (mask PSNR final /
+    hole depth error against the truth / reference pixels carried into other views):
+    synthetic 25.34 / 2.2 % / 1135 per view alone, 25.37 / 2.0 % / 988 smallest first, 25.21 / 3.6 %
+    largest first; lund + box (28 views, holes 80 % of the mask) 14.34 / - / 2, 14.29 / - / 13376,
+    13.65 / - / 33531: there the re-fit blurred the per-view fills (their surfaces disagreed by
+    13-170 % in depth) and reproduces the reference's fill when the surfaces agree (sharper, but
+    a hallucinated detail costs PSNR against a blur)."""
+    out: list[np.ndarray | None] = [None] * len(cameras)
+    done: list[np.ndarray] = []
+    for i in sorted(range(len(cameras)), key=lambda k: int(holes[k].sum())):
+        cam, hole = cameras[i], holes[i]
+        depth, valid, free = depths[i].astype(np.float32).copy(), valids[i].copy(), hole.copy()
+        if done and hole.any():
+            px, z, inside = pixels_in_image(np.concatenate(done), cam)
+            px, z = px[inside], z[inside]
+            hit = hole[px[:, 1], px[:, 0]]
+            px, z = px[hit], z[hit]
+            if len(z):
+                lin = px[:, 1] * hole.shape[1] + px[:, 0]
+                order = np.lexsort((z, lin))  # nearest first within each pixel
+                lin, z = lin[order], z[order]
+                first = np.ones(len(lin), bool)
+                first[1:] = lin[1:] != lin[:-1]
+                depth.reshape(-1)[lin[first]] = z[first]
+                valid.reshape(-1)[lin[first]] = True
+                free.reshape(-1)[lin[first]] = False
+        out[i] = complete_depth(depth, valid, free)
+        ys, xs = np.nonzero(hole)
+        if len(ys):
+            done.append(lift(cam, ys, xs, out[i][ys, xs].astype(np.float64)))
+    return out
+
+
 def initial_colour(render: np.ndarray, hole: np.ndarray) -> np.ndarray:
     """A first colour for the hole (OpenCV Telea diffusion from its border): seeds' starting colour."""
     if not hole.any():
@@ -260,5 +305,6 @@ def subset(model: GaussianModel, keep: np.ndarray) -> GaussianModel:
     return GaussianModel({n: p.detach()[sel] for n, p in model.params.items()}, model.max_sh_degree)
 
 
-__all__ = ["RemoveParams", "objects_to_delete", "render_background", "hole_mask", "complete_depth", "observing_views",
-           "initial_colour", "seed_hole_gaussians", "concat_models", "subset", "median_spacing"]
+__all__ = ["RemoveParams", "objects_to_delete", "render_background", "hole_mask", "complete_depth",
+           "complete_depths_jointly", "observing_views", "initial_colour", "seed_hole_gaussians", "concat_models",
+           "subset", "median_spacing"]

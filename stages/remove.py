@@ -7,10 +7,13 @@ Out (the contract the inpaint and refine stages read):
 - ``holes/<view>.png``: 0/1, object pixels the remaining background does not cover (opacity below
   ``hole_alpha``; with ``min_views`` > 0 also those fewer other views observed): what to inpaint,
 - ``masks/<view>.png``: 0/1 object mask of every view (from the masks stage); holes are inside it,
-- ``depth/<view>.npy``: float32 z-depth of the background with the hole completed from its surroundings,
+- ``depth/<view>.npy``: float32 z-depth of the background with the hole completed from its surroundings
+  and, with ``consistent_depth``, from the hole surfaces of the views with smaller holes (one surface
+  for all views: :func:`~sgpor_pipeline.removal.holes.complete_depths_jointly`),
 - ``gaussians.ply``: the background Gaussians followed by the new hole Gaussians,
   ``seed_ids.npy``: indices of the new ones; ``object.ply``: the deleted Gaussians (a reusable asset),
-- ``remove.json``: counts and per-view hole sizes (``hole_pixels_by_opacity``: before ``min_views``).
+- ``remove.json``: counts (``hull_centres``: Gaussians deleted because no view shows their centre
+  outside its mask) and per-view hole sizes (``hole_pixels_by_opacity``: before ``min_views``).
 """
 
 from __future__ import annotations

@@ -41,7 +41,7 @@ from sgpor_pipeline.removal.holes import (
     seed_hole_gaussians,
     subset,
 )
-from sgpor_pipeline.scene import save_cameras
+from sgpor_pipeline.scene import Camera, save_cameras
 from sgpor_pipeline.sfm import load_sfm
 
 
@@ -50,7 +50,9 @@ class RemoveStageParams(RemoveParams):
     seed: int = 0
 
 
-def complete_hole_depths(cameras, depths, valids, holes, p: RemoveParams) -> list[np.ndarray]:
+def complete_hole_depths(cameras: list[Camera], depths: list[np.ndarray], valids: list[np.ndarray],
+                         holes: list[np.ndarray], p: RemoveParams) -> list[np.ndarray]:
+    """The holes' depths, jointly (one surface, ``consistent_depth``) or each view on its own."""
     if p.consistent_depth:
         return complete_depths_jointly(cameras, depths, valids, holes)
     return [complete_depth(d, v, h) for d, v, h in zip(depths, valids, holes)]

@@ -22,6 +22,7 @@ from scipy.spatial import cKDTree
 from ..errors import PipelineError
 from ..gaussians.model import GaussianModel, inverse_sigmoid, rgb_to_sh
 from ..scene import Camera
+from .multiview import nearest_per_pixel
 from .selection import contribution_scores, in_visual_cone, median_spacing, pixels_in_image, render_channels
 
 
@@ -225,13 +226,11 @@ def complete_depths_jointly(cameras: list[Camera], depths: list[np.ndarray], val
             px, z = px[hit], z[hit]
             if len(z):
                 lin = px[:, 1] * hole.shape[1] + px[:, 0]
-                order = np.lexsort((z, lin))  # nearest first within each pixel
-                lin, z = lin[order], z[order]
-                first = np.ones(len(lin), bool)
-                first[1:] = lin[1:] != lin[:-1]
-                depth.reshape(-1)[lin[first]] = z[first]
-                valid.reshape(-1)[lin[first]] = True
-                free.reshape(-1)[lin[first]] = False
+                keep = nearest_per_pixel(lin, z)
+                lin = lin[keep]
+                depth.reshape(-1)[lin] = z[keep]
+                valid.reshape(-1)[lin] = True
+                free.reshape(-1)[lin] = False
         out[i] = complete_depth(depth, valid, free)
         ys, xs = np.nonzero(hole)
         if len(ys):

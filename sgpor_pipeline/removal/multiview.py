@@ -138,6 +138,15 @@ def lift(depth: np.ndarray, cam: Camera, ys: np.ndarray, xs: np.ndarray) -> np.n
     return (pc - t) @ R  # R^T (pc - t)
 
 
+def nearest_per_pixel(lin: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Indices of the nearest entry (smallest ``z``) for each distinct linear pixel index in ``lin``:
+    a z-buffer for points splatted to pixels."""
+    order = np.lexsort((z, lin))  # nearest first within each pixel
+    first = np.ones(len(order), bool)
+    first[1:] = lin[order][1:] != lin[order][:-1]
+    return order[first]
+
+
 def project(points: np.ndarray, cam: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Continuous pixel coordinates (u, v; pixel centres at .5) and z-depth of world points."""
     pc = points @ cam.cam_from_world[:3, :3].T + cam.cam_from_world[:3, 3]
@@ -212,11 +221,8 @@ def warp_from_reference(ref_image: np.ndarray, ref_cam: Camera, ref_depth: np.nd
         if len(ys) == 0:
             return out, got
         lin = iv * w + iu
-        order = np.lexsort((z, lin))  # nearest first within each pixel
-        lin, ys, xs = lin[order], ys[order], xs[order]
-        first = np.ones(len(lin), bool)
-        first[1:] = lin[1:] != lin[:-1]
-        lin, ys, xs = lin[first], ys[first], xs[first]
+        keep = nearest_per_pixel(lin, z)
+        lin, ys, xs = lin[keep], ys[keep], xs[keep]
         out.reshape(-1, 3)[lin] = ref_image[ys, xs]
         got.reshape(-1)[lin] = True
         return out, got

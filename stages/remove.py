@@ -35,6 +35,7 @@ from sgpor_pipeline.removal.holes import (
     hole_mask,
     initial_colour,
     median_spacing,
+    object_depth,
     objects_to_delete,
     observing_views,
     render_background,
@@ -51,11 +52,14 @@ class RemoveStageParams(RemoveParams):
 
 
 def complete_hole_depths(cameras: list[Camera], depths: list[np.ndarray], valids: list[np.ndarray],
-                         holes: list[np.ndarray], p: RemoveParams) -> list[np.ndarray]:
-    """The holes' depths, jointly (one surface, ``consistent_depth``) or each view on its own."""
+                         holes: list[np.ndarray], p: RemoveParams,
+                         floors: list[np.ndarray] | None = None) -> list[np.ndarray]:
+    """The holes' depths, jointly (one surface, ``consistent_depth``) or each view on its own; at least
+    ``floors`` (the deleted object's depth) where given."""
     if p.consistent_depth:
-        return complete_depths_jointly(cameras, depths, valids, holes)
-    return [complete_depth(d, v, h) for d, v, h in zip(depths, valids, holes)]
+        return complete_depths_jointly(cameras, depths, valids, holes, floors)
+    return [complete_depth(d, v, h, None if floors is None else f)
+            for d, v, h, f in zip(depths, valids, holes, floors or [None] * len(holes))]
 
 
 class RemoveStage(Stage):
@@ -74,7 +78,8 @@ class RemoveStage(Stage):
         object_ids = np.load(ctx.inputs["masks"] / "object_ids.npy")
         delete, stats = objects_to_delete(model, cameras, masks, object_ids, p)
         background = subset(model, ~delete)
-        write_ply(ctx.out_dir / "object.ply", subset(model, delete))
+        obj = subset(model, delete)
+        write_ply(ctx.out_dir / "object.ply", obj)
         save_cameras(ctx.out_dir / "cameras.json", cameras)
         for sub in ("renders", "holes", "masks", "depth"):
             (ctx.out_dir / sub).mkdir()
@@ -85,7 +90,8 @@ class RemoveStage(Stage):
             alphas.append(alpha)
             raw_depths.append(depth)
         holes = [hole_mask(m, a, p) for m, a in zip(masks, alphas)]
-        depths = complete_hole_depths(cameras, raw_depths, [a >= p.hole_alpha for a in alphas], holes, p)
+        floors = ([object_depth(obj, cam, p.backend) for cam in cameras] if p.behind_object else None)
+        depths = complete_hole_depths(cameras, raw_depths, [a >= p.hole_alpha for a in alphas], holes, p, floors)
         if p.min_views > 0 and p.hole_mode == "unseen":
             # second pass: mask pixels that too few other views observed become holes too
             seen = [m & ~h for m, h in zip(masks, holes)]
@@ -93,7 +99,7 @@ class RemoveStage(Stage):
             unobserved = [s & (c < p.min_views) for s, c in zip(seen, counts)]
             holes = [hole_mask(m, a, p, u) for m, a, u in zip(masks, alphas, unobserved)]
             depths = complete_hole_depths(cameras, raw_depths, [(a >= p.hole_alpha) & ~h for a, h in
-                                                                zip(alphas, holes)], holes, p)
+                                                                zip(alphas, holes)], holes, p, floors)
         colours = []
         per_view = {}
         for cam, mask, rgb, alpha, hole, filled_depth in zip(cameras, masks, renders, alphas, holes, depths):

@@ -405,3 +405,47 @@ def cv2_dilate(mask: np.ndarray, r: int) -> np.ndarray:
     import cv2
 
     return cv2.dilate(mask.astype(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8)) > 0
+
+
+def test_completed_hole_depth_never_lies_in_front_of_the_deleted_object():
+    """Real fits render the surroundings of an object nearer than the object itself (semi-transparent
+    Gaussians in front: lund + box, 2-3x nearer). Completed from them, holes lie in front of the
+    object, in space other views see, and new Gaussians are seeded there in mid-air. With the object's
+    depth as the floor no view's hole surface lies in front of the object in any view."""
+    import cv2
+
+    from sgpor_pipeline.removal.holes import complete_depths_jointly, lift
+    from sgpor_pipeline.removal.selection import pixels_in_image
+
+    scene = generate_scene(SceneParams(seed=3, n_views=8, width=96, height=72))
+    k = np.ones((5, 5), np.uint8)
+    holes = [cv2.erode(m.astype(np.uint8), k) > 0 for m in scene.masks]
+    near = [np.where(m, 0.0, 0.4 * d).astype(np.float32) for m, d in zip(scene.masks, scene.depth_gt)]
+    valids = [~m for m in scene.masks]
+    floors = [np.where(m, d, 0.0).astype(np.float32) for m, d in zip(scene.masks, scene.depth)]
+
+    def in_front_share(completed):
+        """Share of all views' hole points that some view sees in front of the object."""
+        front, total = 0, 0
+        for i, cam in enumerate(scene.cameras):
+            ys, xs = np.nonzero(holes[i])
+            pts = lift(cam, ys, xs, completed[i][ys, xs].astype(np.float64))
+            bad = np.zeros(len(pts), bool)
+            for j, other in enumerate(scene.cameras):
+                px, z, inside = pixels_in_image(pts, other)
+                idx = np.flatnonzero(inside)
+                f = floors[j][px[idx, 1], px[idx, 0]]
+                bad[idx[(f > 0) & (z[idx] < 0.98 * f)]] = True
+            front += int(bad.sum())
+            total += len(pts)
+        return front / total
+
+    plain = complete_depths_jointly(scene.cameras, near, valids, holes)
+    floored = complete_depths_jointly(scene.cameras, near, valids, holes, floors)
+    for c, f, h in zip(floored, floors, holes):
+        assert np.isfinite(c[h]).all() and (c[h] >= f[h] - 1e-6).all()
+    assert in_front_share(plain) > 0.5, in_front_share(plain)
+    assert in_front_share(floored) < 0.05, in_front_share(floored)
+    # each view on its own, too
+    alone = [complete_depth(d, v, h, f) for d, v, h, f in zip(near, valids, holes, floors)]
+    assert all((a[h] >= f[h] - 1e-6).all() for a, f, h in zip(alone, floors, holes))

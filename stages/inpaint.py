@@ -25,6 +25,8 @@ Multi-view (``multiview = true`` and the remove folder has cameras and completed
 reference view (``reference``: ``largest`` hole, ``central`` camera, or a view name) is filled first;
 its fill is lifted to 3D and carried into every other view (``projection``), which inpaints only what
 is still missing. Each view is a cached item; the other views' keys include the reference's result.
+``reference = "smallest_first"``: no single reference; the views are filled smallest hole first and
+each takes what every view before it inpainted (their results enter its key).
 """
 
 from __future__ import annotations
@@ -42,14 +44,15 @@ import numpy as np
 from sgpor_pipeline.dag import Stage, StageContext
 from sgpor_pipeline.errors import PipelineError
 from sgpor_pipeline.hashing import hash_obj
-from sgpor_pipeline.imageio import read_image, read_mask, write_mask01, write_png
+from sgpor_pipeline.imageio import read_image, write_mask01, write_png
 from sgpor_pipeline.removal import diffusion as sd
 from sgpor_pipeline.removal.multiview import (
     FILLED_INPAINTED,
+    PROGRESSIVE,
     choose_reference,
     fill_view,
+    gather_from_views,
     load_remove_folder,
-    warp_from_reference,
 )
 from sgpor_pipeline.removal.sbm import SBMParams, build_source_bank
 
@@ -73,7 +76,12 @@ class InpaintParams:
     rerank: int = 16
     blend: Literal["poisson", "feather"] = "poisson"
     multiview: bool = True
-    reference: str = "largest"  # "largest", "central" or a view name
+    # "largest" hole, "central" camera or a view name: that view is filled first and carried into the
+    # others; "smallest_first": no single reference, every view (smallest hole first, the order the
+    # remove stage completed the depths in) takes what the views before it inpainted. Mask PSNR,
+    # largest / smallest_first: synthetic 25.38 / 25.28, lund + box 13.75 / 14.03 (there the far
+    # views' small fills, magnified into the near views, are blocky but closer to a blur)
+    reference: str = "largest"
     projection: Literal["backward", "splat"] = "backward"
     depth_tol: float = 0.02
     seed: int = 0
@@ -181,9 +189,11 @@ class InpaintStage(Stage):
         holes = [v.hole() for v in data.views]
         with_hole = [i for i, h in enumerate(holes) if h.any()]
         ref = -1
-        if p.multiview and data.has_geometry and len(with_hole) > 1:
+        multiview = p.multiview and data.has_geometry and len(with_hole) > 1
+        progressive = multiview and p.reference == PROGRESSIVE
+        if multiview and not progressive:
             ref = choose_reference(holes, [v.camera for v in data.views], p.reference, names)
-        elif p.multiview and len(with_hole) > 1:
+        elif p.multiview and len(with_hole) > 1 and not data.has_geometry:
             ctx.log.warning("the remove folder has no cameras/depth: views are inpainted independently")
 
         state: dict[str, object] = {}
@@ -203,17 +213,26 @@ class InpaintStage(Stage):
                 state["diffusion_load_seconds"] = time.perf_counter() - t
             return state["diffusion"]
 
-        def build(folder: Path, i: int, ref_item: Path | None) -> None:
+        def carried(i: int, sources: list[int]):
+            """What the already-filled ``sources`` views carry into view i: the reference's filled
+            pixels, or (progressive) the pixels each earlier view inpainted itself."""
+            view = data.views[i]
+            loaded = []
+            for j in sources:
+                item, sv = items[names[j]], data.views[j]
+                filled = _read_u8(item / "filled_from.png")
+                carry = filled == FILLED_INPAINTED if progressive else filled > 0
+                if carry.any():
+                    loaded.append((read_image(item / "image.png"), sv.camera, sv.depth(), carry))
+            if not loaded:
+                return None
+            return gather_from_views(loaded, view.camera, view.depth(), holes[i], p.projection, p.depth_tol)
+
+        def build(folder: Path, i: int, sources: list[int]) -> None:
             t0 = time.perf_counter()
             view = data.views[i]
             render, hole = view.render(), holes[i]
-            prior = None
-            if ref_item is not None:
-                rv = data.views[ref]
-                ref_img = read_image(ref_item / "image.png")
-                ref_filled = read_mask(ref_item / "filled_from.png")
-                prior = warp_from_reference(ref_img, rv.camera, rv.depth(), ref_filled, view.camera, view.depth(),
-                                            hole, p.projection, p.depth_tol)
+            prior = carried(i, sources) if sources else None
             img, filled_from, res = fill_view(render, hole, "sbm" if uses_sbm else backend,
                                               bank() if uses_sbm else None, sbm, prior)
             extra: dict[str, Any] = {}
@@ -244,18 +263,29 @@ class InpaintStage(Stage):
         for sub in ("images", "filled_from", "source"):
             (ctx.out_dir / sub).mkdir()
         items: dict[str, Path] = {}
-        order = ([ref] if ref >= 0 else []) + [i for i in with_hole if i != ref]
-        ref_digest = None
+        if progressive:  # smallest hole first, as the remove stage completed the depths
+            order = sorted(with_hole, key=lambda k: (int(holes[k].sum()), names[k]))
+        else:
+            order = ([ref] if ref >= 0 else []) + [i for i in with_hole if i != ref]
+        done: list[int] = []
+        digests_done: list[str] = []
         for i in ctx.progress(order, total=len(order), desc="inpaint"):
             name = names[i]
-            key = {"view": name, "files": digests[name], "all": bank_key,
-                   "role": "reference" if i == ref else "view", "ref": ref_digest if i != ref else None}
+            key: dict[str, Any] = {"view": name, "files": digests[name], "all": bank_key}
+            if progressive:
+                key.update(role="progressive", before=list(digests_done))
+                sources = list(done)
+            else:
+                key.update(role="reference" if i == ref else "view",
+                           ref=digests_done[0] if (ref >= 0 and i != ref) else None)
+                sources = [ref] if (ref >= 0 and i != ref) else []
             if dkey is not None:  # item keys do not include key_extra: the weights must enter here too
                 key["diffusion"] = dkey
-            ref_item = items[names[ref]] if (ref >= 0 and i != ref) else None
-            items[name] = ctx.cached_item(key, lambda folder, i=i, r=ref_item: build(folder, i, r))
-            if i == ref:
-                ref_digest = hash_obj([ctx.file_digest(items[name] / f) for f in ("image.png", "filled_from.png")])
+            items[name] = ctx.cached_item(key, lambda folder, i=i, s=sources: build(folder, i, s))
+            done.append(i)
+            if progressive or i == ref:
+                files = ("image.png", "filled_from.png")
+                digests_done.append(hash_obj([ctx.file_digest(items[name] / f) for f in files]))
         summary: dict[str, dict] = {}
         for i, v in enumerate(data.views):
             name = v.name
@@ -276,8 +306,8 @@ class InpaintStage(Stage):
             "backend_requested": p.backend,
             "backend_reason": reason,
             "features": p.features if uses_sbm else None,
-            "reference": names[ref] if ref >= 0 else None,
-            "multiview": ref >= 0,
+            "reference": names[ref] if ref >= 0 else (PROGRESSIVE if progressive else None),
+            "multiview": ref >= 0 or progressive,
             "block_size": p.block_size,
             "views": summary,
             "hole_pixels": sum(s["hole_pixels"] for s in summary.values()),
@@ -308,3 +338,13 @@ def _write_u8(path: Path, arr: np.ndarray) -> bool:
         raise PipelineError("PNG encoding failed", path=path)
     path.write_bytes(buf.tobytes())
     return True
+
+
+def _read_u8(path: Path) -> np.ndarray:
+    import cv2
+
+    arr = cv2.imdecode(np.frombuffer(path.read_bytes(), np.uint8), cv2.IMREAD_UNCHANGED)
+    if arr is None:
+        raise PipelineError("cannot read the inpaint stage's filled_from map", path=path,
+                            fix="rerun the inpaint stage (--force inpaint)")
+    return arr

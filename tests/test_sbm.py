@@ -236,6 +236,31 @@ def test_inpaint_stage_multiview_is_consistent_and_cached(scene, tmp_path):
     assert mv_err < 0.6 * single_err, (mv_err, single_err)
 
 
+def test_inpaint_stage_progressive_order_carries_every_earlier_fill(scene, tmp_path):
+    """reference = smallest_first: views are filled smallest hole first and each takes what the views
+    before it inpainted themselves; the first is inpainted alone, every later one gets projections,
+    the views agree as well as with one reference, and the items are cached."""
+    from sgpor_pipeline.stages.inpaint import InpaintParams, InpaintStage
+
+    remove = write_remove_fixture(scene, tmp_path / "remove", holes="mask")
+    builds: list = []
+    params = InpaintParams(reference="smallest_first")
+    ctx = StageContext.standalone(tmp_path, "inpaint", params, {"remove": remove}, builds)
+    InpaintStage().run(ctx)
+    report = json.loads((ctx.out_dir / "inpaint.json").read_text())
+    assert report["multiview"] and report["reference"] == "smallest_first"
+    order = sorted(report["views"], key=lambda n: (report["views"][n]["hole_pixels"], n))
+    assert report["views"][order[0]]["projected"] == 0
+    assert all(report["views"][n]["projected"] > 0 for n in order[1:])
+    prog_err = consistency_error(scene, ctx.out_dir)
+    ctx_single = StageContext.standalone(tmp_path / "single", "inpaint", InpaintParams(multiview=False),
+                                         {"remove": remove})
+    InpaintStage().run(ctx_single)
+    assert prog_err < 0.6 * consistency_error(scene, ctx_single.out_dir)
+    InpaintStage().run(StageContext.standalone(tmp_path, "inpaint", params, {"remove": remove}, builds))
+    assert len(builds) == 4  # cached
+
+
 def test_opencv_backend_respects_the_mask_convention(scene, tmp_path):
     from sgpor_pipeline.stages.inpaint import InpaintParams, InpaintStage
 

@@ -40,6 +40,7 @@ from sgpor_pipeline.scene import Camera, load_cameras, save_cameras
 
 PROJECTION_MODES = ("backward", "splat")
 REFERENCE_MODES = ("largest", "central")
+PROGRESSIVE = "smallest_first"  # no single reference: every view carries what the views before it inpainted
 
 
 # --------------------------------------------------------------------------------------------------
@@ -227,6 +228,23 @@ def warp_from_reference(ref_image: np.ndarray, ref_cam: Camera, ref_depth: np.nd
         got.reshape(-1)[lin] = True
         return out, got
     raise PipelineError(f"unknown projection mode {mode!r}", fix=f"use one of {', '.join(PROJECTION_MODES)}")
+
+
+def gather_from_views(sources: list[tuple[np.ndarray, Camera, np.ndarray, np.ndarray]], cam: Camera,
+                      depth: np.ndarray, target: np.ndarray, mode: str = "backward",
+                      depth_tol: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`warp_from_reference` from several filled views (image, camera, completed depth, mask of
+    the pixels to carry), in order: each ``target`` pixel takes the first view that has it."""
+    out = np.zeros((*target.shape, 3), np.float32)
+    got = np.zeros(target.shape, bool)
+    for image, src_cam, src_depth, src_filled in sources:
+        todo = target & ~got
+        if not todo.any():
+            break
+        col, g = warp_from_reference(image, src_cam, src_depth, src_filled, cam, depth, todo, mode, depth_tol)
+        out[g] = col[g]
+        got |= g
+    return out, got
 
 
 def choose_reference(holes: list[np.ndarray], cameras: list[Camera | None], mode: str = "largest",

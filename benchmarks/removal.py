@@ -319,9 +319,7 @@ def place_object(sfm_dir: Path, cams: list) -> tuple[np.ndarray, float]:
         pts = pts[np.random.default_rng(0).choice(len(pts), 5000, replace=False)]
     seen = np.zeros((len(cams), len(pts)), bool)
     for i, c in enumerate(cams):
-        pc = pts @ c.cam_from_world[:3, :3].T + c.cam_from_world[:3, 3]
-        z = pc[:, 2]
-        uv = (pc @ c.K.T)[:, :2] / np.maximum(z, 1e-9)[:, None]
+        uv, z = c.project(pts)
         seen[i] = ((z > 0) & (np.abs(uv[:, 0] / c.width - 0.5) < 0.3) & (np.abs(uv[:, 1] / c.height - 0.5) < 0.3))
     count = seen.sum(0)
     best = np.flatnonzero(count == count.max())

@@ -46,6 +46,24 @@ class Camera:
         t = self.cam_from_world[:3, 3]
         return -R.T @ t
 
+    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Continuous pixel coordinates [N,2] (x, y; pixel centres at .5) and z-depths [N] of world
+        points [N,3] (PINHOLE; points behind the camera get mirrored coordinates: check z)."""
+        pc = np.asarray(points, np.float64) @ self.cam_from_world[:3, :3].T + self.cam_from_world[:3, 3]
+        z = pc[:, 2]
+        zs = np.where(np.abs(z) > 1e-12, z, 1e-12)
+        uv = pc[:, :2] / zs[:, None] * [self.K[0, 0], self.K[1, 1]] + [self.K[0, 2], self.K[1, 2]]
+        return uv, z
+
+    def unproject(self, ys: np.ndarray, xs: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        """World points [N,3] of the pixel centres (rows ``ys``, columns ``xs``, as ``np.nonzero``
+        gives them) at z-depths ``depth`` [N]."""
+        z = np.asarray(depth, np.float64)
+        x = (np.asarray(xs) + 0.5 - self.K[0, 2]) / self.K[0, 0] * z
+        y = (np.asarray(ys) + 0.5 - self.K[1, 2]) / self.K[1, 1] * z
+        R, t = self.cam_from_world[:3, :3], self.cam_from_world[:3, 3]
+        return (np.stack([x, y, z], axis=1) - t) @ R  # R^T (p - t)
+
     def scaled(self, width: int, height: int) -> Camera:
         """The same camera for an image resized to ``width`` x ``height`` (pixel-corner convention)."""
         sx, sy = width / self.width, height / self.height

@@ -196,11 +196,8 @@ def depth_points(pts: SfmPoints, views: list, cam_index: dict[str, int], n_new: 
             occlusion_safe = False
         if len(ids) < 3:
             continue
-        pc = pts.xyz[ids] @ cam.cam_from_world[:3, :3].T + cam.cam_from_world[:3, 3]
-        z = pc[:, 2]
+        uv, z = cam.project(pts.xyz[ids])
         front = z > 1e-6
-        uv = np.stack([cam.K[0, 0] * pc[:, 0] / np.where(front, z, 1) + cam.K[0, 2],
-                       cam.K[1, 1] * pc[:, 1] / np.where(front, z, 1) + cam.K[1, 2]], axis=1)
         inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (uv[:, 1] < cam.height)
         if inside.sum() < 3:
             continue
@@ -452,11 +449,9 @@ def write_known_sfm(folder: Path, cameras: list, images: np.ndarray, depths: np.
     seen = np.zeros(len(pts))
     obs: list[tuple[np.ndarray, int, np.ndarray]] = []
     for i, cam in enumerate(named):
-        pc = pts @ cam.cam_from_world[:3, :3].T + cam.cam_from_world[:3, 3]
-        z = pc[:, 2]
+        uv, z = cam.project(pts)
         ok = z > 1e-6
-        u = np.where(ok, cam.K[0, 0] * pc[:, 0] / np.where(ok, z, 1) + cam.K[0, 2], -1)
-        v = np.where(ok, cam.K[1, 1] * pc[:, 1] / np.where(ok, z, 1) + cam.K[1, 2], -1)
+        u, v = np.where(ok, uv[:, 0], -1), np.where(ok, uv[:, 1], -1)
         ui, vi = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
         ok &= (ui >= 0) & (ui < cam.width) & (vi >= 0) & (vi < cam.height)
         idx = np.flatnonzero(ok)

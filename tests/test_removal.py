@@ -239,7 +239,7 @@ def test_joint_depth_completion_gives_the_views_one_hole_surface():
     later view takes the surface the earlier ones completed where it sees it."""
     import cv2
 
-    from sgpor_pipeline.removal.holes import complete_depths_jointly, lift
+    from sgpor_pipeline.removal.holes import complete_depths_jointly
     from sgpor_pipeline.removal.selection import pixels_in_image
 
     scene = generate_scene(SceneParams(seed=3, n_views=8, width=96, height=72))
@@ -264,7 +264,7 @@ def test_joint_depth_completion_gives_the_views_one_hole_surface():
             if i == first:
                 continue
             ys, xs = np.nonzero(holes[i])
-            px, z, inside = pixels_in_image(lift(cam, ys, xs, completed[i][ys, xs].astype(np.float64)), ref)
+            px, z, inside = pixels_in_image(cam.unproject(ys, xs, completed[i][ys, xs]), ref)
             px, z = px[inside], z[inside]
             hit = holes[first][px[:, 1], px[:, 0]]
             zr = completed[first][px[hit, 1], px[hit, 0]]
@@ -414,7 +414,7 @@ def test_completed_hole_depth_never_lies_in_front_of_the_deleted_object():
     depth as the floor no view's hole surface lies in front of the object in any view."""
     import cv2
 
-    from sgpor_pipeline.removal.holes import complete_depths_jointly, lift
+    from sgpor_pipeline.removal.holes import complete_depths_jointly
     from sgpor_pipeline.removal.selection import pixels_in_image
 
     scene = generate_scene(SceneParams(seed=3, n_views=8, width=96, height=72))
@@ -429,7 +429,7 @@ def test_completed_hole_depth_never_lies_in_front_of_the_deleted_object():
         front, total = 0, 0
         for i, cam in enumerate(scene.cameras):
             ys, xs = np.nonzero(holes[i])
-            pts = lift(cam, ys, xs, completed[i][ys, xs].astype(np.float64))
+            pts = cam.unproject(ys, xs, completed[i][ys, xs])
             bad = np.zeros(len(pts), bool)
             for j, other in enumerate(scene.cameras):
                 px, z, inside = pixels_in_image(pts, other)

@@ -144,7 +144,7 @@ def observing_views(cameras: list[Camera], masks: list[np.ndarray], depths: list
             continue
         z = depths[i][ys, xs].astype(np.float64)
         good = np.isfinite(z) & (z > 0)
-        X = lift(cam_i, ys, xs, np.where(good, z, 1.0))
+        X = cam_i.unproject(ys, xs, np.where(good, z, 1.0))
         count = np.zeros(len(ys), np.int32)
         for j, cam in enumerate(cameras):
             if j == i:
@@ -274,7 +274,7 @@ def complete_depths_jointly(cameras: list[Camera], depths: list[np.ndarray], val
         out[i] = complete_depth(depth, valid, free, floor)
         ys, xs = np.nonzero(hole)
         if len(ys):
-            done.append(lift(cam, ys, xs, out[i][ys, xs].astype(np.float64)))
+            done.append(cam.unproject(ys, xs, out[i][ys, xs]))
     return out
 
 
@@ -285,16 +285,6 @@ def initial_colour(render: np.ndarray, hole: np.ndarray) -> np.ndarray:
     img8 = (render.clip(0, 1) * 255 + 0.5).astype(np.uint8)
     filled = cv2.inpaint(img8, hole.astype(np.uint8), 3, cv2.INPAINT_TELEA)
     return filled.astype(np.float32) / 255.0
-
-
-def lift(camera: Camera, ys: np.ndarray, xs: np.ndarray, depth: np.ndarray) -> np.ndarray:
-    """World points of pixel centres (xs+0.5, ys+0.5) at camera z ``depth``."""
-    K = camera.K
-    x = (xs + 0.5 - K[0, 2]) / K[0, 0] * depth
-    y = (ys + 0.5 - K[1, 2]) / K[1, 1] * depth
-    pc = np.stack([x, y, depth], axis=1)
-    wfc = camera.world_from_cam
-    return pc @ wfc[:3, :3].T + wfc[:3, 3]
 
 
 def seed_hole_gaussians(cameras: list[Camera], holes: list[np.ndarray], depths: list[np.ndarray],
@@ -309,7 +299,7 @@ def seed_hole_gaussians(cameras: list[Camera], holes: list[np.ndarray], depths: 
         ys, xs = np.nonzero(hole & grid & (depth > 0))
         if ys.size == 0:
             continue
-        pts.append(lift(cam, ys, xs, depth[ys, xs].astype(np.float64)))
+        pts.append(cam.unproject(ys, xs, depth[ys, xs]))
         cols.append(colour[ys, xs])
     if not pts:
         return GaussianModel.empty(0, max_sh_degree)

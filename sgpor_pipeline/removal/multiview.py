@@ -127,18 +127,6 @@ def load_remove_folder(folder: str | Path) -> RemovalInputs:
 # geometry
 
 
-def lift(depth: np.ndarray, cam: Camera, ys: np.ndarray, xs: np.ndarray) -> np.ndarray:
-    """World points [N,3] of pixels (ys, xs) (pixel centres) at z-depth ``depth[ys, xs]``."""
-    z = depth[ys, xs].astype(np.float64)
-    K = cam.K
-    x = (xs + 0.5 - K[0, 2]) / K[0, 0] * z
-    y = (ys + 0.5 - K[1, 2]) / K[1, 1] * z
-    pc = np.stack([x, y, z], axis=1)
-    R = cam.cam_from_world[:3, :3]
-    t = cam.cam_from_world[:3, 3]
-    return (pc - t) @ R  # R^T (pc - t)
-
-
 def nearest_per_pixel(lin: np.ndarray, z: np.ndarray) -> np.ndarray:
     """Indices of the nearest entry (smallest ``z``) for each distinct linear pixel index in ``lin``:
     a z-buffer for points splatted to pixels."""
@@ -146,16 +134,6 @@ def nearest_per_pixel(lin: np.ndarray, z: np.ndarray) -> np.ndarray:
     first = np.ones(len(order), bool)
     first[1:] = lin[order][1:] != lin[order][:-1]
     return order[first]
-
-
-def project(points: np.ndarray, cam: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Continuous pixel coordinates (u, v; pixel centres at .5) and z-depth of world points."""
-    pc = points @ cam.cam_from_world[:3, :3].T + cam.cam_from_world[:3, 3]
-    z = pc[:, 2]
-    zs = np.where(np.abs(z) > 1e-12, z, 1e-12)
-    u = cam.K[0, 0] * pc[:, 0] / zs + cam.K[0, 2]
-    v = cam.K[1, 1] * pc[:, 1] / zs + cam.K[1, 2]
-    return u, v, z
 
 
 def sample_bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray, row: int = 1024) -> np.ndarray:
@@ -189,8 +167,8 @@ def warp_from_reference(ref_image: np.ndarray, ref_cam: Camera, ref_depth: np.nd
         ys, xs = np.nonzero(target & np.isfinite(depth) & (depth > 0))
         if len(ys) == 0:
             return out, got
-        X = lift(depth, cam, ys, xs)
-        u, v, z = project(X, ref_cam)
+        uv, z = ref_cam.project(cam.unproject(ys, xs, depth[ys, xs]))
+        u, v = uv[:, 0], uv[:, 1]
         iu, iv = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
         ok = (z > 0) & (iu >= 0) & (iu < rw) & (iv >= 0) & (iv < rh)
         ys, xs, u, v, z, iu, iv = ys[ok], xs[ok], u[ok], v[ok], z[ok], iu[ok], iv[ok]
@@ -212,8 +190,8 @@ def warp_from_reference(ref_image: np.ndarray, ref_cam: Camera, ref_depth: np.nd
         ys, xs = np.nonzero(ref_filled & np.isfinite(ref_depth) & (ref_depth > 0))
         if len(ys) == 0:
             return out, got
-        X = lift(ref_depth, ref_cam, ys, xs)
-        u, v, z = project(X, cam)
+        uv, z = cam.project(ref_cam.unproject(ys, xs, ref_depth[ys, xs]))
+        u, v = uv[:, 0], uv[:, 1]
         iu, iv = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
         ok = (z > 0) & (iu >= 0) & (iu < w) & (iv >= 0) & (iv < h)
         ys, xs, z, iu, iv = ys[ok], xs[ok], z[ok], iu[ok], iv[ok]
@@ -286,13 +264,13 @@ def unseen_holes(scene, depth_tol: float = 0.01) -> list[np.ndarray]:
         ys, xs = np.nonzero(m)
         seen = np.zeros(len(ys), bool)
         if len(ys):
-            X = lift(scene.depth_gt[i], scene.cameras[i], ys, xs)
+            X = scene.cameras[i].unproject(ys, xs, scene.depth_gt[i][ys, xs])
             for j in range(n):
                 if j == i:
                     continue
                 cam = scene.cameras[j]
-                u, v, z = project(X, cam)
-                iu, iv = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
+                uv, z = cam.project(X)
+                iu, iv = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
                 ok = (z > 0) & (iu >= 0) & (iu < cam.width) & (iv >= 0) & (iv < cam.height)
                 k = np.nonzero(ok & ~seen)[0]
                 dj = scene.depth_gt[j][iv[k], iu[k]]

@@ -82,20 +82,10 @@ def contribution_scores(model: GaussianModel, cameras: list[Camera], masks: list
     return inside, total
 
 
-def project(points: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel coordinates [N,2] and camera depths [N] of world points."""
-    R, t = camera.cam_from_world[:3, :3], camera.cam_from_world[:3, 3]
-    pc = points @ R.T + t
-    z = pc[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        uv = (pc[:, :2] / z[:, None]) * [camera.K[0, 0], camera.K[1, 1]] + [camera.K[0, 2], camera.K[1, 2]]
-    return uv, z
-
-
 def pixels_in_image(points: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Integer pixels (x, y) [N,2] of world points, their camera depths [N], and whether each lies in
     front of the camera and inside its image [N] (index images with ``px[inside]`` only)."""
-    uv, z = project(points, camera)
+    uv, z = camera.project(points)
     with np.errstate(invalid="ignore"):
         px = np.floor(uv).astype(np.int64)
     inside = (z > 0) & (px[:, 0] >= 0) & (px[:, 1] >= 0) & (px[:, 0] < camera.width) & (px[:, 1] < camera.height)
@@ -341,8 +331,6 @@ def inside_given_cone(model: GaussianModel, camera: Camera, pixels: np.ndarray, 
     the visual cone of the given masks: GrabCut may add what the given views could not see or showed
     inside their masks, never what a given view showed outside its mask (a floor of the object's
     colour)."""
-    from .holes import lift  # (holes imports this module)
-
     pixels = np.asarray(pixels, bool)
     if not pixels.any():
         return pixels
@@ -350,7 +338,7 @@ def inside_given_cone(model: GaussianModel, camera: Camera, pixels: np.ndarray, 
     ys, xs = np.nonzero(pixels & (alpha > 0.5) & (img[..., 3] > 0))
     out = np.zeros_like(pixels)
     if len(ys):
-        points = lift(camera, ys, xs, img[ys, xs, 3].astype(np.float64))
+        points = camera.unproject(ys, xs, img[ys, xs, 3])
         ok = in_visual_cone(points, cameras, masks, dilate)
         out[ys[ok], xs[ok]] = True
     return out

@@ -64,7 +64,7 @@ def complete_hole_depths(cameras: list[Camera], depths: list[np.ndarray], valids
 
 class RemoveStage(Stage):
     name = "remove"
-    VERSION = 2
+    VERSION = 3  # 3: the hole-depth floor renders the object proper only (no floaters)
     Params = RemoveStageParams
     inputs = ("sfm", "fit", "masks")
 
@@ -76,7 +76,7 @@ class RemoveStage(Stage):
         masks_dir = ctx.inputs["masks"] / "masks"
         masks = [read_mask(masks_dir / f"{c.image}.png") for c in cameras]
         object_ids = np.load(ctx.inputs["masks"] / "object_ids.npy")
-        delete, stats = objects_to_delete(model, cameras, masks, object_ids, p)
+        delete, stats, surface = objects_to_delete(model, cameras, masks, object_ids, p)
         background = subset(model, ~delete)
         obj = subset(model, delete)
         write_ply(ctx.out_dir / "object.ply", obj)
@@ -90,7 +90,8 @@ class RemoveStage(Stage):
             alphas.append(alpha)
             raw_depths.append(depth)
         holes = [hole_mask(m, a, p) for m, a in zip(masks, alphas)]
-        floors = ([object_depth(obj, cam, p.backend) for cam in cameras] if p.behind_object else None)
+        front = subset(model, surface)
+        floors = [object_depth(front, cam, p.backend) for cam in cameras] if p.behind_object else None
         depths = complete_hole_depths(cameras, raw_depths, [a >= p.hole_alpha for a in alphas], holes, p, floors)
         if p.min_views > 0 and p.hole_mode == "unseen":
             # second pass: mask pixels that too few other views observed become holes too

@@ -121,8 +121,9 @@ def test_a_generous_mask_is_tightened_and_does_not_select_the_floor(scene_and_mo
 def test_remove_finds_only_unseen_background_as_hole(scene_and_model):
     scene, model, truth = scene_and_model
     params = RemoveParams()
-    delete, stats = objects_to_delete(model, scene.cameras, list(scene.masks), np.flatnonzero(truth), params)
-    assert delete[truth].all()
+    delete, stats, surface = objects_to_delete(model, scene.cameras, list(scene.masks), np.flatnonzero(truth), params)
+    assert delete[truth].all() and surface[truth].all() and not (surface & ~delete).any()
+    assert surface.sum() == stats["from_masks_stage"] + stats["by_score"]
     assert (delete & ~truth).sum() < 0.02 * (~truth).sum()
     background = subset(model, ~delete)
     hole_frac = []
@@ -160,9 +161,9 @@ def test_a_large_gaussian_centred_in_the_hull_is_deleted_despite_its_tails(scene
     inside, total = contribution_scores(both, scene.cameras, masks)
     assert total[-1] >= RemoveParams().min_weight and inside[-1] / total[-1] < 0.5  # looks like background
     ids = np.flatnonzero(truth)
-    kept, _ = objects_to_delete(both, scene.cameras, masks, ids, RemoveParams(hull_centre_views=0))
+    kept, _, _ = objects_to_delete(both, scene.cameras, masks, ids, RemoveParams(hull_centre_views=0))
     assert not kept[-1]  # the score alone spares it
-    delete, stats = objects_to_delete(both, scene.cameras, masks, ids, RemoveParams())
+    delete, stats, _ = objects_to_delete(both, scene.cameras, masks, ids, RemoveParams())
     assert delete[-1] and stats["hull_centres"] >= 1
     # (the background's own Gaussians centred in every mask are the floor under the object, unseen)
     assert (delete[:-1] & ~truth).sum() < 0.02 * (~truth).sum()
@@ -299,7 +300,7 @@ def test_seeded_gaussians_lie_on_the_completed_surface(scene_and_model):
 def _remove(model, cameras, masks, object_ids, params=None):
     """What the remove stage does per run: delete, find holes, complete depth, seed the holes."""
     params = params or RemoveParams()
-    delete, _ = objects_to_delete(model, cameras, masks, object_ids, params)
+    delete, _, _ = objects_to_delete(model, cameras, masks, object_ids, params)
     background = subset(model, ~delete)
     holes, depths, colours = [], [], []
     for cam, mask in zip(cameras, masks):

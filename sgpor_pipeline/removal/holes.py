@@ -75,10 +75,14 @@ class RemoveParams:
 
 
 def objects_to_delete(model: GaussianModel, cameras: list[Camera], masks: list[np.ndarray],
-                      object_ids: np.ndarray, params: RemoveParams) -> tuple[np.ndarray, dict]:
+                      object_ids: np.ndarray, params: RemoveParams) -> tuple[np.ndarray, dict, np.ndarray]:
     """The object's Gaussians (from the masks stage, confirmed with every view's mask) plus floaters
     inside the object's visual hull that no view shows outside the masks, plus every Gaussian whose
-    centre no view shows outside its mask (``hull_centre_views``)."""
+    centre no view shows outside its mask (``hull_centre_views``).
+
+    Returns (delete [N] bool, counts per reason, surface [N] bool): ``surface`` = the object proper
+    (masks stage and score), without the floaters and hull centres, which may lie anywhere in the
+    visual cone, even behind the background (:func:`object_depth` renders the surface only)."""
     inside, total = contribution_scores(model, cameras, masks, params.backend)
     with np.errstate(invalid="ignore", divide="ignore"):
         score = np.where(total > 0, inside / total, np.nan)
@@ -92,12 +96,13 @@ def objects_to_delete(model: GaussianModel, cameras: list[Camera], masks: list[n
                if params.hull_centre_views > 0 else np.zeros(len(model), bool))
     stats = {"from_masks_stage": int(delete.sum()), "by_score": int((by_score & ~delete).sum())}
     delete |= by_score
+    surface = delete.copy()
     stats["floaters"] = int((floaters & ~delete).sum())
     delete |= floaters
     stats["hull_centres"] = int((centred & ~delete).sum())
     delete |= centred
     stats["deleted"] = int(delete.sum())
-    return delete, stats
+    return delete, stats, surface
 
 
 def render_background(model: GaussianModel, camera: Camera, backend: str = "auto"

@@ -29,16 +29,20 @@ follows the object's edges, the dataset's masks are a little wider); room 0.572 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 
 from sgpor_pipeline.dag import Stage, StageContext
 from sgpor_pipeline.errors import PipelineError
+from sgpor_pipeline.gaussians.model import GaussianModel
 from sgpor_pipeline.gaussians.ply import read_ply
 from sgpor_pipeline.imageio import read_image, read_mask, write_mask01, write_png
 from sgpor_pipeline.removal.selection import (
+    Selection,
     SelectionParams,
     TightParams,
     grabcut_mask,
@@ -50,9 +54,13 @@ from sgpor_pipeline.removal.selection import (
     select_object,
     tighten_mask,
 )
-from sgpor_pipeline.sfm import load_sfm
+from sgpor_pipeline.scene import Camera
+from sgpor_pipeline.sfm import SfmResult, load_sfm
 
 MIN_MARGIN = 2.0
+
+_SfmPoints = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]  # (xyz, obs_point, obs_view, obs_xy)
+_Propagated = dict[str, tuple[np.ndarray, np.ndarray, dict[str, Any]]]  # view -> (mask, prob, info)
 
 
 @dataclass
@@ -87,116 +95,217 @@ class MasksStage(Stage):
 
     def run(self, ctx: StageContext) -> None:
         p = ctx.params
-        sel_params = SelectionParams(score_threshold=p.score_threshold, grow_radius=p.grow_radius,
-                                     render_threshold=p.render_threshold, guided_radius=p.guided_radius,
-                                     backend=p.backend)
+        sel_params = _selection_params(p)
         sfm = load_sfm(ctx.inputs["sfm"])
         model = read_ply(ctx.inputs["fit"] / "gaussians.ply")
-        posed = sfm.posed
-        given = [(c, read_mask(sfm.mask_path(c.image))) for c in posed if sfm.mask_path(c.image) is not None]
-        given = [(c, m) for c, m in given if m.any()]
-        if p.max_given > 0:
-            given = given[: p.max_given]
-        if not given:
-            raise PipelineError("no view has a non-empty object mask", path=ctx.run_inputs.masks,
-                                fix="pass --masks with the object painted in at least one photo")
-        cams = [c for c, _ in given]
-        masks = [m for _, m in given]
-        sfm_pts = None
-        if p.use_sfm_points and len(sfm.points):
-            pts = sfm.points
-            sfm_pts = (pts.xyz, pts.obs_point, pts.obs_view, pts.obs_xy)
-        tight, widths, behind = masks, [0.0] * len(masks), None  # widths: margin of each given mask, px
-        if p.tighten:
-            tp = TightParams()
-            triples = [tighten_mask(model, c, m, tp, p.backend) for c, m in given]
-            tight, widths, behind = [t[0] for t in triples], [t[1] for t in triples], [t[2] for t in triples]
-        selection = select_object(model, cams, tight, sel_params, sfm_pts, [sfm.index(c.image) for c in cams],
-                                  cone_masks=masks, background_depths=behind,
-                                  depth_tol=TightParams.depth_tol)
-        if not selection.is_object.any():
-            raise PipelineError("no Gaussian of the fitted scene falls inside the given masks",
-                                path=ctx.run_inputs.masks,
-                                fix="check that the masks cover the object (non-zero = object)")
-        given_names = {c.image for c in cams}
-        given_mask = {c.image: m for c, m in given}
-        given_index = {c.image: i for i, c in enumerate(cams)}
-        propagated: dict[str, tuple[np.ndarray, np.ndarray, dict]] = {}  # view -> (mask, prob, info)
-        for cam in ctx.progress(posed, total=len(posed), desc="masks"):
-            if cam.image in given_names:
-                continue
-            prob = render_object_probability(model, selection.is_object, cam, p.backend)
-            image = read_image(sfm.image_path(cam.image))
-            mask = refine_mask(prob, image, sel_params)
-            info = {"source": "propagated", "confidence": round(mask_confidence(prob, mask), 4)}
-            if p.grabcut:
-                snapped = grabcut_mask(prob, mask, image, band=p.grabcut_band, max_growth=p.grabcut_max_growth)
-                info["grabcut"] = None if snapped is None else round(float(snapped.sum()) / max(1, int(mask.sum())), 3)
-                if snapped is not None:
-                    # what GrabCut adds must lie in the given views' cone: the room's light rug around
-                    # beige slippers was taken by GrabCut, but view 1 shows it outside its mask
-                    added = inside_given_cone(model, cam, snapped & ~mask, cams, masks, sel_params.cone_dilate,
-                                              p.backend)
-                    mask = (snapped & mask) | added
-            propagated[cam.image] = (mask, prob, info)
-        first = selection
+        given_pairs = _read_given_masks(sfm, p.max_given, ctx.run_inputs.masks)
+        sfm_pts = _sfm_points(sfm) if p.use_sfm_points else None
+        given, widths = _tighten_given(model, given_pairs, p)
+        first = _first_selection(model, sfm, given, sel_params, sfm_pts, ctx.run_inputs.masks)
+        propagated = _propagate(ctx, model, sfm, first, given, p, sel_params)
+        selection = first
         if p.reselect and p.grabcut and propagated:  # (without the photo's evidence it would be circular)
-            # every view's mask now bounds the object: select again from all of them
-            all_cams = [c for c in posed if c.image in given_names or propagated[c.image][0].any()]
-            all_masks = [tight[given_index[c.image]] if c.image in given_names else propagated[c.image][0]
-                         for c in all_cams]
-            cone = [given_mask[c.image] if c.image in given_names else propagated[c.image][0] for c in all_cams]
-            depths = [behind[given_index[c.image]] if (behind is not None and c.image in given_names) else None
-                      for c in all_cams]
-            again = select_object(model, all_cams, all_masks, sel_params, sfm_pts,
-                                  [sfm.index(c.image) for c in all_cams], cone_masks=cone,
-                                  background_depths=depths if behind is not None else None,
-                                  depth_tol=TightParams.depth_tol)
-            if again.is_object.any():
-                selection = again
+            selection = _reselect(model, sfm, first, given, propagated, sel_params, sfm_pts)
         given_prob: dict[str, np.ndarray] = {}  # rendered with the final selection, written below
         if p.grabcut and propagated:
-            # the margin in the style of the given masks: how far each reaches beyond the mask this
-            # stage would have propagated to its view (also where depth cannot tell: a flat object)
-            for i, (c, m) in enumerate(given):
-                prob = given_prob[c.image] = render_object_probability(model, selection.is_object, c, p.backend)
-                image = read_image(sfm.image_path(c.image))
-                own = refine_mask(prob, image, sel_params)
-                own = (grabcut_mask(prob, own, image, band=p.grabcut_band, max_growth=p.grabcut_max_growth)
-                       if own.any() else None)
-                if own is not None:
-                    widths[i] = max(widths[i], margin_width(m, own & m))
-        # (a median margin under MIN_MARGIN px is the edge blur of a mask drawn tight: no margin)
-        measured = float(np.median(widths))
-        margin = p.margin if p.margin >= 0 else (int(round(measured)) if measured >= MIN_MARGIN else 0)
-        np.save(ctx.out_dir / "object_ids.npy", np.flatnonzero(selection.is_object))
-        np.save(ctx.out_dir / "scores.npy", selection.score.astype(np.float32))
-        (ctx.out_dir / "masks").mkdir()
-        (ctx.out_dir / "prob").mkdir()
-        per_view = {}
-        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin + 1,) * 2) if margin > 0 else None
-        for cam in posed:
-            if cam.image in given_names:
-                mask = given_mask[cam.image]
-                prob = given_prob.get(cam.image)
-                if prob is None:
-                    prob = render_object_probability(model, selection.is_object, cam, p.backend)
-                info = {"source": "given", "confidence": 1.0}
-            else:
-                mask, prob, info = propagated[cam.image]
-                if selection is not first:
-                    prob = render_object_probability(model, selection.is_object, cam, p.backend)
-                if kernel is not None and mask.any():
-                    mask = cv2.dilate(mask.astype(np.uint8), kernel) > 0
-            info["pixels"] = int(mask.sum())
-            write_mask01(ctx.out_dir / "masks" / f"{cam.image}.png", mask)
-            write_png(ctx.out_dir / "prob" / f"{cam.image}.png", prob)
-            per_view[cam.image] = info
-        summary = {"views": per_view, "object_gaussians": int(selection.is_object.sum()),
-                   "object_gaussians_first_pass": int(first.is_object.sum()), "reselected": selection is not first,
-                   "gaussians": len(model), "seeds": selection.seeds, "from_sfm_points": selection.from_points,
-                   "grown": selection.grown, "given": sorted(given_names),
-                   "given_margin_px": [round(w, 2) for w in widths], "margin_px": margin,
-                   "given_pixels_selecting": [int(t.sum()) for t in tight]}
+            widths, given_prob = _measure_given_margins(model, sfm, selection, given, widths, p, sel_params)
+        margin = _margin_px(widths, p.margin)
+        _write_selection(ctx.out_dir, selection)
+        per_view = _write_view_masks(ctx.out_dir, model, sfm, selection, first, given, propagated, given_prob,
+                                     margin, p.backend)
+        summary = _summary(per_view, model, selection, first, given, widths, margin)
         (ctx.out_dir / "masks.json").write_text(json.dumps(summary, indent=1))
         ctx.notes.update({k: v for k, v in summary.items() if k != "views"})
+
+
+@dataclass
+class _GivenViews:
+    """The views given a mask: their cameras, masks as given, the masks that select the object
+    (tightened, or as given) and the background depth carried into each (None: not tightened)."""
+
+    cams: list[Camera]
+    masks: list[np.ndarray]
+    tight: list[np.ndarray]
+    behind: list[np.ndarray | None] | None
+    names: set[str] = field(init=False)
+    index: dict[str, int] = field(init=False)  # view -> its position in the lists above
+
+    def __post_init__(self) -> None:
+        self.names = {c.image for c in self.cams}
+        self.index = {c.image: i for i, c in enumerate(self.cams)}
+
+
+def _selection_params(p: MasksParams) -> SelectionParams:
+    """The object selection's parameters, from the stage's."""
+    return SelectionParams(score_threshold=p.score_threshold, grow_radius=p.grow_radius,
+                           render_threshold=p.render_threshold, guided_radius=p.guided_radius, backend=p.backend)
+
+
+def _read_given_masks(sfm: SfmResult, max_given: int, masks_path: Path | None) -> list[tuple[Camera, np.ndarray]]:
+    """The posed views' non-empty given masks (the first ``max_given``, 0 = all); PipelineError if none."""
+    given = [(c, read_mask(sfm.mask_path(c.image))) for c in sfm.posed if sfm.mask_path(c.image) is not None]
+    given = [(c, m) for c, m in given if m.any()]
+    if max_given > 0:
+        given = given[:max_given]
+    if not given:
+        raise PipelineError("no view has a non-empty object mask", path=masks_path,
+                            fix="pass --masks with the object painted in at least one photo")
+    return given
+
+
+def _sfm_points(sfm: SfmResult) -> _SfmPoints | None:
+    """The SfM points and their observations as select_object takes them; None when there are none."""
+    if not len(sfm.points):
+        return None
+    pts = sfm.points
+    return (pts.xyz, pts.obs_point, pts.obs_view, pts.obs_xy)
+
+
+def _tighten_given(model: GaussianModel, given: list[tuple[Camera, np.ndarray]],
+                   p: MasksParams) -> tuple[_GivenViews, list[float]]:
+    """The given views with their masks tightened (``p.tighten``), and the margin removed from each, px."""
+    cams = [c for c, _ in given]
+    masks = [m for _, m in given]
+    if not p.tighten:
+        return _GivenViews(cams, masks, masks, None), [0.0] * len(masks)
+    tp = TightParams()
+    triples = [tighten_mask(model, c, m, tp, p.backend) for c, m in given]
+    return _GivenViews(cams, masks, [t[0] for t in triples], [t[2] for t in triples]), [t[1] for t in triples]
+
+
+def _first_selection(model: GaussianModel, sfm: SfmResult, given: _GivenViews, sel_params: SelectionParams,
+                     sfm_pts: _SfmPoints | None, masks_path: Path | None) -> Selection:
+    """The object selected from the given views' masks; PipelineError when that selects nothing."""
+    selection = select_object(model, given.cams, given.tight, sel_params, sfm_pts,
+                              [sfm.index(c.image) for c in given.cams], cone_masks=given.masks,
+                              background_depths=given.behind, depth_tol=TightParams.depth_tol)
+    if not selection.is_object.any():
+        raise PipelineError("no Gaussian of the fitted scene falls inside the given masks", path=masks_path,
+                            fix="check that the masks cover the object (non-zero = object)")
+    return selection
+
+
+def _propagate(ctx: StageContext, model: GaussianModel, sfm: SfmResult, selection: Selection, given: _GivenViews,
+               p: MasksParams, sel_params: SelectionParams) -> _Propagated:
+    """A mask for every view not given one, from the selection's render (see :func:`_propagate_view`)."""
+    posed = sfm.posed
+    propagated: _Propagated = {}
+    for cam in ctx.progress(posed, total=len(posed), desc="masks"):
+        if cam.image in given.names:
+            continue
+        propagated[cam.image] = _propagate_view(model, sfm, cam, selection, given, p, sel_params)
+    return propagated
+
+
+def _propagate_view(model: GaussianModel, sfm: SfmResult, cam: Camera, selection: Selection, given: _GivenViews,
+                    p: MasksParams, sel_params: SelectionParams) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """One view's (mask, probability, info): the selection's rendered probability, refined, snapped by GrabCut."""
+    prob = render_object_probability(model, selection.is_object, cam, p.backend)
+    image = read_image(sfm.image_path(cam.image))
+    mask = refine_mask(prob, image, sel_params)
+    info: dict[str, Any] = {"source": "propagated", "confidence": round(mask_confidence(prob, mask), 4)}
+    if p.grabcut:
+        mask, info["grabcut"] = _snap_to_photo(model, cam, prob, mask, image, given, p, sel_params)
+    return mask, prob, info
+
+
+def _snap_to_photo(model: GaussianModel, cam: Camera, prob: np.ndarray, mask: np.ndarray, image: np.ndarray,
+                   given: _GivenViews, p: MasksParams, sel_params: SelectionParams) -> tuple[np.ndarray, float | None]:
+    """The mask snapped by GrabCut, its additions kept inside the given views' cone; and GrabCut's area ratio."""
+    snapped = grabcut_mask(prob, mask, image, band=p.grabcut_band, max_growth=p.grabcut_max_growth)
+    if snapped is None:  # (GrabCut gave up or was implausible: the mask is kept)
+        return mask, None
+    ratio = round(float(snapped.sum()) / max(1, int(mask.sum())), 3)
+    # what GrabCut adds must lie in the given views' cone: the room's light rug around
+    # beige slippers was taken by GrabCut, but view 1 shows it outside its mask
+    added = inside_given_cone(model, cam, snapped & ~mask, given.cams, given.masks, sel_params.cone_dilate, p.backend)
+    return (snapped & mask) | added, ratio
+
+
+def _reselect(model: GaussianModel, sfm: SfmResult, first: Selection, given: _GivenViews, propagated: _Propagated,
+              sel_params: SelectionParams, sfm_pts: _SfmPoints | None) -> Selection:
+    """The object selected again from every view's mask (each now bounds it); ``first`` if that selects nothing."""
+    all_cams = [c for c in sfm.posed if c.image in given.names or propagated[c.image][0].any()]
+    all_masks = [given.tight[given.index[c.image]] if c.image in given.names else propagated[c.image][0]
+                 for c in all_cams]
+    cone = [given.masks[given.index[c.image]] if c.image in given.names else propagated[c.image][0]
+            for c in all_cams]
+    behind = given.behind
+    depths = [behind[given.index[c.image]] if (behind is not None and c.image in given.names) else None
+              for c in all_cams]
+    again = select_object(model, all_cams, all_masks, sel_params, sfm_pts,
+                          [sfm.index(c.image) for c in all_cams], cone_masks=cone,
+                          background_depths=depths if behind is not None else None,
+                          depth_tol=TightParams.depth_tol)
+    return again if again.is_object.any() else first
+
+
+def _measure_given_margins(model: GaussianModel, sfm: SfmResult, selection: Selection, given: _GivenViews,
+                           widths: list[float], p: MasksParams,
+                           sel_params: SelectionParams) -> tuple[list[float], dict[str, np.ndarray]]:
+    """Each given mask's margin (at least ``widths``) and its view's probability render, reused when writing."""
+    # the margin in the style of the given masks: how far each reaches beyond the mask this
+    # stage would have propagated to its view (also where depth cannot tell: a flat object)
+    widths = list(widths)
+    given_prob: dict[str, np.ndarray] = {}
+    for i, (c, m) in enumerate(zip(given.cams, given.masks)):
+        prob = given_prob[c.image] = render_object_probability(model, selection.is_object, c, p.backend)
+        image = read_image(sfm.image_path(c.image))
+        own = refine_mask(prob, image, sel_params)
+        own = (grabcut_mask(prob, own, image, band=p.grabcut_band, max_growth=p.grabcut_max_growth)
+               if own.any() else None)
+        if own is not None:
+            widths[i] = max(widths[i], margin_width(m, own & m))
+    return widths, given_prob
+
+
+def _margin_px(widths: list[float], margin: int) -> int:
+    """The margin added around the propagated masks: ``margin``, or (-1) the given masks' median margin."""
+    # (a median margin under MIN_MARGIN px is the edge blur of a mask drawn tight: no margin)
+    measured = float(np.median(widths))
+    return margin if margin >= 0 else (int(round(measured)) if measured >= MIN_MARGIN else 0)
+
+
+def _write_selection(out_dir: Path, selection: Selection) -> None:
+    """object_ids.npy (the object's Gaussians) and scores.npy."""
+    np.save(out_dir / "object_ids.npy", np.flatnonzero(selection.is_object))
+    np.save(out_dir / "scores.npy", selection.score.astype(np.float32))
+
+
+def _write_view_masks(out_dir: Path, model: GaussianModel, sfm: SfmResult, selection: Selection, first: Selection,
+                      given: _GivenViews, propagated: _Propagated, given_prob: dict[str, np.ndarray], margin: int,
+                      backend: str) -> dict[str, dict[str, Any]]:
+    """masks/ and prob/ for every view (propagated masks grown by ``margin`` px); each view's info."""
+    (out_dir / "masks").mkdir()
+    (out_dir / "prob").mkdir()
+    per_view = {}
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin + 1,) * 2) if margin > 0 else None
+    for cam in sfm.posed:
+        if cam.image in given.names:
+            mask = given.masks[given.index[cam.image]]
+            prob = given_prob.get(cam.image)
+            if prob is None:
+                prob = render_object_probability(model, selection.is_object, cam, backend)
+            info = {"source": "given", "confidence": 1.0}
+        else:
+            mask, prob, info = propagated[cam.image]
+            if selection is not first:
+                prob = render_object_probability(model, selection.is_object, cam, backend)
+            if kernel is not None and mask.any():
+                mask = cv2.dilate(mask.astype(np.uint8), kernel) > 0
+        info["pixels"] = int(mask.sum())
+        write_mask01(out_dir / "masks" / f"{cam.image}.png", mask)
+        write_png(out_dir / "prob" / f"{cam.image}.png", prob)
+        per_view[cam.image] = info
+    return per_view
+
+
+def _summary(per_view: dict[str, dict[str, Any]], model: GaussianModel, selection: Selection, first: Selection,
+             given: _GivenViews, widths: list[float], margin: int) -> dict[str, Any]:
+    """masks.json's content (also the stage's notes, less "views")."""
+    return {"views": per_view, "object_gaussians": int(selection.is_object.sum()),
+            "object_gaussians_first_pass": int(first.is_object.sum()), "reselected": selection is not first,
+            "gaussians": len(model), "seeds": selection.seeds, "from_sfm_points": selection.from_points,
+            "grown": selection.grown, "given": sorted(given.names),
+            "given_margin_px": [round(w, 2) for w in widths], "margin_px": margin,
+            "given_pixels_selecting": [int(t.sum()) for t in given.tight]}

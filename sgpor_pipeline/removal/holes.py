@@ -63,10 +63,12 @@ class RemoveParams:
     # it): the surroundings' rendered depth can be far nearer than the object (lund + box: 2-3x,
     # semi-transparent Gaussians in front of the street), and a hole completed in front of the object
     # is seeded in mid-air, in space other views see. Lund + box: 39 % of the seeds lay in front of the
-    # billboard in some view (after the finetune 1970 opaque hole Gaussians floated in the street),
-    # 3.8 % with the floor. Mask PSNR: synthetic 25.37 -> 25.38, lund 14.29 -> 13.75 (the views now
-    # agree, so the re-fit keeps the reference's hallucinated fill instead of averaging disagreeing
-    # fills into a blur, which PSNR prefers). See complete_depths_jointly.
+    # billboard in some view and 1970 opaque hole Gaussians floated in the street after the finetune;
+    # with the floor 3.1 % and 293. Mask PSNR, ours / fsr-refit: synthetic 25.37 / 20.26 -> 25.37 /
+    # 21.03, lund 14.29 / 14.09 -> 13.51 / 15.18: the views' hole surfaces now agree, so ours carries the
+    # reference's fill into the other views (14000+ pixels instead of 2) and the re-fit keeps it sharp
+    # instead of averaging disagreeing fills into a blur, which PSNR prefers (inpaint.multiview = false,
+    # independent fills: 14.36; the fsr baseline's independent smooth fills: 15.18).
     behind_object: bool = True
     seed_stride: int = 3  # one new Gaussian per stride x stride hole pixels per view (before merging)
     seed_opacity: float = 0.7
@@ -245,7 +247,7 @@ def complete_depths_jointly(cameras: list[Camera], depths: list[np.ndarray], val
     hole depth error against the truth / reference pixels carried into other views):
     synthetic 25.34 / 2.2 % / 1135 per view alone, 25.37 / 2.0 % / 988 smallest first, 25.21 / 3.6 %
     largest first (before ``floors``); lund + box (28 views, holes 80 % of the mask), with ``floors``:
-    13.75 / - / 14132 jointly: the re-fit reproduces the reference's fill when the surfaces agree
+    13.51 / - / 14000+ jointly: the re-fit reproduces the reference's fill when the surfaces agree
     (sharper, but a hallucinated detail costs PSNR against a blur; per view alone and without the
     floors the re-fit averaged fills on surfaces 13-170 % apart in depth, partly in front of the
     object: 14.34).

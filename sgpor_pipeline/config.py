@@ -30,6 +30,31 @@ class NoParams:
     """Parameters of a stage that has none."""
 
 
+# dataclass field metadata: the value at which a parameter reproduces the results from before it existed
+KEY_NEUTRAL = "sgpor_key_neutral"
+
+
+def added_param(default: Any) -> Any:
+    """A dataclass field for a parameter added to a stage after results were cached, whose default
+    reproduces them (typically an option that is off by default): while it has that value it is left
+    out of the cache keys (:func:`params_key`), so upgrading does not recompute cached stages. Use as
+    ``min_views: int = added_param(0)``. A new parameter that changes results at its default must be a
+    plain field (or bump the stage's VERSION)."""
+    return dataclasses.field(default=default, metadata={KEY_NEUTRAL: default})
+
+
+def params_key(params: Any) -> dict[str, Any]:
+    """The parameters as they enter cache keys: :func:`params_to_dict` without the :func:`added_param`
+    fields that are at their neutral value. (Stored and printed configurations keep every field.)"""
+    out = params_to_dict(params)
+    for f in dataclasses.fields(params):
+        if KEY_NEUTRAL in f.metadata:
+            neutral = f.metadata[KEY_NEUTRAL]
+            if out[f.name] == (list(neutral) if isinstance(neutral, tuple) else neutral):
+                del out[f.name]
+    return out
+
+
 def params_to_dict(params: Any) -> dict[str, Any]:
     out = {}
     for f in dataclasses.fields(params):

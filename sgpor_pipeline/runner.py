@@ -15,7 +15,7 @@ from typing import Any
 
 from . import __version__
 from .cache import CHECKPOINT, ITEMS, RunLock, StageCache, folder_size, publish, read_manifest, verify
-from .config import params_to_dict, resolve_config, save_config
+from .config import params_key, params_to_dict, resolve_config, save_config
 from .dag import (
     RunInputs,
     Stage,
@@ -68,7 +68,7 @@ def compute_keys(stages: dict[str, type[Stage]], order: list[str], config: dict[
             "cache_format": CACHE_FORMAT,
             "stage": name,
             "version": cls.VERSION,
-            "params": params_to_dict(config[name]),
+            "params": params_key(config[name]),
             "inputs": {u: keys[u] for u in ups},
             "raw": {r: raw_input_digest(run_inputs, r, memo) for r in cls.raw_inputs},
             "libraries": {lib: library_version(lib) for lib in cls.libraries},
@@ -205,7 +205,7 @@ def _run_stage(cls: type[Stage], name: str, key: str, config: dict[str, Any], ca
     item_hits = [0, 0]
 
     def item_cache(item_key: Any, build: Any) -> Path:
-        ikey = hash_obj({"stage": name, "version": cls.VERSION, "params": params_to_dict(params),
+        ikey = hash_obj({"stage": name, "version": cls.VERSION, "params": params_key(params),
                          "item": item_key})
         folder, hit = cache.item(name, ikey, build, {"stage": name, "version": cls.VERSION}, force=force)
         used_items.append(ikey)

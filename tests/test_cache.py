@@ -58,6 +58,28 @@ def test_version_bump_invalidates_the_stage(tmp_path, image_dir, toy_stages):
     assert again.ran == ["toy_slow", "toy_report"]
 
 
+def test_a_parameter_added_at_its_neutral_value_keeps_the_cache(tmp_path, image_dir, toy_stages):
+    """Upgrading to a stage with a new option that is off by default (config.added_param) keeps the
+    cached results; setting the option, or a new plain field, recomputes."""
+    import dataclasses
+
+    from sgpor_pipeline.config import added_param
+
+    out = tmp_path / "out"
+    run(out, image_dir, toy_stages)
+    base = toy_stages["toy_slow"]
+
+    def upgraded(field: tuple) -> dict:
+        params = dataclasses.make_dataclass("ToySlowParams", [field], bases=(base.Params,))
+        return dict(toy_stages, toy_slow=type("ToySlow", (base,), {"Params": params}))
+
+    with_option = upgraded(("new_option", int, added_param(0)))
+    again = run(out, image_dir, with_option)
+    assert again.ran == [] and "new_option = 0" in (out / "config.toml").read_text()  # stored, not keyed
+    assert run(out, image_dir, with_option, overrides=["toy_slow.new_option=1"]).ran == ["toy_slow", "toy_report"]
+    assert run(out, image_dir, upgraded(("plain", int, 0))).ran == ["toy_slow", "toy_report"]
+
+
 def test_changed_input_file_invalidates_and_new_image_is_one_item(tmp_path, image_dir, toy_stages, caplog):
     out = tmp_path / "out"
     run(out, image_dir, toy_stages)

@@ -19,6 +19,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.linalg import spsolve
 from scipy.spatial import cKDTree
 
+from ..config import added_param
 from ..errors import PipelineError
 from ..gaussians.model import GaussianModel, inverse_sigmoid, rgb_to_sh
 from ..scene import Camera
@@ -52,7 +53,7 @@ class RemoveParams:
     # Off by default: the rendered depth is too inaccurate for it (median 10 % off inside the mask on
     # the synthetic scene): with min_views 1 the synthetic holes grow from 4 % to 30 % of the mask
     # (true depth: 5 %) and mask PSNR drops 23.51 -> 21.98; lund + box gains 14.34 -> 14.39.
-    min_views: int = 0
+    min_views: int = added_param(0)
     view_depth_tol: float = 0.05  # relative: a point deeper than another view's surface is occluded there
     view_mask_dilate: int = 2  # px: other views' object masks are dilated by this (their edge pixels mix)
     # Hole depths completed view by view, smallest hole first, each constrained by the hole surfaces

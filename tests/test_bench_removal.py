@@ -23,7 +23,7 @@ def bench():
 
 def _row(method: str, psnr: float) -> dict:
     return {"method": method, "psnr_mask": psnr, "psnr_bbox": psnr + 1, "psnr_full": psnr + 5, "ssim_mask": 0.5,
-            "ssim_bbox": 0.6, "ssim_full": 0.8, "psnr_hole": psnr - 3, "cons": 0.01, "cons2d": None,
+            "ssim_bbox": 0.6, "ssim_full": 0.8, "psnr_hole": psnr - 3, "detail": 0.75, "cons": 0.01, "cons2d": None,
             "seconds": {"fit": 10.0, "finetune": 3.0}, "total_seconds": 13.0, "wall_seconds": None}
 
 
@@ -34,6 +34,7 @@ def test_tables_and_summary(bench, capsys):
              "mask_pixels": 100}
     table = bench.format_removal_table(scene)
     assert all(m in table for m in methods) and "PSNR mask" in table and "20 of 100" in table
+    assert "detail" in table and "0.750" in table
     prop = {"scene": "statue", "iou": {1: 0.8, 2: 0.9}, "iou_min": {2: 0.7}, "wall_seconds": 5.0,
             "evaluated_views": 27}
     assert "0.900" in bench.format_propagation_table([prop, {"scene": "room", "skipped": "no data"}])
@@ -89,3 +90,22 @@ def test_oracle_holes_psnr_replaces_only_the_holes(bench, tmp_path):
     summary, checks = bench.summarise({"lund": scene})
     assert summary["lund_inserted_mask_psnr_holes_oracle"] == 23.0
     assert any("+3.00 dB over delete-only" in c for c in checks)
+
+
+def test_detail_ratio_is_one_for_the_truth_and_lower_for_a_blur(bench, tmp_path):
+    import cv2
+    import skimage.data
+
+    from sgpor_pipeline.imageio import write_mask01, write_png
+
+    truth = cv2.resize(skimage.data.astronaut(), (96, 80)).astype(np.float32) / 255.0
+    (tmp_path / "truth").mkdir()
+    (tmp_path / "masks").mkdir()
+    write_png(tmp_path / "truth" / "v.png", truth)
+    mask = np.zeros((80, 96), bool)
+    mask[20:60, 30:70] = True
+    write_mask01(tmp_path / "masks" / "v.png", mask)
+    same = bench.detail_ratio({"v": truth}, tmp_path / "masks", tmp_path / "truth")
+    blurred = bench.detail_ratio({"v": cv2.GaussianBlur(truth, (9, 9), 3)}, tmp_path / "masks", tmp_path / "truth")
+    assert same == pytest.approx(1.0, abs=0.01)  # (the truth goes through an 8-bit PNG)
+    assert blurred < 0.6

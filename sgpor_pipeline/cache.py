@@ -213,7 +213,7 @@ class StageCache:
     def item(self, stage: str, item_key: str, build: Callable[[Path], None],
              manifest: dict[str, Any], force: bool = False) -> tuple[Path, bool]:
         """The folder of a per-item result, built with ``build(tmp)`` when missing, corrupt or forced.
-        Returns (folder, was_hit)."""
+        Returns (folder, was_hit). The item's manifest records its build ``seconds``."""
         idir = self.stage_dir(stage) / ITEMS
         final = idir / item_key
         if not force and final.exists() and verify(final, item_key)[0]:
@@ -221,12 +221,14 @@ class StageCache:
         idir.mkdir(parents=True, exist_ok=True)
         tmp = idir / f"{TMP_PREFIX}{item_key}-{secrets.token_hex(4)}"
         tmp.mkdir()
+        t0 = time.perf_counter()
         try:
             build(tmp)
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise
-        return publish(tmp, final, dict(manifest, key=item_key, created=time.time())), False
+        seconds = time.perf_counter() - t0
+        return publish(tmp, final, dict(manifest, key=item_key, created=time.time(), seconds=seconds)), False
 
     def items_in_use(self, stage: str) -> set[str]:
         used: set[str] = set()

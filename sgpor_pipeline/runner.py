@@ -203,6 +203,7 @@ def _run_stage(cls: type[Stage], name: str, key: str, config: dict[str, Any], ca
     resumed = (tmp / CHECKPOINT).is_dir()
     used_items: list[str] = []
     item_hits = [0, 0]
+    reused_seconds = [0.0]
 
     def item_cache(item_key: Any, build: Any) -> Path:
         ikey = hash_obj({"stage": name, "version": cls.VERSION, "params": params_key(params),
@@ -210,6 +211,8 @@ def _run_stage(cls: type[Stage], name: str, key: str, config: dict[str, Any], ca
         folder, hit = cache.item(name, ikey, build, {"stage": name, "version": cls.VERSION}, force=force)
         used_items.append(ikey)
         item_hits[0 if hit else 1] += 1
+        if hit:  # what building it once cost (items built before this field existed: unknown, 0)
+            reused_seconds[0] += float((read_manifest(folder) or {}).get("seconds", 0.0))
         return folder
 
     ctx = StageContext(stage=name, params=params, out_dir=tmp, inputs=inputs, run_inputs=run_inputs,
@@ -232,6 +235,8 @@ def _run_stage(cls: type[Stage], name: str, key: str, config: dict[str, Any], ca
         "items": used_items,
         "notes": ctx.notes,
         "seconds": seconds,
+        # the stage's cost from scratch: its run plus what the reused items once cost to build
+        "seconds_from_scratch": seconds + reused_seconds[0],
         "created": time.time(),
         "resumed_from_checkpoint": resumed,
         "versions": {"sgpor_pipeline": __version__, "python": platform.python_version(),

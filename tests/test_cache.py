@@ -5,12 +5,13 @@ from __future__ import annotations
 import json
 import logging
 import shutil
+import time
 from pathlib import Path
 
 import pytest
 from conftest import make_images
 
-from sgpor_pipeline.cache import StageCache, verify
+from sgpor_pipeline.cache import StageCache, read_manifest, verify
 from sgpor_pipeline.dag import RunInputs, topological_order
 from sgpor_pipeline.errors import PipelineError
 from sgpor_pipeline.runner import clean, pipeline_status, run_pipeline
@@ -85,9 +86,16 @@ def test_changed_input_file_invalidates_and_new_image_is_one_item(tmp_path, imag
     run(out, image_dir, toy_stages)
     make_images(image_dir, n=5, seed=0)  # same four images rewritten identically + one new
     caplog.set_level(logging.INFO, logger="sgpor_pipeline")
+    started = time.time()
     again = run(out, image_dir, toy_stages)
     assert again.ran == ["ingest", "toy_stats", "toy_slow", "toy_report"]
     assert "5 items, 1 built" in caplog.text
+    # The stage's cost from scratch adds what the four reused items once took to build.
+    stage = read_manifest(again.path("ingest"))
+    items = [read_manifest(out / "cache" / "ingest" / "items" / k) for k in stage["items"]]
+    reused = [m["seconds"] for m in items if m["created"] < started]
+    assert len(reused) == 4 and all(t > 0 for t in reused)
+    assert stage["seconds_from_scratch"] == pytest.approx(stage["seconds"] + sum(reused), rel=1e-9)
     # Rewriting a file with the same bytes (new mtime) is not a change.
     make_images(image_dir, n=5, seed=0)
     assert run(out, image_dir, toy_stages).ran == []

@@ -90,6 +90,19 @@ def write_mask01(path: Path, mask: np.ndarray) -> None:
     Path(path).write_bytes(buf.tobytes())
 
 
+def write_labels(path: Path, labels: np.ndarray) -> None:
+    """A uint8 label map (values kept, e.g. the inpaint stage's 0/1/2 ``filled_from``) as a PNG."""
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(labels, dtype=np.uint8))
+    if not ok:
+        raise OSError(f"{path}: PNG encoding failed")
+    Path(path).write_bytes(buf.tobytes())
+
+
+def read_labels(path: Path) -> np.ndarray:
+    """A label map written by :func:`write_labels`, as uint8 HxW (values kept)."""
+    return _decode(Path(path), cv2.IMREAD_UNCHANGED)
+
+
 def resize_mask_nearest(mask: np.ndarray, width: int, height: int) -> np.ndarray:
     if mask.shape == (height, width):
         return mask

@@ -42,9 +42,8 @@ from typing import Any, Literal
 import numpy as np
 
 from sgpor_pipeline.dag import Stage, StageContext
-from sgpor_pipeline.errors import PipelineError
 from sgpor_pipeline.hashing import hash_obj
-from sgpor_pipeline.imageio import read_image, write_mask01, write_png
+from sgpor_pipeline.imageio import read_image, read_labels, write_labels, write_mask01, write_png
 from sgpor_pipeline.removal import diffusion as sd
 from sgpor_pipeline.removal.multiview import (
     FILLED_INPAINTED,
@@ -223,7 +222,7 @@ class InpaintStage(Stage):
             loaded = []
             for j in sources:
                 item, sv = items[names[j]], data.views[j]
-                filled = _read_u8(item / "filled_from.png")
+                filled = read_labels(item / "filled_from.png")
                 carry = filled == FILLED_INPAINTED if progressive else filled > 0
                 if carry.any():
                     loaded.append((read_image(item / "image.png"), sv.camera, sv.depth(), carry))
@@ -250,8 +249,7 @@ class InpaintStage(Stage):
                     img = sd.refine_fill(diffusion_model(), img, region, p.diffusion(), seed=vseed)
                 extra = {"diffusion_pixels": int(region.sum()), "diffusion_seconds": time.perf_counter() - td}
             write_png(folder / "image.png", img)
-            ok = _write_u8(folder / "filled_from.png", filled_from)
-            assert ok
+            write_labels(folder / "filled_from.png", filled_from)
             arrays = res.arrays() if res is not None else _empty_sources(names, p.top_k)
             arrays["views"] = np.array(names)
             np.savez_compressed(folder / "source.npz", **arrays)
@@ -331,23 +329,3 @@ class InpaintStage(Stage):
                          views_with_hole=len(with_hole), projected=report["projected"], inpainted=report["inpainted"])
         if not with_hole:
             ctx.log.warning("no view has a hole to inpaint: the renders are passed through")
-
-
-def _write_u8(path: Path, arr: np.ndarray) -> bool:
-    import cv2
-
-    ok, buf = cv2.imencode(".png", np.asarray(arr, np.uint8))
-    if not ok:
-        raise PipelineError("PNG encoding failed", path=path)
-    path.write_bytes(buf.tobytes())
-    return True
-
-
-def _read_u8(path: Path) -> np.ndarray:
-    import cv2
-
-    arr = cv2.imdecode(np.frombuffer(path.read_bytes(), np.uint8), cv2.IMREAD_UNCHANGED)
-    if arr is None:
-        raise PipelineError("cannot read the inpaint stage's filled_from map", path=path,
-                            fix="rerun the inpaint stage (--force inpaint)")
-    return arr

@@ -31,7 +31,7 @@ import numpy as np
 from sgpor_pipeline.dag import Stage, StageContext
 from sgpor_pipeline.errors import PipelineError
 from sgpor_pipeline.hashing import hash_obj
-from sgpor_pipeline.imageio import read_image, write_png
+from sgpor_pipeline.imageio import read_image, read_labels, write_png
 from sgpor_pipeline.removal.multiview import FILLED_PROJECTED, load_remove_folder, warp_from_reference
 from sgpor_pipeline.removal.rpr import RPRParams, hf_energy, refine_view, refined_overlay
 from sgpor_pipeline.removal.sbm import SBMParams, build_source_bank, match_blocks, target_positions
@@ -52,18 +52,9 @@ class RefineParams:
         return RPRParams(ratio=self.ratio, max_rounds=self.max_rounds, erode=self.erode, ring=self.ring)
 
 
-def _read_u8(path: Path) -> np.ndarray:
-    import cv2
-
-    arr = cv2.imdecode(np.fromfile(path, np.uint8), cv2.IMREAD_UNCHANGED)
-    if arr is None:
-        raise PipelineError("unreadable image", path=path, fix="rerun the inpaint stage")
-    return arr
-
-
 class RefineStage(Stage):
     name = "refine"
-    VERSION = 1
+    VERSION = 2  # 2: with max_rounds = 0 no sources are retrieved for another inpainter's fill
     Params = RefineParams
     inputs = ("inpaint", "remove")
     libraries = ("torch", "kornia")
@@ -100,7 +91,7 @@ class RefineStage(Stage):
             view = data.by_name(name)
             hole = view.hole()
             img = read_image(inp / "images" / f"{name}.png")
-            filled_from = _read_u8(inp / "filled_from" / f"{name}.png")
+            filled_from = read_labels(inp / "filled_from" / f"{name}.png")
             src = np.load(inp / "source" / f"{name}.npz")
             src_names = [str(s) for s in src["views"]]
             if src_names != names:
@@ -119,7 +110,7 @@ class RefineStage(Stage):
             imgs, energies = sources()
             own = hole & (filled_from != FILLED_PROJECTED)
             targets, cand, first_used = src["targets"], src["cand"], True
-            if len(targets) == 0 and own.any():  # another inpainter (opencv): retrieve sources now
+            if len(targets) == 0 and own.any() and rp.max_rounds > 0:  # another inpainter: retrieve sources now
                 targets = target_positions(own, block, sbm.target_stride, sbm.tau)
                 cand = match_blocks(img, np.ones(own.shape, bool), targets, bank(), sbm)[0]
                 first_used = False

@@ -133,3 +133,12 @@ def test_refine_stage_sharpens_a_smooth_baseline_fill(setup, tmp_path):
         e_gt, e_a, e_b = (float(hf_energy(x)[hole].mean()) for x in (sc.images_gt[i], a, b))
         gain.append(abs(np.log(e_a / e_gt)) - abs(np.log(e_b / e_gt)))
     assert np.mean(gain) > 0  # the refined fill's detail is closer to the truth's
+    # RPR off (the fsr-refit baseline): a pass-through that retrieves nothing
+    ctx3 = StageContext.standalone(tmp_path / "off", "refine", RefineParams(max_rounds=0),
+                                   {"inpaint": ctx.out_dir, "remove": remove})
+    RefineStage().run(ctx3)
+    off = json.loads((ctx3.out_dir / "refined.json").read_text())
+    assert off["refined_blocks"] == 0 and not any(v["retrieved"] for v in off["views"].values())
+    for cam in sc.cameras:
+        assert np.array_equal(read_image(ctx.out_dir / "images" / f"{cam.name}.png"),
+                              read_image(ctx3.out_dir / "images" / f"{cam.name}.png"))

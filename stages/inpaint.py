@@ -215,19 +215,24 @@ class InpaintStage(Stage):
                 state["diffusion_load_seconds"] = time.perf_counter() - t
             return state["diffusion"]
 
-        def carried(i: int, sources: list[int]):
-            """What the already-filled ``sources`` views carry into view i: the reference's filled
-            pixels, or (progressive) the pixels each earlier view inpainted itself."""
-            view = data.views[i]
-            loaded = []
-            for j in sources:
+        carriers: dict[int, tuple | None] = {}  # view index -> what it carries, read once
+
+        def carrier(j: int) -> tuple | None:
+            """(image, camera, completed depth, pixels to carry) of filled view j: the reference's filled
+            pixels, or (progressive) the pixels the view inpainted itself; None when there are none."""
+            if j not in carriers:
                 item, sv = items[names[j]], data.views[j]
                 filled = read_labels(item / "filled_from.png")
                 carry = filled == FILLED_INPAINTED if progressive else filled > 0
-                if carry.any():
-                    loaded.append((read_image(item / "image.png"), sv.camera, sv.depth(), carry))
+                carriers[j] = (read_image(item / "image.png"), sv.camera, sv.depth(), carry) if carry.any() else None
+            return carriers[j]
+
+        def carried(i: int, sources: list[int]):
+            """What the already-filled ``sources`` views carry into view i (see :func:`carrier`)."""
+            loaded = [c for c in (carrier(j) for j in sources) if c is not None]
             if not loaded:
                 return None
+            view = data.views[i]
             return gather_from_views(loaded, view.camera, view.depth(), holes[i], p.projection, p.depth_tol)
 
         def build(folder: Path, i: int, sources: list[int]) -> None:

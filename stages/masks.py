@@ -230,13 +230,11 @@ def _reselect(model: GaussianModel, sfm: SfmResult, first: Selection, given: _Gi
                  for c in all_cams]
     cone = [given.masks[given.index[c.image]] if c.image in given.names else propagated[c.image][0]
             for c in all_cams]
-    behind = given.behind
-    depths = [behind[given.index[c.image]] if (behind is not None and c.image in given.names) else None
-              for c in all_cams]
+    depths = None if given.behind is None else [
+        given.behind[given.index[c.image]] if c.image in given.names else None for c in all_cams]
     again = select_object(model, all_cams, all_masks, sel_params, sfm_pts,
                           [sfm.index(c.image) for c in all_cams], cone_masks=cone,
-                          background_depths=depths if behind is not None else None,
-                          depth_tol=TightParams.depth_tol)
+                          background_depths=depths, depth_tol=TightParams.depth_tol)
     return again if again.is_object.any() else first
 
 

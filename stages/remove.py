@@ -58,8 +58,7 @@ def complete_hole_depths(cameras: list[Camera], depths: list[np.ndarray], valids
     ``floors`` (the deleted object's depth) where given."""
     if p.consistent_depth:
         return complete_depths_jointly(cameras, depths, valids, holes, floors)
-    return [complete_depth(d, v, h, None if floors is None else f)
-            for d, v, h, f in zip(depths, valids, holes, floors or [None] * len(holes))]
+    return [complete_depth(d, v, h, f) for d, v, h, f in zip(depths, valids, holes, floors or [None] * len(holes))]
 
 
 class RemoveStage(Stage):

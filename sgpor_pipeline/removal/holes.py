@@ -264,7 +264,7 @@ def complete_depths_jointly(cameras: list[Camera], depths: list[np.ndarray], val
     for i in sorted(range(len(cameras)), key=lambda k: int(holes[k].sum())):
         cam, hole = cameras[i], holes[i]
         floor = None if floors is None else floors[i]
-        depth, valid, free = depths[i].astype(np.float32).copy(), valids[i].copy(), hole.copy()
+        depth, valid, free = depths[i].astype(np.float32), valids[i].copy(), hole.copy()  # (astype copies)
         if done and hole.any():
             px, z, inside = pixels_in_image(np.concatenate(done), cam)
             px, z = px[inside], z[inside]

@@ -2,7 +2,9 @@
 
 In: the ``remove`` folder (layout: :mod:`sgpor_pipeline.removal.multiview`). Out:
 
-* ``images/<view>.png``: the render with its hole completed (views without a hole: the render);
+* ``images/<view>.png``: the remove stage's context image (the photo outside the object mask, the
+  render inside; older remove folders: the render) with its hole completed (views without a hole:
+  the context image);
 * ``filled_from/<view>.png``: 0 = not filled (outside the hole), 1 = projected from the reference
   view, 2 = inpainted in this view (SBM, SBM refined by diffusion, or the OpenCV baseline);
 * ``source/<view>.npz``: per target block its corner (``targets``), onion-peel ``layer``, the ranked
@@ -203,7 +205,7 @@ class InpaintStage(Stage):
         def bank():
             if "bank" not in state:
                 t = time.perf_counter()
-                state["bank"] = build_source_bank(names, [v.render() for v in data.views],
+                state["bank"] = build_source_bank(names, [v.context() for v in data.views],
                                                   [v.mask() for v in data.views], holes, sbm)
                 state["bank_seconds"] = time.perf_counter() - t
             return state["bank"]
@@ -238,9 +240,9 @@ class InpaintStage(Stage):
         def build(folder: Path, i: int, sources: list[int]) -> None:
             t0 = time.perf_counter()
             view = data.views[i]
-            render, hole = view.render(), holes[i]
+            image, hole = view.context(), holes[i]
             prior = carried(i, sources) if sources else None
-            img, filled_from, res = fill_view(render, hole, "sbm" if uses_sbm else backend,
+            img, filled_from, res = fill_view(image, hole, "sbm" if uses_sbm else backend,
                                               bank() if uses_sbm else None, sbm, prior)
             extra: dict[str, Any] = {}
             if backend == "diffusion":
@@ -301,8 +303,8 @@ class InpaintStage(Stage):
                 _link_or_copy(item / "filled_from.png", ctx.out_dir / "filled_from" / f"{name}.png")
                 _link_or_copy(item / "source.npz", ctx.out_dir / "source" / f"{name}.npz")
                 summary[name] = json.loads((item / "info.json").read_text())
-            else:  # no hole: the render is the result
-                _link_or_copy(v.render_path, ctx.out_dir / "images" / f"{name}.png")
+            else:  # no hole: the context image (see the remove stage) is the result
+                _link_or_copy(v.context_path or v.render_path, ctx.out_dir / "images" / f"{name}.png")
                 write_mask01(ctx.out_dir / "filled_from" / f"{name}.png", np.zeros(holes[i].shape, bool))
                 np.savez_compressed(ctx.out_dir / "source" / f"{name}.npz", **_empty_sources(names, p.top_k))
                 summary[name] = {"hole_pixels": 0, "projected": 0, "inpainted": 0, "seconds": 0.0}
@@ -333,4 +335,4 @@ class InpaintStage(Stage):
         ctx.notes.update(backend=backend, backend_reason=reason, reference=report["reference"],
                          views_with_hole=len(with_hole), projected=report["projected"], inpainted=report["inpainted"])
         if not with_hole:
-            ctx.log.warning("no view has a hole to inpaint: the renders are passed through")
+            ctx.log.warning("no view has a hole to inpaint: the context images are passed through")

@@ -1,6 +1,6 @@
 """refine: region-wise progressive refinement (RPR) of the inpainted views' low-detail blocks.
 
-In: ``inpaint`` (images, source lists) and ``remove`` (holes, the renders the sources point into,
+In: ``inpaint`` (images, source lists) and ``remove`` (holes, the context images the sources point into,
 cameras and completed depth). Out:
 
 * ``images/<view>.png``: the refined views;
@@ -74,7 +74,7 @@ class RefineStage(Stage):
 
         def sources() -> tuple[list[np.ndarray], list[np.ndarray]]:
             if "src" not in state:
-                imgs = [v.render() for v in data.views]
+                imgs = [v.context() for v in data.views]
                 state["src"] = (imgs, [hf_energy(im) for im in imgs])
             return state["src"]
 

@@ -4,6 +4,9 @@ Out (the contract the inpaint and refine stages read):
 
 - ``cameras.json``: the training cameras (PINHOLE; novel cameras dropped),
 - ``renders/<view>.png``: RGB render of the scene after deletion (before any new Gaussian),
+- ``context/<view>.png``: what the inpainter completes and takes source blocks from (``context``):
+  the photo outside the object mask dilated by ``context_margin`` px and the render inside, or the
+  render alone,
 - ``holes/<view>.png``: 0/1, object pixels the remaining background does not cover (opacity below
   ``hole_alpha``; with ``min_views`` > 0 also those fewer other views observed): what to inpaint,
 - ``masks/<view>.png``: 0/1 object mask of every view (from the masks stage); holes are inside it,
@@ -25,13 +28,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from sgpor_pipeline.dag import Stage, StageContext
+from sgpor_pipeline.errors import PipelineError
 from sgpor_pipeline.gaussians.ply import read_ply, write_ply
-from sgpor_pipeline.imageio import read_mask, write_mask01, write_png
+from sgpor_pipeline.imageio import read_image, read_mask, write_mask01, write_png
 from sgpor_pipeline.removal.holes import (
     RemoveParams,
     complete_depth,
     complete_depths_jointly,
     concat_models,
+    context_image,
     hole_mask,
     initial_colour,
     median_spacing,
@@ -61,6 +66,9 @@ def complete_hole_depths(cameras: list[Camera], depths: list[np.ndarray], valids
     return [complete_depth(d, v, h, f) for d, v, h, f in zip(depths, valids, holes, floors or [None] * len(holes))]
 
 
+CONTEXTS = ("photos", "renders")
+
+
 class RemoveStage(Stage):
     name = "remove"
     VERSION = 3  # 3: the hole-depth floor renders the object proper only (no floaters)
@@ -69,6 +77,8 @@ class RemoveStage(Stage):
 
     def run(self, ctx: StageContext) -> None:
         p = ctx.params
+        if p.context not in CONTEXTS:
+            raise PipelineError(f"unknown remove.context {p.context!r}", fix=f"use one of {', '.join(CONTEXTS)}")
         sfm = load_sfm(ctx.inputs["sfm"])
         cameras = sfm.posed
         model = read_ply(ctx.inputs["fit"] / "gaussians.ply")
@@ -80,7 +90,7 @@ class RemoveStage(Stage):
         obj = subset(model, delete)
         write_ply(ctx.out_dir / "object.ply", obj)
         save_cameras(ctx.out_dir / "cameras.json", cameras)
-        for sub in ("renders", "holes", "masks", "depth"):
+        for sub in ("renders", "holes", "masks", "depth", "context"):
             (ctx.out_dir / sub).mkdir()
         renders, alphas, raw_depths = [], [], []
         for cam in ctx.progress(cameras, total=len(cameras), desc="remove: render"):
@@ -104,6 +114,8 @@ class RemoveStage(Stage):
         per_view = {}
         for cam, mask, rgb, alpha, hole, filled_depth in zip(cameras, masks, renders, alphas, holes, depths):
             write_png(ctx.out_dir / "renders" / f"{cam.image}.png", rgb)
+            write_png(ctx.out_dir / "context" / f"{cam.image}.png",
+                      context_image(rgb, self._photo(sfm, cam, p), mask, p.context_margin))
             write_mask01(ctx.out_dir / "holes" / f"{cam.image}.png", hole)
             shutil.copyfile(masks_dir / f"{cam.image}.png", ctx.out_dir / "masks" / f"{cam.image}.png")
             np.save(ctx.out_dir / "depth" / f"{cam.image}.npy", filled_depth)
@@ -122,3 +134,15 @@ class RemoveStage(Stage):
                    "hole_fraction_of_mask": hole_px / mask_px if mask_px else 0.0, "views": per_view}
         (ctx.out_dir / "remove.json").write_text(json.dumps(summary, indent=1))
         ctx.notes.update({k: v for k, v in summary.items() if k != "views"})
+
+    @staticmethod
+    def _photo(sfm, cam: Camera, p: RemoveStageParams) -> np.ndarray | None:
+        """The view's undistorted photo for ``context = photos`` (None: renders, or no photo on disk)."""
+        path = sfm.image_path(cam.image)
+        if p.context != "photos" or not path.is_file():
+            return None
+        photo = read_image(path)
+        if photo.shape[:2] != (cam.height, cam.width):
+            raise PipelineError(f"the photo of view {cam.image} is {photo.shape[1]}x{photo.shape[0]}, its camera "
+                                f"{cam.width}x{cam.height}", path=path, fix="rerun from the sfm stage (--force sfm)")
+        return photo

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 
+import cv2
 import numpy as np
 import pytest
 
@@ -52,6 +53,13 @@ def test_every_stage_runs_and_exports(finished_run):
     final, deleted = metrics["means"]["final"], metrics["means"]["delete_only"]
     assert final["psnr_full"] > constant, (final, constant)
     assert final["psnr_full"] > deleted["psnr_full"] - 0.5, (final, deleted)
+    # the inpainter completed the photos (context = photos), not the blurry renders, around the holes
+    name = sorted(p.stem for p in (result.path("remove") / "context").glob("*.png"))[0]
+    photo = read_image(result.path("sfm") / "images" / f"{name}.png")
+    mask = read_image(result.path("remove") / "masks" / f"{name}.png")[..., 0] > 0.5
+    far = cv2.dilate(mask.astype(np.uint8), np.ones((7, 7), np.uint8)) == 0  # beyond the 2 px context margin
+    inpainted = read_image(result.path("inpaint") / "images" / f"{name}.png")
+    assert far.any() and np.array_equal(inpainted[far], photo[far])
     seconds = {s: json.loads((result.path(s) / "manifest.json").read_text())["seconds"] for s in STAGES}
     print("seconds per stage:", {k: round(v, 1) for k, v in seconds.items()})
 

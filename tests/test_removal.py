@@ -13,6 +13,7 @@ from sgpor_pipeline.removal.holes import (
     RemoveParams,
     complete_depth,
     concat_models,
+    context_image,
     hole_mask,
     initial_colour,
     objects_to_delete,
@@ -450,3 +451,17 @@ def test_completed_hole_depth_never_lies_in_front_of_the_deleted_object():
     # each view on its own, too
     alone = [complete_depth(d, v, h, f) for d, v, h, f in zip(near, valids, holes, floors)]
     assert all((a[h] >= f[h] - 1e-6).all() for a, f, h in zip(alone, floors, holes))
+
+
+def test_context_image_is_the_photo_outside_the_dilated_mask():
+    """The inpainter's image: the photo where the object mask (grown by the margin, whose pixels mix
+    object and background) is not, the render inside; the render alone without a photo."""
+    render, photo = np.zeros((20, 30, 3), np.float32), np.ones((20, 30, 3), np.float32)
+    mask = np.zeros((20, 30), bool)
+    mask[8:12, 10:15] = True
+    out = context_image(render, photo, mask, margin=2)
+    grown = np.zeros_like(mask)
+    grown[6:14, 8:17] = True
+    assert out.dtype == np.float32 and (out[grown] == 0).all() and (out[~grown] == 1).all()
+    assert (context_image(render, photo, mask, margin=0)[~mask] == 1).all()
+    assert context_image(render, None, mask, margin=2) is render

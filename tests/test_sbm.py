@@ -304,3 +304,34 @@ def test_sample_bilinear_takes_more_points_than_remap_rows():
     mid = sample_bilinear(img[..., 0], np.array([0.5, -5.0]), np.array([0.0, 0.0]))
     assert mid.shape == (2,)
     assert mid[0] == pytest.approx(0.5 * (img[0, 0, 0] + img[0, 1, 0]), abs=1e-3) and mid[1] == 0.0
+
+
+def test_inpaint_and_refine_complete_the_context_image_when_the_remove_folder_has_one(scene, tmp_path):
+    """A remove folder with ``context/`` (the photos outside the object mask): the inpainter completes
+    that image and takes its source blocks from it, not from the renders; refine keeps its pixels."""
+    from sgpor_pipeline.imageio import write_png
+    from sgpor_pipeline.stages.inpaint import InpaintParams, InpaintStage
+    from sgpor_pipeline.stages.refine import RefineParams, RefineStage
+
+    remove = write_remove_fixture(scene, tmp_path / "remove", holes="mask")
+    (remove / "context").mkdir()
+    contexts = []
+    for i, cam in enumerate(scene.cameras):
+        # a context unlike the render: tinted red outside the object mask
+        tinted = 0.5 * scene.images_gt[i] + np.array([0.5, 0.0, 0.0], np.float32)
+        context = np.where(scene.masks[i][..., None], 0.0, tinted).astype(np.float32)
+        write_png(remove / "context" / f"{cam.name}.png", context)
+        contexts.append(read_image(remove / "context" / f"{cam.name}.png"))
+    ctx = StageContext.standalone(tmp_path, "inpaint", InpaintParams(multiview=False), {"remove": remove})
+    InpaintStage().run(ctx)
+    ctx2 = StageContext.standalone(tmp_path, "refine", RefineParams(), {"inpaint": ctx.out_dir, "remove": remove})
+    RefineStage().run(ctx2)
+    for i, cam in enumerate(scene.cameras):
+        hole = scene.masks[i]
+        for out in (ctx.out_dir, ctx2.out_dir):
+            img = read_image(out / "images" / f"{cam.name}.png")
+            assert np.array_equal(img[~hole], contexts[i][~hole])
+        # the fill comes from the tinted sources: far redder than the truth (and the renders) there
+        fill = read_image(ctx.out_dir / "images" / f"{cam.name}.png")[hole]
+        redness = lambda x: float((x[:, 0] - x[:, 1:].mean(1)).mean())  # noqa: E731
+        assert redness(fill) > redness(scene.images_gt[i][hole]) + 0.25, (redness(fill), cam.name)

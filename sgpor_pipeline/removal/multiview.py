@@ -5,6 +5,9 @@ The ``remove`` folder (``ctx.inputs["remove"]`` of the inpaint and refine stages
 * ``cameras.json``: the training cameras (:func:`sgpor_pipeline.scene.save_cameras`, PINHOLE);
   ``Camera.image`` is the view name; cameras whose image is None (novel views) are ignored;
 * ``renders/<view>.png``: RGB render of the scene after the object's Gaussians were deleted;
+* ``context/<view>.png``: what the inpainter sees around the hole and takes its source blocks from:
+  the photo outside the object mask (slightly dilated), the render inside it. Optional: without it
+  the render is the context (:meth:`RemovalView.context`);
 * ``holes/<view>.png``: 0/1 mask of the truly unseen region (object pixels the remaining background
   does not cover): THE region to inpaint. Whatever the render shows there is ignored;
 * ``masks/<view>.png``: 0/1 object mask of every view (propagated); ``holes`` is a subset of it.
@@ -57,9 +60,14 @@ class RemovalView:
     hole_path: Path
     mask_path: Path
     depth_path: Path | None
+    context_path: Path | None = None
 
     def render(self) -> np.ndarray:
         return read_image(self.render_path)
+
+    def context(self) -> np.ndarray:
+        """The image to complete: its known pixels are the hole's context and the source blocks."""
+        return read_image(self.context_path if self.context_path is not None else self.render_path)
 
     def hole(self) -> np.ndarray:
         return read_mask(self.hole_path)
@@ -73,7 +81,8 @@ class RemovalView:
         return np.load(self.depth_path).astype(np.float32)
 
     def files(self) -> list[Path]:
-        return [p for p in (self.render_path, self.hole_path, self.mask_path, self.depth_path) if p is not None]
+        return [p for p in (self.render_path, self.hole_path, self.mask_path, self.depth_path, self.context_path)
+                if p is not None]
 
 
 @dataclass
@@ -111,12 +120,14 @@ def load_remove_folder(folder: str | Path) -> RemovalInputs:
         name = rp.stem
         hp, mp = folder / "holes" / f"{name}.png", folder / "masks" / f"{name}.png"
         dp = folder / "depth" / f"{name}.npy"
+        cp = folder / "context" / f"{name}.png"
         if not hp.is_file():
             raise PipelineError(f"view '{name}' has a render but no hole mask", path=hp,
                                 fix="the remove stage must write holes/<view>.png for every render")
         if not mp.is_file():
             mp = hp  # no object mask: the hole is the object mask
-        views.append(RemovalView(name, cams.get(name), rp, hp, mp, dp if dp.is_file() else None))
+        views.append(RemovalView(name, cams.get(name), rp, hp, mp, dp if dp.is_file() else None,
+                                 cp if cp.is_file() else None))
     if not views:
         raise PipelineError("the remove stage's folder has no renders/<view>.png", path=renders,
                             fix="rerun the remove stage")

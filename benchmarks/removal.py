@@ -539,6 +539,35 @@ def format_propagation_table(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
+def speed_error_plot(results: dict[str, dict[str, Any]], path: Path) -> Path | None:
+    """Mask PSNR against seconds from scratch (ingest..finetune) of every method, one panel per scene with
+    ground truth; the dashed line is the headroom (delete-only with the truth in every hole pixel)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    scenes = [r for r in results.values() if r.get("rows")]
+    if not scenes:
+        return None
+    fig = Figure(figsize=(5.5 * len(scenes), 4.5), dpi=100)
+    for k, r in enumerate(scenes):
+        ax = fig.add_subplot(1, len(scenes), k + 1)
+        for i, row in enumerate(r["rows"]):
+            x, y = row["total_seconds"], row["psnr_mask"]
+            ax.plot([x], [y], "o", color=f"C{i % 10}", label=row["method"])
+            ax.annotate(row["method"], (x, y), textcoords="offset points", xytext=(5, 4), fontsize=8)
+        oracle = r.get("mask_psnr_holes_oracle")
+        if oracle is not None and np.isfinite(oracle):
+            ax.axhline(oracle, color="grey", ls="--", lw=1, label="perfect holes")
+        ax.set_xlabel(f"seconds from scratch, ingest..finetune ({os.cpu_count()} cores)")
+        ax.set_ylabel("mask PSNR (dB)")
+        ax.set_title(f"{r['scene']}: speed vs error")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    FigureCanvasAgg(fig).print_png(str(path))
+    return path
+
+
 def summarise(results: dict[str, dict[str, Any]]) -> tuple[dict[str, Any], list[str]]:
     summary: dict[str, Any] = {}
     checks: list[str] = []
@@ -662,6 +691,9 @@ def main(argv: list[str] | None = None) -> int:
         print("\n# targets")
         print("\n".join(checks))
     sheets = [r["sheet"] for r in results.values() if r.get("sheet")]
+    plot = speed_error_plot(results, out / "removal_speed_error.png")
+    if plot is not None:
+        sheets.append(str(plot))
     if sheets:
         print("\npictures: " + ", ".join(sheets))
     (out / "removal_benchmark.json").write_text(json.dumps({"results": results, "summary": summary}, indent=1,

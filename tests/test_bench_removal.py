@@ -109,3 +109,14 @@ def test_detail_ratio_is_one_for_the_truth_and_lower_for_a_blur(bench, tmp_path)
     blurred = bench.detail_ratio({"v": cv2.GaussianBlur(truth, (9, 9), 3)}, tmp_path / "masks", tmp_path / "truth")
     assert same == pytest.approx(1.0, abs=0.01)  # (the truth goes through an 8-bit PNG)
     assert blurred < 0.6
+
+
+def test_speed_error_plot(bench, tmp_path):
+    rows = [_row(m, 25.0 - i) for i, m in enumerate(["ours", "delete-only", "fsr-refit"])]
+    results = {"synthetic": {"scene": "synthetic", "rows": rows, "mask_psnr_holes_oracle": 26.0},
+               "lund": {"scene": "lund", "skipped": "x"}}
+    path = bench.speed_error_plot(results, tmp_path / "p.png")
+    from sgpor_pipeline.imageio import read_image
+
+    assert path is not None and read_image(path).shape[1] == 550  # one 5.5-inch panel at 100 dpi
+    assert bench.speed_error_plot({"lund": {"scene": "lund", "skipped": "x"}}, tmp_path / "q.png") is None

@@ -187,8 +187,10 @@ def run_method(scene: Scene, work: Path, inpaint: InpaintParams | None, refine: 
     return [read_image(out / "images" / f"{n}.png") for n in scene.names], seconds, extra
 
 
-def methods(dino: bool) -> list[tuple[str, InpaintParams | None, RefineParams | None]]:
+def methods(dino: bool, priority_share: float = InpaintParams.priority_share
+            ) -> list[tuple[str, InpaintParams | None, RefineParams | None]]:
     sbm = InpaintParams()
+    onion, priority = replace(sbm, order="onion"), replace(sbm, order="priority", priority_share=priority_share)
     out = [
         ("delete-only", None, None),
         ("opencv-fsr", InpaintParams(backend="opencv", multiview=False), None),
@@ -197,6 +199,8 @@ def methods(dino: bool) -> list[tuple[str, InpaintParams | None, RefineParams | 
         ("sbm", replace(sbm, multiview=False), None),
         ("sbm+mv", sbm, None),
         ("sbm+mv+rpr", sbm, RefineParams()),
+        ("sbm-onion", replace(onion, multiview=False), None),
+        ("sbm-priority", replace(priority, multiview=False), None),
     ]
     if dino:
         out.append(("sbm-dinov2+mv", replace(sbm, features="dinov2"), None))
@@ -212,6 +216,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--methods", default="", help="comma-separated subset of method names")
     ap.add_argument("--data", type=Path, default=DEFAULT_DATA)
     ap.add_argument("--dinov2", choices=("auto", "on", "off"), default="auto")
+    ap.add_argument("--priority-share", type=float, default=InpaintParams.priority_share,
+                    help="share of a layer's targets filled per step by the sbm-priority method")
     ap.add_argument("--json", action="store_true", help="print a JSON summary as the last line")
     ap.add_argument("--keep", type=Path, default=None, help="keep the work folder here")
     args = ap.parse_args(argv)
@@ -243,7 +249,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"\n## {scene.name}: {len(scene.names)} views, {len(idx)} with a hole, {px} hole pixels")
         print(f"{'method':<16}{'psnr mask':>10}{'ssim mask':>10}{'psnr bbox':>10}{'ssim bbox':>10}"
               f"{'psnr full':>10}{'ssim full':>10}{'cons':>8}{'seconds':>9}")
-        for name, ip, rp in methods(dino):
+        for name, ip, rp in methods(dino, args.priority_share):
             if only and name not in only:
                 continue
             imgs, secs, extra = run_method(scene, work / scene.name / name, ip, rp)

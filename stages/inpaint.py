@@ -76,6 +76,8 @@ class InpaintParams:
     top_k: int = 5
     rerank: int = 16
     blend: Literal["poisson", "feather"] = "poisson"
+    order: Literal["onion", "priority"] = "onion"  # fill order inside a view (see SBMParams.order)
+    priority_share: float = 0.25
     # The method (DESIGN.md section 7): views agree by construction. Independent per-view fills score
     # higher mask PSNR after the re-fit, which averages them into a blur (synthetic 25.54 vs 25.37, lund +
     # box 14.36 vs 13.51), and are what the fsr-refit baseline does.
@@ -105,7 +107,7 @@ class InpaintParams:
                          source_stride=self.source_stride, max_sources=self.max_sources, margin=self.margin,
                          cells=self.cells, features=self.features, dino_model=self.dino_model,
                          metric=self.metric, top_k=self.top_k, rerank=self.rerank, blend=self.blend,
-                         seed=self.seed)
+                         order=self.order, priority_share=self.priority_share, seed=self.seed)
 
     def diffusion(self) -> sd.DiffusionParams:
         return sd.DiffusionParams(prompt=self.diffusion_prompt, negative_prompt=self.diffusion_negative_prompt,

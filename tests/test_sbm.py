@@ -26,6 +26,7 @@ from sgpor_pipeline.removal.sbm import (
     fsr_inpaint,
     inpaint_view,
     retrieve,
+    rim_priority,
     target_positions,
 )
 from sgpor_pipeline.synthetic import SceneParams, generate_scene
@@ -130,6 +131,38 @@ def test_target_blocks_cover_every_hole_pixel():
         covered[y:y + 15, x:x + 15] = True
     assert covered[hole].all()
     assert (pos[:, 0] <= 60 - 15).all() and (pos[:, 1] <= 80 - 15).all()
+
+
+def test_rim_priority_is_highest_where_an_edge_runs_into_the_hole():
+    """Criminisi's data term: a block whose rim an edge crosses (the isophote along the rim normal)
+    outranks blocks on flat ground and a block whose edge runs parallel to the rim."""
+    img = np.full((60, 90, 3), 0.5, np.float32)
+    img[:, 45:] = 0.9  # a vertical edge at x = 45 ...
+    known = np.ones((60, 90), bool)
+    known[30:, :] = False  # ... running down into a hole below y = 30
+    targets = np.array([[22, 38], [22, 10], [22, 70]])  # the edge's block, flat left, flat right
+    pri = rim_priority(img, known, targets, 15)
+    assert pri[0] > 10 * max(pri[1], pri[2]), pri
+    parallel = np.full((60, 90, 3), 0.5, np.float32)
+    parallel[25:30] = 0.9  # an edge along the rim (y = 25) carries no structure into the hole
+    assert rim_priority(parallel, known, targets[:1], 15)[0] < 0.1 * pri[0]
+
+
+def test_priority_order_fills_every_hole_pixel_in_more_steps():
+    src = texture(seed=4)
+    hole = np.zeros(src.shape[:2], bool)
+    hole[30:70, 40:90] = True
+    cut = np.where(hole[..., None], 0.0, src).astype(np.float32)
+    bank = build_source_bank(["a"], [cut], [hole], [hole], SBMParams())
+    onion = inpaint_view(cut, hole, bank, SBMParams())
+    priority = inpaint_view(cut, hole, bank, SBMParams(order="priority"))
+    assert priority.info["fallback_pixels"] == 0 and np.isfinite(priority.image).all()
+    assert (priority.layer >= 0).all() and priority.info["layers"] > onion.info["layers"]
+    np.testing.assert_array_equal(priority.image[~hole], cut[~hole])
+    with pytest.raises(PipelineError, match="fill order"):
+        SBMParams(order="spiral").validate()
+    with pytest.raises(PipelineError, match="priority_share"):
+        SBMParams(priority_share=0.0).validate()
 
 
 # ----------------------------------------------------------------------------------- on a synthetic scene

@@ -562,7 +562,7 @@ def speed_error_plot(results: dict[str, dict[str, Any]], path: Path) -> Path | N
         ax.set_ylabel("mask PSNR (dB)")
         ax.set_title(f"{r['scene']}: speed vs error")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7, loc="lower right")
+        ax.legend(fontsize=7, loc="best")
     fig.tight_layout()
     FigureCanvasAgg(fig).print_png(str(path))
     return path

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from sgpor_pipeline.dag import RunInputs, discover_stages
-from sgpor_pipeline.imageio import read_image
+from sgpor_pipeline.imageio import read_image, read_mask
 from sgpor_pipeline.metrics import psnr
 from sgpor_pipeline.runner import pipeline_status, run_pipeline
 from sgpor_pipeline.synthetic import SceneParams, generate_scene, save_scene
@@ -56,7 +56,7 @@ def test_every_stage_runs_and_exports(finished_run):
     # the inpainter completed the photos (context = photos), not the blurry renders, around the holes
     name = sorted(p.stem for p in (result.path("remove") / "context").glob("*.png"))[0]
     photo = read_image(result.path("sfm") / "images" / f"{name}.png")
-    mask = read_image(result.path("remove") / "masks" / f"{name}.png")[..., 0] > 0.5
+    mask = read_mask(result.path("remove") / "masks" / f"{name}.png")
     far = cv2.dilate(mask.astype(np.uint8), np.ones((7, 7), np.uint8)) == 0  # beyond the 2 px context margin
     inpainted = read_image(result.path("inpaint") / "images" / f"{name}.png")
     assert far.any() and np.array_equal(inpainted[far], photo[far])

@@ -55,6 +55,15 @@ class Camera:
         uv = pc[:, :2] / zs[:, None] * [self.K[0, 0], self.K[1, 1]] + [self.K[0, 2], self.K[1, 2]]
         return uv, z
 
+    def pixels(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Integer pixels (x, y) [N,2] of world points, their z-depths [N], and whether each lies in
+        front of the camera and inside the image [N] (index images with ``px[inside]`` only)."""
+        uv, z = self.project(points)
+        with np.errstate(invalid="ignore"):
+            px = np.floor(uv).astype(np.int64)
+        inside = (z > 0) & (px[:, 0] >= 0) & (px[:, 1] >= 0) & (px[:, 0] < self.width) & (px[:, 1] < self.height)
+        return px, z, inside
+
     def unproject(self, ys: np.ndarray, xs: np.ndarray, depth: np.ndarray) -> np.ndarray:
         """World points [N,3] of the pixel centres (rows ``ys``, columns ``xs``, as ``np.nonzero``
         gives them) at z-depths ``depth`` [N]."""

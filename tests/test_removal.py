@@ -242,7 +242,6 @@ def test_joint_depth_completion_gives_the_views_one_hole_surface():
     import cv2
 
     from sgpor_pipeline.removal.holes import complete_depths_jointly
-    from sgpor_pipeline.removal.selection import pixels_in_image
 
     scene = generate_scene(SceneParams(seed=3, n_views=8, width=96, height=72))
     k = np.ones((21, 21), np.uint8)
@@ -266,7 +265,7 @@ def test_joint_depth_completion_gives_the_views_one_hole_surface():
             if i == first:
                 continue
             ys, xs = np.nonzero(holes[i])
-            px, z, inside = pixels_in_image(cam.unproject(ys, xs, completed[i][ys, xs]), ref)
+            px, z, inside = ref.pixels(cam.unproject(ys, xs, completed[i][ys, xs]))
             px, z = px[inside], z[inside]
             hit = holes[first][px[:, 1], px[:, 0]]
             zr = completed[first][px[hit, 1], px[hit, 0]]
@@ -417,7 +416,6 @@ def test_completed_hole_depth_never_lies_in_front_of_the_deleted_object():
     import cv2
 
     from sgpor_pipeline.removal.holes import complete_depths_jointly
-    from sgpor_pipeline.removal.selection import pixels_in_image
 
     scene = generate_scene(SceneParams(seed=3, n_views=8, width=96, height=72))
     k = np.ones((5, 5), np.uint8)
@@ -434,7 +432,7 @@ def test_completed_hole_depth_never_lies_in_front_of_the_deleted_object():
             pts = cam.unproject(ys, xs, completed[i][ys, xs])
             bad = np.zeros(len(pts), bool)
             for j, other in enumerate(scene.cameras):
-                px, z, inside = pixels_in_image(pts, other)
+                px, z, inside = other.pixels(pts)
                 idx = np.flatnonzero(inside)
                 f = floors[j][px[idx, 1], px[idx, 0]]
                 bad[idx[(f > 0) & (z[idx] < 0.98 * f)]] = True

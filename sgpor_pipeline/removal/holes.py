@@ -24,7 +24,7 @@ from ..errors import PipelineError
 from ..gaussians.model import GaussianModel, inverse_sigmoid, rgb_to_sh
 from ..scene import Camera
 from .multiview import nearest_per_pixel
-from .selection import contribution_scores, in_visual_cone, median_spacing, pixels_in_image, render_channels
+from .selection import contribution_scores, in_visual_cone, median_spacing, render_channels
 
 
 @dataclass
@@ -165,7 +165,7 @@ def observing_views(cameras: list[Camera], masks: list[np.ndarray], depths: list
         for j, cam in enumerate(cameras):
             if j == i:
                 continue
-            px, zj, inside = pixels_in_image(X, cam)
+            px, zj, inside = cam.pixels(X)
             ok = good & inside
             u, v = px[ok, 0], px[ok, 1]
             ok[ok] = ~dilated[j][v, u] & ~(zj[ok] > depths[j][v, u] * (1 + params.view_depth_tol))
@@ -274,7 +274,7 @@ def complete_depths_jointly(cameras: list[Camera], depths: list[np.ndarray], val
         floor = None if floors is None else floors[i]
         depth, valid, free = depths[i].astype(np.float32), valids[i].copy(), hole.copy()  # (astype copies)
         if done and hole.any():
-            px, z, inside = pixels_in_image(np.concatenate(done), cam)
+            px, z, inside = cam.pixels(np.concatenate(done))
             px, z = px[inside], z[inside]
             hit = hole[px[:, 1], px[:, 0]]
             if floor is not None:

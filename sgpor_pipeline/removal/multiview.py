@@ -280,9 +280,8 @@ def unseen_holes(scene, depth_tol: float = 0.01) -> list[np.ndarray]:
                 if j == i:
                     continue
                 cam = scene.cameras[j]
-                uv, z = cam.project(X)
-                iu, iv = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
-                ok = (z > 0) & (iu >= 0) & (iu < cam.width) & (iv >= 0) & (iv < cam.height)
+                px, z, ok = cam.pixels(X)
+                iu, iv = px[:, 0], px[:, 1]
                 k = np.nonzero(ok & ~seen)[0]
                 dj = scene.depth_gt[j][iv[k], iu[k]]
                 vis = (~scene.masks[j][iv[k], iu[k]]) & (np.abs(dj - z[k]) <= depth_tol * z[k])

@@ -82,16 +82,6 @@ def contribution_scores(model: GaussianModel, cameras: list[Camera], masks: list
     return inside, total
 
 
-def pixels_in_image(points: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Integer pixels (x, y) [N,2] of world points, their camera depths [N], and whether each lies in
-    front of the camera and inside its image [N] (index images with ``px[inside]`` only)."""
-    uv, z = camera.project(points)
-    with np.errstate(invalid="ignore"):
-        px = np.floor(uv).astype(np.int64)
-    inside = (z > 0) & (px[:, 0] >= 0) & (px[:, 1] >= 0) & (px[:, 0] < camera.width) & (px[:, 1] < camera.height)
-    return px, z, inside
-
-
 def in_visual_cone(points: np.ndarray, cameras: list[Camera], masks: list[np.ndarray], dilate: int,
                    min_views: int = 1) -> np.ndarray:
     """Points that project inside every given (dilated) mask whose image they fall in, and fall in at
@@ -101,7 +91,7 @@ def in_visual_cone(points: np.ndarray, cameras: list[Camera], masks: list[np.nda
     kernel = np.ones((2 * dilate + 1, 2 * dilate + 1), np.uint8)
     for cam, mask in zip(cameras, masks):
         m = cv2.dilate(mask.astype(np.uint8), kernel) > 0 if dilate > 0 else mask.astype(bool)
-        px, _, inside = pixels_in_image(points, cam)
+        px, _, inside = cam.pixels(points)
         hit = np.zeros(len(points), bool)
         hit[inside] = m[px[inside, 1], px[inside, 0]]
         ok &= ~inside | hit
@@ -269,7 +259,7 @@ def in_front_of(points: np.ndarray, cameras: list[Camera], depths: list[np.ndarr
     for cam, depth in zip(cameras, depths):
         if depth is None:
             continue
-        px, z, inside = pixels_in_image(points, cam)
+        px, z, inside = cam.pixels(points)
         d = np.zeros(len(points), np.float32)
         d[inside] = depth[px[inside, 1], px[inside, 0]]
         constrained = inside & (d > 0)

@@ -200,13 +200,19 @@ def _propagate(ctx: StageContext, model: GaussianModel, sfm: SfmResult, selectio
 def _propagate_view(model: GaussianModel, sfm: SfmResult, cam: Camera, selection: Selection, given: _GivenViews,
                     p: MasksParams, sel_params: SelectionParams) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """One view's (mask, probability, info): the selection's rendered probability, refined, snapped by GrabCut."""
-    prob = render_object_probability(model, selection.is_object, cam, p.backend)
-    image = read_image(sfm.image_path(cam.image))
-    mask = refine_mask(prob, image, sel_params)
+    prob, image, mask = _rendered_mask(model, sfm, cam, selection, p, sel_params)
     info: dict[str, Any] = {"source": "propagated", "confidence": round(mask_confidence(prob, mask), 4)}
     if p.grabcut:
         mask, info["grabcut"] = _snap_to_photo(model, cam, prob, mask, image, given, p, sel_params)
     return mask, prob, info
+
+
+def _rendered_mask(model: GaussianModel, sfm: SfmResult, cam: Camera, selection: Selection, p: MasksParams,
+                   sel_params: SelectionParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(probability render of the selection, the view's photo, the probability refined on the photo)."""
+    prob = render_object_probability(model, selection.is_object, cam, p.backend)
+    image = read_image(sfm.image_path(cam.image))
+    return prob, image, refine_mask(prob, image, sel_params)
 
 
 def _snap_to_photo(model: GaussianModel, cam: Camera, prob: np.ndarray, mask: np.ndarray, image: np.ndarray,
@@ -247,9 +253,8 @@ def _measure_given_margins(model: GaussianModel, sfm: SfmResult, selection: Sele
     widths = list(widths)
     given_prob: dict[str, np.ndarray] = {}
     for i, (c, m) in enumerate(zip(given.cams, given.masks)):
-        prob = given_prob[c.image] = render_object_probability(model, selection.is_object, c, p.backend)
-        image = read_image(sfm.image_path(c.image))
-        own = refine_mask(prob, image, sel_params)
+        prob, image, own = _rendered_mask(model, sfm, c, selection, p, sel_params)
+        given_prob[c.image] = prob
         own = (grabcut_mask(prob, own, image, band=p.grabcut_band, max_growth=p.grabcut_max_growth)
                if own.any() else None)
         if own is not None:

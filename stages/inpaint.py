@@ -43,6 +43,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from sgpor_pipeline.config import added_param
 from sgpor_pipeline.dag import Stage, StageContext
 from sgpor_pipeline.hashing import hash_obj
 from sgpor_pipeline.imageio import read_image, read_labels, write_labels, write_mask01, write_png
@@ -76,8 +77,8 @@ class InpaintParams:
     top_k: int = 5
     rerank: int = 16
     blend: Literal["poisson", "feather"] = "poisson"
-    order: Literal["onion", "priority"] = "onion"  # fill order inside a view (see SBMParams.order)
-    priority_share: float = 0.25
+    order: Literal["onion", "priority"] = added_param("onion")  # fill order inside a view (SBMParams.order)
+    priority_share: float = added_param(0.25)
     # The method (DESIGN.md section 7): views agree by construction. Independent per-view fills score
     # higher mask PSNR after the re-fit, which averages them into a blur (synthetic 25.54 vs 25.37, lund +
     # box 14.36 vs 13.51), and are what the fsr-refit baseline does.

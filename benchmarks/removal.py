@@ -72,7 +72,8 @@ defaults (demo); the real scenes are downscaled at ingest (320 / 384 px) and fit
 iterations everywhere, lund at 240 px, statue at 192 px, masks 1 and 2 only.
 
 Out (``--out``, default a temporary folder): one run folder per scene, ``*_sheet.png`` contact sheets
-(input | mask | delete-only | result | truth for the evaluated scenes), ``removal_benchmark.json``.
+(input | mask | delete-only | result | truth for the evaluated scenes), ``removal_speed_error.png``
+(mask PSNR against seconds per method), ``removal_benchmark.json``.
 With ``--json`` the last printed line is one JSON object (see ``summary_keys`` in the code).
 """
 

@@ -42,6 +42,7 @@ ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_DATA = ROOT.parent / "shared" / "data"
 TARGET_PSNR = 30.0
 TARGET_SECONDS = 180.0
+HOLDOUT_EVERY = 8  # every 8th view held out of training and scored (the mip-NeRF/3DGS protocol)
 
 log = logging.getLogger("sgpor_pipeline.bench.fit")
 
@@ -60,7 +61,8 @@ def synthetic_sfm(folder: Path, seed: int = 0) -> Path:
 def run_synthetic(out: Path, name: str, sfm: Path, **overrides: Any) -> dict[str, Any]:
     from sgpor_pipeline.stages.fit import FitParams, fit_scene
 
-    params = replace(FitParams(checkpoint_every=0, checkpoint_seconds=0), **overrides)
+    # the protocol holds every 8th view out (the pipeline's default trains on every view)
+    params = replace(FitParams(checkpoint_every=0, checkpoint_seconds=0, holdout_every=HOLDOUT_EVERY), **overrides)
     folder = out / name
     folder.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -87,7 +89,8 @@ def run_statue(data: Path, out: Path, iterations: int) -> dict[str, Any]:
     if "sfm" not in discover_stages():
         return {"scene": "statue", "skipped": "the sfm stage is not installed"}
     run_out = out / "statue_run"
-    overrides = [f"fit.iterations={iterations}", f"fit.eval_every={max(iterations // 4, 1)}"]
+    overrides = [f"fit.iterations={iterations}", f"fit.eval_every={max(iterations // 4, 1)}",
+                 f"fit.holdout_every={HOLDOUT_EVERY}"]
     t0 = time.perf_counter()
     result = run_pipeline(run_out, RunInputs(images=folder), overrides=overrides, until="fit")
     wall = time.perf_counter() - t0

@@ -357,7 +357,8 @@ class TrainingSection:
                     refs = [rc.add_image(folder / r, f"{stage}_{Path(r).name}", 640) for r in held]
                     imgs = "".join(f"<figure><img src='{esc(ref)}' alt='{esc(r)}'><figcaption>{esc(r)}</figcaption>"
                                    "</figure>" for ref, r in zip(refs, held))
-                    sub.append(f"<p class='meta'>held-out views (render | ground truth):</p>{imgs}")
+                    which = "training" if info.get("heldout_is_training") else "held-out"
+                    sub.append(f"<p class='meta'>{which} views (render | ground truth):</p>{imgs}")
             if sub:
                 parts.append(f"<h3>{esc(stage)}</h3>" + "".join(sub))
         return "".join(parts) or None

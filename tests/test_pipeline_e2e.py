@@ -53,6 +53,9 @@ def test_every_stage_runs_and_exports(finished_run):
     final, deleted = metrics["means"]["final"], metrics["means"]["delete_only"]
     assert final["psnr_full"] > constant, (final, constant)
     assert final["psnr_full"] > deleted["psnr_full"] - 0.5, (final, deleted)
+    # by default the fit trains on every photo (the removal re-fits and scores every view)
+    fit = json.loads((result.path("fit") / "fit.json").read_text())
+    assert fit["heldout_views"] == [] and len(fit["train_views"]) == 10 and fit["heldout_is_training"]
     # the inpainter completed the photos (context = photos), not the blurry renders, around the holes
     name = sorted(p.stem for p in (result.path("remove") / "context").glob("*.png"))[0]
     photo = read_image(result.path("sfm") / "images" / f"{name}.png")

@@ -307,7 +307,7 @@ class InpaintStage(Stage):
                 _link_or_copy(item / "source.npz", ctx.out_dir / "source" / f"{name}.npz")
                 summary[name] = json.loads((item / "info.json").read_text())
             else:  # no hole: the context image (see the remove stage) is the result
-                _link_or_copy(v.context_path or v.render_path, ctx.out_dir / "images" / f"{name}.png")
+                _link_or_copy(v.context_file, ctx.out_dir / "images" / f"{name}.png")
                 write_mask01(ctx.out_dir / "filled_from" / f"{name}.png", np.zeros(holes[i].shape, bool))
                 np.savez_compressed(ctx.out_dir / "source" / f"{name}.npz", **_empty_sources(names, p.top_k))
                 summary[name] = {"hole_pixels": 0, "projected": 0, "inpainted": 0, "seconds": 0.0}

@@ -87,8 +87,7 @@ class RemoveStage(Stage):
         object_ids = np.load(ctx.inputs["masks"] / "object_ids.npy")
         delete, stats, surface = objects_to_delete(model, cameras, masks, object_ids, p)
         background = subset(model, ~delete)
-        obj = subset(model, delete)
-        write_ply(ctx.out_dir / "object.ply", obj)
+        write_ply(ctx.out_dir / "object.ply", subset(model, delete))
         save_cameras(ctx.out_dir / "cameras.json", cameras)
         for sub in ("renders", "holes", "masks", "depth", "context"):
             (ctx.out_dir / sub).mkdir()

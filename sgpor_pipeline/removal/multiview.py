@@ -65,9 +65,14 @@ class RemovalView:
     def render(self) -> np.ndarray:
         return read_image(self.render_path)
 
+    @property
+    def context_file(self) -> Path:
+        """The image to complete: ``context/<view>.png``, or the render in a folder without one."""
+        return self.context_path if self.context_path is not None else self.render_path
+
     def context(self) -> np.ndarray:
         """The image to complete: its known pixels are the hole's context and the source blocks."""
-        return read_image(self.context_path if self.context_path is not None else self.render_path)
+        return read_image(self.context_file)
 
     def hole(self) -> np.ndarray:
         return read_mask(self.hole_path)
@@ -201,11 +206,8 @@ def warp_from_reference(ref_image: np.ndarray, ref_cam: Camera, ref_depth: np.nd
         ys, xs = np.nonzero(ref_filled & np.isfinite(ref_depth) & (ref_depth > 0))
         if len(ys) == 0:
             return out, got
-        uv, z = cam.project(ref_cam.unproject(ys, xs, ref_depth[ys, xs]))
-        u, v = uv[:, 0], uv[:, 1]
-        iu, iv = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
-        ok = (z > 0) & (iu >= 0) & (iu < w) & (iv >= 0) & (iv < h)
-        ys, xs, z, iu, iv = ys[ok], xs[ok], z[ok], iu[ok], iv[ok]
+        px, z, ok = cam.pixels(ref_cam.unproject(ys, xs, ref_depth[ys, xs]))  # (cam is target's h x w)
+        ys, xs, z, iu, iv = ys[ok], xs[ok], z[ok], px[ok, 0], px[ok, 1]
         ok = target[iv, iu] & (np.abs(depth[iv, iu] - z) <= depth_tol * np.abs(z))
         ys, xs, z, iu, iv = ys[ok], xs[ok], z[ok], iu[ok], iv[ok]
         if len(ys) == 0:

@@ -190,7 +190,6 @@ def run_method(scene: Scene, work: Path, inpaint: InpaintParams | None, refine: 
 def methods(dino: bool, priority_share: float = InpaintParams.priority_share
             ) -> list[tuple[str, InpaintParams | None, RefineParams | None]]:
     sbm = InpaintParams()
-    onion, priority = replace(sbm, order="onion"), replace(sbm, order="priority", priority_share=priority_share)
     out = [
         ("delete-only", None, None),
         ("opencv-fsr", InpaintParams(backend="opencv", multiview=False), None),
@@ -199,8 +198,8 @@ def methods(dino: bool, priority_share: float = InpaintParams.priority_share
         ("sbm", replace(sbm, multiview=False), None),
         ("sbm+mv", sbm, None),
         ("sbm+mv+rpr", sbm, RefineParams()),
-        ("sbm-onion", replace(onion, multiview=False), None),
-        ("sbm-priority", replace(priority, multiview=False), None),
+        # the fill order option against "sbm" (the default onion-peel order, single view)
+        ("sbm-priority", replace(sbm, multiview=False, order="priority", priority_share=priority_share), None),
     ]
     if dino:
         out.append(("sbm-dinov2+mv", replace(sbm, features="dinov2"), None))

@@ -195,6 +195,9 @@ def hole_psnr(images: dict[str, np.ndarray], remove_dir: Path, truth_dir: Path) 
     se, n = 0.0, 0
     for name, img in images.items():
         hole = read_mask(remove_dir / "holes" / f"{name}.png")
+        mask_path = remove_dir / "masks" / f"{name}.png"
+        if mask_path.is_file():  # (not the hole's rim outside the mask)
+            hole &= read_mask(mask_path)
         truth = truth_dir / f"{name}.png"
         if not hole.any() or not truth.is_file():
             continue
@@ -291,7 +294,8 @@ def run_variants(scene: str, run_out: Path, inputs: Any, base: list[str], out: P
         log.warning(f"[{scene}] {name}: PSNR mask {row['psnr_mask']:.2f} (wall {wall:.0f} s, ran {res.ran})")
     # before / after pictures of the default method
     rm = json.loads((ours_paths["remove"] / "remove.json").read_text())
-    hole_info = {"hole_fraction_of_mask": rm.get("hole_fraction_of_mask"), "hole_pixels": rm.get("hole_pixels"),
+    hole_info = {"hole_fraction_of_mask": rm.get("hole_fraction_of_mask"),
+                 "hole_pixels": rm.get("hole_pixels", 0) - rm.get("rim_pixels", 0),  # (inside the masks)
                  "mask_pixels": rm.get("mask_pixels")}
     names = sorted(json.loads((ours_paths["remove"] / "remove.json").read_text())["views"].items(),
                    key=lambda kv: -kv[1]["mask_pixels"])

@@ -8,8 +8,11 @@ Out (the contract the inpaint and refine stages read):
   the photo outside the object mask dilated by ``context_margin`` px and the render inside, or the
   render alone,
 - ``holes/<view>.png``: 0/1, object pixels the remaining background does not cover (opacity below
-  ``hole_alpha``; with ``min_views`` > 0 also those fewer other views observed): what to inpaint,
-- ``masks/<view>.png``: 0/1 object mask of every view (from the masks stage); holes are inside it,
+  ``hole_alpha``; with ``min_views`` > 0 also those fewer other views observed), and their rim: the
+  pixels within ``context_margin`` px outside the mask whose opacity is below ``rim_alpha``: what to
+  inpaint,
+- ``masks/<view>.png``: 0/1 object mask of every view (from the masks stage); holes are inside it
+  but for their rim,
 - ``depth/<view>.npy``: float32 z-depth of the background with the hole completed from its surroundings
   and, with ``consistent_depth``, from the hole surfaces of the views with smaller holes (one surface
   for all views: :func:`~sgpor_pipeline.removal.holes.complete_depths_jointly`),
@@ -71,7 +74,7 @@ CONTEXTS = ("photos", "renders")
 
 class RemoveStage(Stage):
     name = "remove"
-    VERSION = 3  # 3: the hole-depth floor renders the object proper only (no floaters)
+    VERSION = 4  # 3: the hole-depth floor renders the object proper only (no floaters); 4: rim holes
     Params = RemoveStageParams
     inputs = ("sfm", "fit", "masks")
 
@@ -120,6 +123,7 @@ class RemoveStage(Stage):
             np.save(ctx.out_dir / "depth" / f"{cam.image}.npy", filled_depth)
             colours.append(initial_colour(rgb, hole))
             per_view[cam.image] = {"mask_pixels": int(mask.sum()), "hole_pixels": int(hole.sum()),
+                                   "rim_pixels": int((hole & ~mask).sum()),
                                    "hole_pixels_by_opacity": int((mask & (alpha < p.hole_alpha)).sum())}
         spacing = median_spacing(background.means.detach().double().numpy())
         seeds = seed_hole_gaussians(cameras, holes, depths, colours, spacing, model.max_sh_degree, p, p.seed)
@@ -128,9 +132,10 @@ class RemoveStage(Stage):
         np.save(ctx.out_dir / "seed_ids.npy", np.arange(len(background), len(cleaned)))
         mask_px = sum(v["mask_pixels"] for v in per_view.values())
         hole_px = sum(v["hole_pixels"] for v in per_view.values())
+        rim_px = sum(v["rim_pixels"] for v in per_view.values())
         summary = {**stats, "gaussians_before": len(model), "background": len(background), "seeds": len(seeds),
-                   "mask_pixels": mask_px, "hole_pixels": hole_px,
-                   "hole_fraction_of_mask": hole_px / mask_px if mask_px else 0.0, "views": per_view}
+                   "mask_pixels": mask_px, "hole_pixels": hole_px, "rim_pixels": rim_px,
+                   "hole_fraction_of_mask": (hole_px - rim_px) / mask_px if mask_px else 0.0, "views": per_view}
         (ctx.out_dir / "remove.json").write_text(json.dumps(summary, indent=1))
         ctx.notes.update({k: v for k, v in summary.items() if k != "views"})
 

@@ -10,7 +10,8 @@ The ``remove`` folder (``ctx.inputs["remove"]`` of the inpaint and refine stages
   the render is the context (:meth:`RemovalView.context`);
 * ``holes/<view>.png``: 0/1 mask of the truly unseen region (object pixels the remaining background
   does not cover): THE region to inpaint. Whatever the render shows there is ignored;
-* ``masks/<view>.png``: 0/1 object mask of every view (propagated); ``holes`` is a subset of it.
+* ``masks/<view>.png``: 0/1 object mask of every view (propagated); ``holes`` is a subset of it
+  but for their rim (``remove.rim_alpha``).
   Source blocks for SBM must hold no object-mask pixel;
 * ``depth/<view>.npy``: float32 HxW z-depth of the background with the hole already completed
   from its surroundings, so a filled pixel can be lifted to 3D. Optional: without it (or without

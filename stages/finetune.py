@@ -51,6 +51,7 @@ from sgpor_pipeline.gaussians.train import Trainer, TrainParams, make_view, rend
 from sgpor_pipeline.hashing import hash_obj
 from sgpor_pipeline.imageio import read_mask, read_rgb8, write_png
 from sgpor_pipeline.removal import diffusion as sd
+from sgpor_pipeline.removal.holes import within_margin
 from sgpor_pipeline.removal.selection import contribution_scores, median_spacing
 from sgpor_pipeline.scene import Camera, load_cameras
 
@@ -66,7 +67,7 @@ class FinetuneParams:
     seed: int = 0
     backend: str = "auto"
     targets: str = "photos"  # "photos" or "inpainted" (see the module docstring)
-    mask_margin: int = 2  # px: the object mask is dilated by this before photos supervise the rest
+    mask_margin: int = 2  # px: the object mask is grown by this (holes.within_margin) before photos supervise the rest
     min_hole_pixels: int = 64  # below this many hole pixels (all views) nothing is re-fitted
     # SDS (needs the diffusion extra and local weights); 0 = off
     lambda_sds: float = 0.0
@@ -211,7 +212,7 @@ def trainable_gaussians(model: GaussianModel, seed_ids: np.ndarray, cameras: lis
 
 class FinetuneStage(Stage):
     name = "finetune"
-    VERSION = 2
+    VERSION = 3  # 3: the mask margin grows with a square kernel (as the remove stage's context)
     Params = FinetuneParams
     inputs = ("sfm", "remove", "refine")
     libraries = ("torch",)
@@ -293,8 +294,6 @@ class FinetuneStage(Stage):
     @staticmethod
     def _view(ctx: StageContext, cam: Camera, hole: np.ndarray, p: FinetuneParams):
         """One training view: target image and per-pixel weight (see ``targets``)."""
-        import cv2
-
         fill = read_rgb8(ctx.inputs["refine"] / "images" / f"{cam.image}.png")
         sfm_dir = ctx.inputs.get("sfm")  # (a caller may run the stage without the photos)
         photo_path = Path(sfm_dir or ".") / "images" / f"{cam.image}.png"
@@ -305,10 +304,7 @@ class FinetuneStage(Stage):
         if photo.shape != fill.shape or mask.shape != hole.shape or mask.shape != fill.shape[:2]:
             raise PipelineError(f"finetune: photo, mask and inpainted image of {cam.image} differ in size",
                                 path=photo_path, fix="rerun from the sfm stage (--force sfm)")
-        if p.mask_margin > 0:
-            k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * p.mask_margin + 1,) * 2)
-            mask = cv2.dilate(mask.astype(np.uint8), k) > 0
-        target = np.where((mask | hole)[..., None], fill, photo)
+        target = np.where((within_margin(mask, p.mask_margin) | hole)[..., None], fill, photo)
         return make_view(cam.image, target, cam, p.max_size)
 
     @staticmethod

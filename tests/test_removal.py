@@ -22,6 +22,7 @@ from sgpor_pipeline.removal.holes import (
     render_background,
     seed_hole_gaussians,
     subset,
+    within_margin,
 )
 from sgpor_pipeline.removal.selection import (
     SelectionParams,
@@ -491,3 +492,7 @@ def test_context_image_is_the_photo_outside_the_dilated_mask():
     assert out.dtype == np.float32 and (out[grown] == 0).all() and (out[~grown] == 1).all()
     assert (context_image(render, photo, mask, margin=0)[~mask] == 1).all()
     assert context_image(render, None, mask, margin=2) is render
+    # the same margin everywhere (context band, hole rim, finetune band): a square grown mask
+    assert (within_margin(mask, 2) == grown).all()
+    same = within_margin(mask, 0)
+    assert (same == mask).all() and same is not mask

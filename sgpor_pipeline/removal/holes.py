@@ -149,9 +149,8 @@ def hole_mask(object_mask: np.ndarray, alpha: np.ndarray, params: RemoveParams,
         hole = cv2.morphologyEx(hole.astype(np.uint8), cv2.MORPH_CLOSE, k) > 0
         hole &= object_mask
     if params.rim_alpha > 0 and params.context_margin > 0 and hole.any():
-        # (the square kernel of context_image: the rim lies where the context takes the render)
-        near = cv2.dilate(hole.astype(np.uint8), np.ones((2 * params.context_margin + 1,) * 2, np.uint8)) > 0
-        hole |= near & ~object_mask & (alpha < params.rim_alpha)
+        # (inside the context's render band: context_image grows the mask the same way)
+        hole |= within_margin(hole, params.context_margin) & ~object_mask & (alpha < params.rim_alpha)
     return hole
 
 
@@ -307,14 +306,22 @@ def complete_depths_jointly(cameras: list[Camera], depths: list[np.ndarray], val
     return out
 
 
+def within_margin(mask: np.ndarray, margin: int) -> np.ndarray:
+    """``mask`` grown by ``margin`` px (a square kernel: every pixel within ``margin`` px in x and y).
+    The one margin of the object mask's mixed edge pixels: the context's render band, the hole's rim
+    and the finetune's band where the photos do not supervise."""
+    mask = np.asarray(mask, bool)
+    if margin <= 0:
+        return mask.copy()
+    return cv2.dilate(mask.astype(np.uint8), np.ones((2 * margin + 1,) * 2, np.uint8)) > 0
+
+
 def context_image(render: np.ndarray, photo: np.ndarray | None, mask: np.ndarray, margin: int) -> np.ndarray:
     """The inpainter's image: ``photo`` outside ``mask`` dilated by ``margin`` px (its edge pixels mix
     object and background), ``render`` inside; the render alone when there is no photo."""
     if photo is None:
         return render
-    if margin > 0:
-        mask = cv2.dilate(mask.astype(np.uint8), np.ones((2 * margin + 1,) * 2, np.uint8)) > 0
-    return np.where(mask[..., None], render, photo).astype(render.dtype)
+    return np.where(within_margin(mask, margin)[..., None], render, photo).astype(render.dtype)
 
 
 def initial_colour(render: np.ndarray, hole: np.ndarray) -> np.ndarray:

@@ -74,7 +74,8 @@ CONTEXTS = ("photos", "renders")
 
 class RemoveStage(Stage):
     name = "remove"
-    VERSION = 4  # 3: the hole-depth floor renders the object proper only (no floaters); 4: rim holes
+    VERSION = 5  # 3: the hole-depth floor renders the object proper only (no floaters); 4: rim holes;
+    # 5: rim holes with hole_mode mask too
     Params = RemoveStageParams
     inputs = ("sfm", "fit", "masks")
 

@@ -185,6 +185,10 @@ def test_hole_modes():
     unseen = hole_mask(mask, alpha, RemoveParams(hole_close=0))
     assert unseen.sum() == 40 and (unseen <= mask).all()
     assert (hole_mask(mask, alpha, RemoveParams(hole_mode="mask")) == mask).all()
+    dark = alpha.copy()
+    dark[4, :] = 0.2  # a darkened row just above the mask: the whole mask's rim (see the test below)
+    rim = hole_mask(mask, dark, RemoveParams(hole_mode="mask")) & ~mask
+    assert rim[4, 3:27].all() and rim.sum() == 24
     from sgpor_pipeline.errors import PipelineError
 
     with pytest.raises(PipelineError, match="hole_mode"):

@@ -85,7 +85,8 @@ class RemoveParams:
     # matched the dark ring and grew it into dark blotches and outlines (mip360-room: the carpet fill
     # under the slippers). Measured, mask PSNR off / 0.5 / 0.7 / 0.9: synthetic 25.84 / 25.84 / 25.88 /
     # 25.73, lund + billboard 14.33 / 14.29 / 14.27 / 14.27; room (no ground truth): 0.7 and 0.9 remove
-    # the blotches, 0.5 only some. 0 = off.
+    # the blotches, 0.5 only some. Also with hole_mode "mask" (the fsr-refit baseline: synthetic 21.19 ->
+    # 21.12, lund 15.03 -> 15.05). 0 = off.
     rim_alpha: float = 0.7
     seed_stride: int = 3  # one new Gaussian per stride x stride hole pixels per view (before merging)
     seed_opacity: float = 0.7
@@ -135,19 +136,20 @@ def hole_mask(object_mask: np.ndarray, alpha: np.ndarray, params: RemoveParams,
               unobserved: np.ndarray | None = None) -> np.ndarray:
     """The part of ``object_mask`` that the background left after deletion does not cover (opacity
     below ``hole_alpha``) or that too few other views observed (``unobserved``, see
-    :func:`observing_views`), closed morphologically, plus its rim outside the mask (``rim_alpha``);
-    with ``hole_mode="mask"`` the whole mask."""
-    if params.hole_mode == "mask":
-        return object_mask.copy()
-    if params.hole_mode != "unseen":
+    :func:`observing_views`), closed morphologically; with ``hole_mode="mask"`` the whole mask. Either
+    plus its rim outside the mask (``rim_alpha``)."""
+    if params.hole_mode not in ("unseen", "mask"):
         raise PipelineError(f"unknown remove.hole_mode {params.hole_mode!r}", fix='use "unseen" or "mask"')
-    hole = object_mask & (alpha < params.hole_alpha)
-    if unobserved is not None:
-        hole |= object_mask & unobserved
-    if params.hole_close > 0 and hole.any():
-        k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * params.hole_close + 1,) * 2)
-        hole = cv2.morphologyEx(hole.astype(np.uint8), cv2.MORPH_CLOSE, k) > 0
-        hole &= object_mask
+    if params.hole_mode == "mask":
+        hole = object_mask.copy()
+    else:
+        hole = object_mask & (alpha < params.hole_alpha)
+        if unobserved is not None:
+            hole |= object_mask & unobserved
+        if params.hole_close > 0 and hole.any():
+            k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * params.hole_close + 1,) * 2)
+            hole = cv2.morphologyEx(hole.astype(np.uint8), cv2.MORPH_CLOSE, k) > 0
+            hole &= object_mask
     if params.rim_alpha > 0 and params.context_margin > 0 and hole.any():
         # (inside the context's render band: context_image grows the mask the same way)
         hole |= within_margin(hole, params.context_margin) & ~object_mask & (alpha < params.rim_alpha)

@@ -51,8 +51,7 @@ from sgpor_pipeline.gaussians.train import Trainer, TrainParams, make_view, rend
 from sgpor_pipeline.hashing import hash_obj
 from sgpor_pipeline.imageio import read_mask, read_rgb8, write_png
 from sgpor_pipeline.removal import diffusion as sd
-from sgpor_pipeline.removal.holes import within_margin
-from sgpor_pipeline.removal.selection import contribution_scores, median_spacing
+from sgpor_pipeline.removal.selection import contribution_scores, median_spacing, within_margin
 from sgpor_pipeline.scene import Camera, load_cameras
 
 
@@ -67,7 +66,7 @@ class FinetuneParams:
     seed: int = 0
     backend: str = "auto"
     targets: str = "photos"  # "photos" or "inpainted" (see the module docstring)
-    mask_margin: int = 2  # px: the object mask is grown by this (holes.within_margin) before photos supervise the rest
+    mask_margin: int = 2  # px: the object mask is grown by this (within_margin) before photos supervise the rest
     min_hole_pixels: int = 64  # below this many hole pixels (all views) nothing is re-fitted
     # SDS (needs the diffusion extra and local weights); 0 = off
     lambda_sds: float = 0.0

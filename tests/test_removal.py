@@ -22,7 +22,6 @@ from sgpor_pipeline.removal.holes import (
     render_background,
     seed_hole_gaussians,
     subset,
-    within_margin,
 )
 from sgpor_pipeline.removal.selection import (
     SelectionParams,
@@ -34,6 +33,7 @@ from sgpor_pipeline.removal.selection import (
     render_object_probability,
     select_object,
     tighten_mask,
+    within_margin,
 )
 from sgpor_pipeline.synthetic import SceneParams, generate_scene
 

@@ -24,7 +24,7 @@ from ..errors import PipelineError
 from ..gaussians.model import GaussianModel, inverse_sigmoid, rgb_to_sh
 from ..scene import Camera
 from .multiview import nearest_per_pixel
-from .selection import contribution_scores, in_visual_cone, median_spacing, render_channels
+from .selection import contribution_scores, in_visual_cone, median_spacing, render_channels, within_margin
 
 
 @dataclass
@@ -306,16 +306,6 @@ def complete_depths_jointly(cameras: list[Camera], depths: list[np.ndarray], val
         if len(ys):
             done.append(cam.unproject(ys, xs, out[i][ys, xs]))
     return out
-
-
-def within_margin(mask: np.ndarray, margin: int) -> np.ndarray:
-    """``mask`` grown by ``margin`` px (a square kernel: every pixel within ``margin`` px in x and y).
-    The one margin of the object mask's mixed edge pixels: the context's render band, the hole's rim
-    and the finetune's band where the photos do not supervise."""
-    mask = np.asarray(mask, bool)
-    if margin <= 0:
-        return mask.copy()
-    return cv2.dilate(mask.astype(np.uint8), np.ones((2 * margin + 1,) * 2, np.uint8)) > 0
 
 
 def context_image(render: np.ndarray, photo: np.ndarray | None, mask: np.ndarray, margin: int) -> np.ndarray:

@@ -82,15 +82,24 @@ def contribution_scores(model: GaussianModel, cameras: list[Camera], masks: list
     return inside, total
 
 
+def within_margin(mask: np.ndarray, margin: int) -> np.ndarray:
+    """``mask`` grown by ``margin`` px (a square kernel: every pixel within ``margin`` px in x and y).
+    The one margin of the object mask's mixed edge pixels: the visual cone's tolerance, the remove
+    stage's context band and hole rim, and the finetune's band where the photos do not supervise."""
+    mask = np.asarray(mask, bool)
+    if margin <= 0:
+        return mask.copy()
+    return cv2.dilate(mask.astype(np.uint8), np.ones((2 * margin + 1,) * 2, np.uint8)) > 0
+
+
 def in_visual_cone(points: np.ndarray, cameras: list[Camera], masks: list[np.ndarray], dilate: int,
                    min_views: int = 1) -> np.ndarray:
     """Points that project inside every given (dilated) mask whose image they fall in, and fall in at
     least ``min_views`` of those images."""
     ok = np.ones(len(points), bool)
     seen = np.zeros(len(points), np.int64)
-    kernel = np.ones((2 * dilate + 1, 2 * dilate + 1), np.uint8)
     for cam, mask in zip(cameras, masks):
-        m = cv2.dilate(mask.astype(np.uint8), kernel) > 0 if dilate > 0 else mask.astype(bool)
+        m = within_margin(mask, dilate)
         px, _, inside = cam.pixels(points)
         hit = np.zeros(len(points), bool)
         hit[inside] = m[px[inside, 1], px[inside, 0]]

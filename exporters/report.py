@@ -394,7 +394,8 @@ METRIC_RESULTS = {
     "delete_only": "object Gaussians deleted, hole left unfilled",
 }
 METRIC_COLUMNS = [("PSNR mask", "psnr_mask", 2), ("SSIM mask", "ssim_mask", 4), ("PSNR bbox", "psnr_bbox", 2),
-                  ("SSIM bbox", "ssim_bbox", 4), ("PSNR full", "psnr_full", 2), ("SSIM full", "ssim_full", 4)]
+                  ("SSIM bbox", "ssim_bbox", 4), ("PSNR full", "psnr_full", 2), ("SSIM full", "ssim_full", 4),
+                  ("feat mask", "feat_mask", 4)]
 METRICS_FILE = "metrics.json"
 
 

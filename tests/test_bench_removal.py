@@ -51,6 +51,12 @@ def test_tables_and_summary(bench, capsys):
     assert not any("feature distance" in c for c in checks)  # no feat column: no perceptual line
     assert np.isnan(summary["synthetic_mask_feat"])
     json.dumps(summary)
+    # the supplementary no-sbm-no-rpr row: an [INFO] line, not part of the target
+    scene_rpr = dict(scene, rows=scene["rows"] + [_row("no-sbm-no-rpr", 30.0)], refined_blocks=0)
+    summary2, checks2 = bench.summarise({"synthetic": scene_rpr})
+    assert summary2["synthetic_target_beats_baselines"]
+    assert summary2["synthetic_rpr_gain_on_fsr_fill"] == pytest.approx((25.0 - 4.5) - 30.0)
+    assert any("RPR on the FSR fill" in c and "refined 0 block" in c for c in checks2)
     # with the perceptual feature distance: its column, keys and the line naming the lowest
     for i, row in enumerate(scene["rows"]):
         row["feat_mask"] = 0.2 - 0.01 * i

@@ -516,7 +516,7 @@ def _f(v: Any, fmt: str) -> str:
 def format_removal_table(r: dict[str, Any]) -> str:
     if "skipped" in r:
         return f"## {r['scene']}: skipped: {r['skipped']}"
-    head = (f"{'method':<12} {'PSNR mask':>9} {'bbox':>6} {'full':>6} {'SSIM mask':>9} {'bbox':>6} {'full':>6} "
+    head = (f"{'method':<14} {'PSNR mask':>9} {'bbox':>6} {'full':>6} {'SSIM mask':>9} {'bbox':>6} {'full':>6} "
             f"{'hole':>6} {'detail':>6} {'feat':>6} {'cons':>6} {'cons2d':>6} | seconds: "
             + " ".join(f"{s[:6]:>6}" for s in STAGES) + f" {'total':>6} {'wall':>6}")
     hole = ""
@@ -530,7 +530,7 @@ def format_removal_table(r: dict[str, Any]) -> str:
     lines = [f"## {r['scene']}" + (f" ({r['note']})" if r.get("note") else "") + hole, head, "-" * len(head)]
     for x in r["rows"]:
         secs = " ".join(f"{_f(x['seconds'].get(s), '.0f'):>6}" for s in STAGES)
-        lines.append(f"{x['method']:<12} {_f(x['psnr_mask'], '.2f'):>9} {_f(x['psnr_bbox'], '.2f'):>6} "
+        lines.append(f"{x['method']:<14} {_f(x['psnr_mask'], '.2f'):>9} {_f(x['psnr_bbox'], '.2f'):>6} "
                      f"{_f(x['psnr_full'], '.2f'):>6} {_f(x['ssim_mask'], '.4f'):>9} {_f(x['ssim_bbox'], '.3f'):>6} "
                      f"{_f(x['ssim_full'], '.3f'):>6} {_f(x.get('psnr_hole'), '.2f'):>6} "
                      f"{_f(x.get('detail'), '.3f'):>6} {_f(x.get('feat_mask'), '.4f'):>6} {_f(x['cons'], '.4f'):>6} "

@@ -184,7 +184,10 @@ def resolve_config(
             raise PipelineError(f"--set expects STAGE.PARAM=VALUE, got '{item}'",
                                 fix="for example --set fit.iterations=3000")
         check_stage(stage, "--set")
-        config[stage] = _apply(config[stage], stage, {field: parse_literal(text.strip())}, "--set")
+        value = parse_literal(text.strip())
+        if get_type_hints(type(config[stage])).get(field.strip()) in (str, Path) and not isinstance(value, str):
+            value = text.strip()  # a name that reads as a number (a view "24") is still a name
+        config[stage] = _apply(config[stage], stage, {field: value}, "--set")
     return config
 
 

@@ -22,6 +22,7 @@ class FitLike:
     enabled: bool = True
     views: list[str] = field(default_factory=list)
     path: Path = Path("x")
+    reference: str = "largest"
 
 
 TYPES = {"fit": FitLike, "ingest": NoParams}
@@ -37,6 +38,9 @@ def test_defaults_file_and_overrides(tmp_path):
     assert f.path == Path("/tmp/p") and isinstance(config["ingest"], NoParams)
     assert resolve_config(TYPES, None, ["fit.lr=1"])["fit"].lr == 1.0  # int accepted for float
     assert resolve_config(TYPES, None, ["fit.views=a,b"])["fit"].views == ["a", "b"]
+    # a string parameter set to a name that reads as a number (a view called 24) keeps it as text
+    named = resolve_config(TYPES, None, ["fit.reference=24", "fit.path=7"])["fit"]
+    assert named.reference == "24" and named.path == Path("7")
 
 
 def test_round_trip_of_the_saved_file(tmp_path):

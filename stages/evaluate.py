@@ -112,7 +112,7 @@ class EvaluateStage(Stage):
                                     f"{mask.shape[1]}x{mask.shape[0]}", path=truth_path,
                                     fix="give ground truth at the input photos' size (undistorted)")
             per_view[cam.image] = {}
-            truth_features = None if features is None else crop_features(truth, mask, features)
+            truth_features = None if features is None or not mask.any() else crop_features(truth, mask, features)
             for name, folder in sources.items():
                 s = score_image(read_image(folder / f"{cam.image}.png"), truth, mask, features, truth_features)
                 scores[name].append(s)

@@ -732,11 +732,22 @@ def main(argv: list[str] | None = None) -> int:
         sheets.append(str(plot))
     if sheets:
         print("\npictures: " + ", ".join(sheets))
-    (out / "removal_benchmark.json").write_text(json.dumps({"results": results, "summary": summary}, indent=1,
-                                                           default=str))
+    (out / "removal_benchmark.json").write_text(json.dumps(strict_json({"results": results, "summary": summary}),
+                                                           indent=1, default=str))
     if args.json:
-        print(json.dumps(summary, default=str))
+        print(json.dumps(strict_json(summary), default=str))
     return 0
+
+
+def strict_json(value: Any) -> Any:
+    """NaN and infinities as null (JSON has no such numbers; e.g. ``feat`` without its model)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: strict_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [strict_json(v) for v in value]
+    return value
 
 
 if __name__ == "__main__":

@@ -50,7 +50,8 @@ def test_tables_and_summary(bench, capsys):
     assert any("PASS" in c for c in checks)
     assert not any("feature distance" in c for c in checks)  # no feat column: no perceptual line
     assert np.isnan(summary["synthetic_mask_feat"])
-    json.dumps(summary)
+    strict = json.dumps(bench.strict_json(summary), allow_nan=False)  # the --json line: NaN as null
+    assert json.loads(strict)["synthetic_mask_feat"] is None
     # the supplementary no-sbm-no-rpr row: an [INFO] line, not part of the target
     scene_rpr = dict(scene, rows=scene["rows"] + [_row("no-sbm-no-rpr", 30.0)], refined_blocks=0)
     summary2, checks2 = bench.summarise({"synthetic": scene_rpr})

@@ -637,9 +637,9 @@ def summarise(results: dict[str, dict[str, Any]]) -> tuple[dict[str, Any], list[
         if "no-sbm" in by and "no-sbm-no-rpr" in by:
             g = by["no-sbm"]["psnr_mask"] - by["no-sbm-no-rpr"]["psnr_mask"]
             summary[f"{prefix}_rpr_gain_on_fsr_fill"] = g
-            feats = [_f(by[m].get("feat_mask"), ".4f") for m in ("no-sbm", "no-sbm-no-rpr")]
             checks.append(f"[INFO] {scene}: RPR on the FSR fill (no-sbm - no-sbm-no-rpr) {g:+.3f} dB mask PSNR, feat "
-                          f"{feats[0]} vs {feats[1]}; on ours, RPR refined {_f(r.get('refined_blocks'), 'd')} block(s)")
+                          f"{_f(feats['no-sbm'], '.4f')} vs {_f(feats['no-sbm-no-rpr'], '.4f')}; on ours, RPR "
+                          f"refined {_f(r.get('refined_blocks'), 'd')} block(s)")
         for ablation, what in (("no-sbm", "SBM"), ("no-rpr", "RPR")):
             g = gains[ablation]
             ok = g >= HELPS_DB

@@ -3,6 +3,7 @@
     python benchmarks/rasterizer.py            # full table: 5k/50k/200k x 256x192/512x384/1008x567
     python benchmarks/rasterizer.py --quick    # only 50k Gaussians at 256x192
     python benchmarks/rasterizer.py --json     # ... and one JSON object as the last line
+    python benchmarks/rasterizer.py --gsplat   # ... and a gsplat row per cell (CUDA + gsplat installed)
 
 Scenes: N Gaussians spread over a 60-degree frustum (depth 2..8), random rotations, opacities
 uniform in [0.05, 0.99], footprint standard deviations log-normal around 1.5 px x sqrt(50k / N)
@@ -15,7 +16,9 @@ the min is the better estimate of the hardware), evaluations/s/core = (pixel, Ga
 the kernel evaluated in forward + backward / fwd+bwd time / threads, peak = growth of the peak
 resident memory (VmHWM) over the warm-up and timed passes; every cell runs in a fresh process. The
 torch reference runs only where its estimated memory and time fit (--torch-max-pairs); skipped
-cells say so.
+cells say so. With --gsplat, the same scene runs through gsplat on the GPU (times after
+torch.cuda.synchronize(); peak = the GPU allocator's peak), so the CPU kernel can be read against
+the GPU backend a user with a CUDA machine would get.
 """
 
 from __future__ import annotations
@@ -34,7 +37,7 @@ from pathlib import Path
 
 import torch
 
-from sgpor_pipeline.gaussians import _raster_cpu, _raster_torch
+from sgpor_pipeline.gaussians import _raster_cpu, _raster_gsplat, _raster_torch
 from sgpor_pipeline.gaussians._raster_scenes import look_at_camera, random_scene
 from sgpor_pipeline.gaussians.rasterizer import rasterization
 
@@ -77,9 +80,18 @@ def _kernel_lanes() -> int:
 def measure(scene: dict, backend: str, reps: int, warmup: int, threads: int) -> dict:
     """Times ``reps`` forward and forward+backward passes (after ``warmup``); in this process."""
     g = torch.Generator().manual_seed(1)
+    cuda = backend == "gsplat"
+    if cuda:
+        scene = {k: (v.cuda() if isinstance(v, torch.Tensor) else v) for k, v in scene.items()}
+        torch.cuda.reset_peak_memory_stats()
     params = {k: scene[k].detach().clone().requires_grad_(True) for k in PARAMS}
     rest = {k: v for k, v in scene.items() if k not in PARAMS}
     kw = {"backend": backend, "num_threads": threads}
+
+    def sync() -> None:
+        if cuda:
+            torch.cuda.synchronize()
+
     if backend == "torch":
         kw["torch_block"] = 16
     weights = None
@@ -90,13 +102,17 @@ def measure(scene: dict, backend: str, reps: int, warmup: int, threads: int) -> 
     for i in range(warmup + reps):
         for p in params.values():
             p.grad = None
+        sync()
         t0 = time.perf_counter()
         render, alpha, _meta = rasterization(**params, **rest, **kw)
+        sync()
         t1 = time.perf_counter()
         if weights is None:
-            weights = (torch.rand(render.shape, generator=g), torch.rand(alpha.shape, generator=g))
+            weights = (torch.rand(render.shape, generator=g).to(render.device),
+                       torch.rand(alpha.shape, generator=g).to(alpha.device))
         loss = (render * weights[0]).sum() + (alpha * weights[1]).sum()
         loss.backward()
+        sync()
         t2 = time.perf_counter()
         if backend == "cpu":
             lanes = _kernel_lanes()
@@ -105,6 +121,8 @@ def measure(scene: dict, backend: str, reps: int, warmup: int, threads: int) -> 
             fwdbwd.append((t2 - t0) * 1e3)
         del render, alpha, _meta, loss
     peak = _rss_mb("VmHWM") - base if peak_ok else float("nan")
+    if cuda:
+        peak = torch.cuda.max_memory_allocated() / 2**20
     med = statistics.median(fwdbwd)
     return {"fwd_ms": statistics.median(fwd), "fwd_ms_min": min(fwd), "fwdbwd_ms": med,
             "fwdbwd_ms_min": min(fwdbwd), "peak_mb": peak, "lanes": lanes,
@@ -134,6 +152,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--torch-max-pairs", type=float, default=4e7,
                     help="skip the torch reference where it would evaluate more (pixel, Gaussian) pairs")
     ap.add_argument("--no-torch", action="store_true", help="skip the torch reference everywhere")
+    ap.add_argument("--gsplat", action="store_true", help="add a gsplat row per cell (needs CUDA and gsplat)")
     ap.add_argument("--warmup", type=int, default=2, help=argparse.SUPPRESS)
     ap.add_argument("--cell", help=argparse.SUPPRESS)  # internal: N,W,H,backend in this process
     args = ap.parse_args(argv)
@@ -160,6 +179,10 @@ def main(argv: list[str] | None = None) -> int:
               "the min columns are the better estimate")
     header = (f"{'N':>7} {'image':>9} {'backend':>7} | {'fwd ms':>15} | {'fwd+bwd ms':>17} | "
               f"{'Mevals/s/core':>13} | {'peak MB':>8} | note")
+    if args.gsplat and not (torch.cuda.is_available() and _raster_gsplat.importable()):
+        print("--gsplat needs a CUDA device and the gsplat package (pip install 'sgpor-pipeline[gpu]')",
+              file=sys.stderr)
+        return 1
     print(header)
     print("-" * len(header))
     result: dict[str, float | str] = {"threads": args.threads, "kernel": _raster_cpu.kernel_name() or "",
@@ -175,6 +198,14 @@ def main(argv: list[str] | None = None) -> int:
                   f"{cpu['evals_per_s_per_core'] / 1e6:13.0f} | {cpu['peak_mb']:8.0f} |", flush=True)
             for k in ("fwd_ms", "fwd_ms_min", "fwdbwd_ms", "fwdbwd_ms_min", "peak_mb", "evals_per_s_per_core"):
                 result[f"{k.replace('_ms', '_ms_cpu', 1) if '_ms' in k else k + '_cpu'}_{key}"] = round(cpu[k], 3)
+            if args.gsplat:
+                gs = run_cell(n, width, height, "gsplat", args.reps, 3, args.threads)
+                print(f"{'':>7} {'':>9} {'gsplat':>7} | {gs['fwd_ms']:7.2f} ({gs['fwd_ms_min']:5.2f}) | "
+                      f"{gs['fwdbwd_ms']:8.2f} ({gs['fwdbwd_ms_min']:6.2f}) | {'-':>13} | {gs['peak_mb']:8.0f} | "
+                      f"gpu; cpu/gsplat {cpu['fwdbwd_ms'] / gs['fwdbwd_ms']:.0f}x (fwd+bwd, medians)", flush=True)
+                for k in ("fwd_ms", "fwdbwd_ms", "peak_mb"):
+                    result[f"{k.replace('_ms', '_ms_gsplat', 1) if '_ms' in k else k + '_gsplat'}_{key}"] = \
+                        round(gs[k], 3)
             note = ""
             if args.no_torch:
                 note = "skipped (--no-torch)"

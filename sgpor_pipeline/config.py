@@ -127,6 +127,14 @@ def coerce(value: Any, tp: Any, where: str) -> Any:
     return value
 
 
+def _is_text(tp: Any) -> bool:
+    """A str or Path annotation, optional or not (``str | None``): a value typed as text."""
+    if get_origin(tp) is typing.Union or get_origin(tp) is types.UnionType:
+        args = [a for a in get_args(tp) if a is not type(None)]
+        return bool(args) and all(a in (str, Path) for a in args)
+    return tp in (str, Path)
+
+
 def parse_literal(text: str) -> Any:
     """A command-line value as a TOML literal; anything that is not one is a plain string."""
     try:
@@ -185,7 +193,7 @@ def resolve_config(
                                 fix="for example --set fit.iterations=3000")
         check_stage(stage, "--set")
         value = parse_literal(text.strip())
-        if get_type_hints(type(config[stage])).get(field.strip()) in (str, Path) and not isinstance(value, str):
+        if _is_text(get_type_hints(type(config[stage])).get(field.strip())) and not isinstance(value, str):
             value = text.strip()  # a name that reads as a number (a view "24") is still a name
         config[stage] = _apply(config[stage], stage, {field: value}, "--set")
     return config

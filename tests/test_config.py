@@ -23,6 +23,7 @@ class FitLike:
     views: list[str] = field(default_factory=list)
     path: Path = Path("x")
     reference: str = "largest"
+    model: str | None = None
 
 
 TYPES = {"fit": FitLike, "ingest": NoParams}
@@ -39,8 +40,10 @@ def test_defaults_file_and_overrides(tmp_path):
     assert resolve_config(TYPES, None, ["fit.lr=1"])["fit"].lr == 1.0  # int accepted for float
     assert resolve_config(TYPES, None, ["fit.views=a,b"])["fit"].views == ["a", "b"]
     # a string parameter set to a name that reads as a number (a view called 24) keeps it as text
-    named = resolve_config(TYPES, None, ["fit.reference=24", "fit.path=7"])["fit"]
-    assert named.reference == "24" and named.path == Path("7")
+    named = resolve_config(TYPES, None, ["fit.reference=24", "fit.path=7", "fit.model=1.5"])["fit"]
+    assert named.reference == "24" and named.path == Path("7") and named.model == "1.5"
+    # ... but a number parameter still rejects text, and an optional number keeps its number
+    assert resolve_config(TYPES, None, ["fit.budget=24"])["fit"].budget == 24
 
 
 def test_round_trip_of_the_saved_file(tmp_path):

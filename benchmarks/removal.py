@@ -2,6 +2,7 @@
 
     python benchmarks/removal.py [--quick] [--json] [--out DIR] [--data DIR] [--scenes synthetic,lund,statue,room]
                                  [--set STAGE.PARAM=VALUE ...]   (overrides for every variant of (a) and (b))
+                                 [--novel]   (+ the novel-view protocol (d) on the scenes of (a) and (b))
 
 Besides the methods, each ground-truth table prints the *inpainting headroom*: the delete-only
 renders with their hole pixels replaced by the truth (``..._mask_psnr_holes_oracle`` in the JSON).
@@ -56,6 +57,16 @@ Protocols:
     given mask (both in the undistorted sfm pixels) on the views whose mask was NOT given; then the
     full removal with 2 given masks, multi-view consistency of its result, and a contact sheet
     (input | propagated mask | delete-only | result) of a few views.
+
+(d) ``--novel``, the SPIn-NeRF protocol (object-free TEST views the removal never saw): every
+    ``NOVEL_EVERY``-th view of (a) and (b) in name order (from the third: 1/4 of the views) is held
+    out; its photo, mask and truth are withheld and only its camera is given, as a novel camera
+    (``image`` null in cameras.json, the ``--cameras`` route). Every method then runs on the other
+    views in a run folder of its own (a second fit), and its final Gaussians are rendered at the
+    held-out cameras (``delete-only``: the remove stage's background without the new hole Gaussians)
+    and scored against the truth inside the object's mask there. A method cannot memorise its own 2D
+    fill at a view it never saw: multi-view agreement and the 3D model are what is measured. JSON keys
+    ``<scene>_novel_mask_psnr<suffix>`` (and ``_bbox_psnr``, ``_mask_ssim``, ``_mask_feat``).
 
 Multi-view consistency (``cons``, lower = more consistent): for up to 6 views with the largest
 object masks, every ordered pair: the colours inside the object mask of view i are carried into view
@@ -126,6 +137,8 @@ HELPS_DB = 0.1  # an ablation "helps" when removing it costs at least this much 
 TARGET_IOU = 0.85
 TARGET_DEMO_SECONDS = 600.0
 LUND_SFM_SIZE = 0  # full 1024x768: at 640 px only 15 of the 29 photos register
+NOVEL_EVERY = 4  # --novel: every 4th view (from the third, in name order) is a held-out test view
+NOVEL_METRICS = ("psnr_mask", "psnr_bbox", "ssim_mask", "feat_mask")
 
 log = logging.getLogger("sgpor_pipeline.bench.removal")
 
@@ -334,7 +347,7 @@ def run_variants(scene: str, run_out: Path, inputs: Any, base: list[str], out: P
 # protocols
 
 
-def protocol_synthetic(out: Path, quick: bool, extra: Sequence[str] = ()) -> dict[str, Any]:
+def protocol_synthetic(out: Path, quick: bool, extra: Sequence[str] = (), novel: bool = False) -> dict[str, Any]:
     from sgpor_pipeline.dag import RunInputs
     from sgpor_pipeline.demo import ensure_demo_scene
     from sgpor_pipeline.synthetic import SceneParams
@@ -349,6 +362,8 @@ def protocol_synthetic(out: Path, quick: bool, extra: Sequence[str] = ()) -> dic
     r["demo_seconds"] = float(sum(ours["seconds"].get(s, 0.0) for s in STAGES))
     r["note"] = f"{params.n_views} views {params.width}x{params.height}, demo configuration" + (
         " (quick: fit 300 / finetune 100 iterations)" if quick else "")
+    if novel:
+        r["novel"] = run_novel("synthetic", scene_dir, out / "synthetic" / "novel_run", base, out)
     return r
 
 
@@ -377,7 +392,7 @@ def place_object(sfm_dir: Path, cams: list) -> tuple[np.ndarray, float]:
     return pos, size
 
 
-def protocol_lund(data: Path, out: Path, quick: bool, extra: Sequence[str] = ()) -> dict[str, Any]:
+def protocol_lund(data: Path, out: Path, quick: bool, extra: Sequence[str] = (), novel: bool = False) -> dict[str, Any]:
     import cv2
 
     from sgpor_pipeline.dag import RunInputs
@@ -437,7 +452,134 @@ def protocol_lund(data: Path, out: Path, quick: bool, extra: Sequence[str] = ())
                  f"removal at {wh[0]}x{wh[1]}; "
                  f"object in {sum(c > 0 for c in coverage)} views, mean coverage {np.mean(coverage) * 100:.1f} %")
     r["registered"], r["images"] = len(cams), n_images
+    if novel:
+        r["novel"] = run_novel("lund", scene_dir, out / "lund" / "novel_run", base, out)
     return r
+
+
+# --------------------------------------------------------------------------------------------------
+# (d) novel views: held-out object-free test views (the SPIn-NeRF protocol)
+
+
+def novel_split(names: Sequence[str], every: int = NOVEL_EVERY) -> tuple[list[str], list[str]]:
+    """(training views, held-out test views): every ``every``-th name in sorted order, from the third
+    (none for ``every`` <= 1)."""
+    ordered = sorted(names)
+    test = ordered[min(2, every - 1)::every] if every > 1 else []
+    return [n for n in ordered if n not in test], test
+
+
+def make_novel_scene(scene_dir: Path, out_dir: Path, every: int = NOVEL_EVERY) -> tuple[list[str], list[str]]:
+    """Writes ``out_dir``: the ground-truth scene folder ``scene_dir`` without its held-out views' photos,
+    masks and truth; their cameras stay in cameras.json as novel cameras named ``test_<view>`` (``image``
+    None). Returns (training view names, held-out view names)."""
+    import shutil
+    from dataclasses import replace
+
+    from sgpor_pipeline.scene import load_cameras, save_cameras
+
+    cams = load_cameras(scene_dir / "cameras.json")
+    by_image = {c.image: c for c in cams if c.image is not None}
+    train, test = novel_split(list(by_image), every)
+    stamp = json.dumps({"scene": [(p.name, p.stat().st_size, p.stat().st_mtime_ns)
+                                  for p in sorted((scene_dir / "images").iterdir())], "test": test})
+    if (out_dir / "stamp.json").is_file() and (out_dir / "stamp.json").read_text() == stamp:
+        return train, test
+    if out_dir.exists():
+        shutil.rmtree(out_dir)
+    for sub in ("images", "masks", "groundtruth"):
+        (out_dir / sub).mkdir(parents=True)
+        for n in train:
+            src = next(p for p in (scene_dir / sub).iterdir() if p.stem == n)
+            shutil.copyfile(src, out_dir / sub / src.name)
+    novel = [replace(by_image[n], name=f"test_{n}", image=None) for n in test]
+    save_cameras(out_dir / "cameras.json", [by_image[n] for n in train] + novel)
+    (out_dir / "stamp.json").write_text(stamp)
+    return train, test
+
+
+def render_rgb(model: Any, cam: Any) -> np.ndarray:
+    from sgpor_pipeline.gaussians.train import render_view
+
+    return render_view(model, cam).clamp(0.0, 1.0).numpy()
+
+
+def run_novel(scene: str, scene_dir: Path, run_out: Path, base: list[str], out: Path) -> dict[str, Any]:
+    """Protocol (d) on one ground-truth scene: every method trained without the held-out views, then
+    rendered and scored at them (see the module doc)."""
+    from sgpor_pipeline.dag import RunInputs
+    from sgpor_pipeline.gaussians.ply import read_ply
+    from sgpor_pipeline.imageio import read_image, read_mask
+    from sgpor_pipeline.metrics import crop_features, mean_scores, score_image
+    from sgpor_pipeline.removal.features import DinoBackend
+    from sgpor_pipeline.removal.holes import subset
+    from sgpor_pipeline.runner import run_pipeline
+    from sgpor_pipeline.scene import load_cameras
+    from sgpor_pipeline.stages.evaluate import EvaluateParams, feature_model
+
+    t_scene = time.perf_counter()
+    novel_dir = out / scene / "novel_scene"
+    train, test = make_novel_scene(scene_dir, novel_dir)
+    inputs = RunInputs(images=novel_dir / "images", masks=novel_dir / "masks", cameras=novel_dir / "cameras.json")
+    model_path, why = feature_model(EvaluateParams())
+    features = None if model_path is None else DinoBackend(model_path).tokens
+    truth = {n: read_image(scene_dir / "groundtruth" / f"{n}.png") for n in test}
+    masks = {n: read_mask(scene_dir / "masks" / f"{n}.png") for n in test}
+    test = [n for n in test if masks[n].any()]
+    truth_feats = {n: None if features is None else crop_features(truth[n], masks[n], features) for n in test}
+
+    def score(method: str, model: Any, cams: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
+        renders, per_view = {}, []
+        for n in test:
+            cam = cams[f"test_{n}"]
+            if (cam.height, cam.width) != masks[n].shape:
+                raise RuntimeError(f"novel camera test_{n} is {cam.width}x{cam.height}, its truth "
+                                   f"{masks[n].shape[1]}x{masks[n].shape[0]}")
+            renders[n] = render_rgb(model, cam)
+            per_view.append(score_image(renders[n], truth[n], masks[n], features, truth_feats[n]))
+        means = mean_scores(per_view)
+        return {"method": method, **{k: means.get(k, math.nan) for k in NOVEL_METRICS}, "renders": renders, **extra}
+
+    rows: list[dict[str, Any]] = []
+    for name, overrides, _ in VARIANTS:
+        t0 = time.perf_counter()
+        log.warning(f"[{scene} novel] variant {name}: {' '.join(overrides) or '(defaults)'}")
+        res = run_pipeline(run_out, inputs, overrides=base + overrides, until="finetune")
+        cams = {c.name: c for c in load_cameras(res.path("sfm") / "cameras.json") if c.image is None}
+        missing = [n for n in test if f"test_{n}" not in cams]
+        if missing:
+            raise RuntimeError(f"the run dropped the novel cameras of {missing}")
+        row = score(name, read_ply(res.path("finetune") / "gaussians.ply"), cams,
+                    {"wall_seconds": time.perf_counter() - t0, "ran": res.ran})
+        rows.append(row)
+        log.warning(f"[{scene} novel] {name}: PSNR mask {row['psnr_mask']:.2f}")
+        if name == "ours":
+            removed = read_ply(res.path("remove") / "gaussians.ply")
+            seeds = np.load(res.path("remove") / "seed_ids.npy")
+            keep = np.ones(len(removed), bool)
+            keep[seeds] = False
+            rows.append(score("delete-only", subset(removed, keep), cams, {"wall_seconds": None, "ran": []}))
+    by = {r["method"]: r for r in rows}
+    pick = sorted(test, key=lambda n: -int(masks[n].sum()))[:4]
+    sheet = [[mask_overlay(truth[n], masks[n]), by["delete-only"]["renders"][n], by["fsr-refit"]["renders"][n],
+              by["ours"]["renders"][n], truth[n]] for n in pick]
+    sheet_path = out / f"{scene}_novel_sheet.png"
+    contact_sheet(sheet, ["held-out view, mask", "delete-only", "fsr-refit", "ours", "truth"], sheet_path)
+    for r in rows:
+        r.pop("renders")
+    return {"scene": scene, "rows": rows, "test_views": test, "train_views": len(train), "features": why,
+            "sheet": str(sheet_path), "wall_seconds": time.perf_counter() - t_scene}
+
+
+def format_novel_table(r: dict[str, Any]) -> str:
+    head = f"{'method':<14} {'PSNR mask':>9} {'bbox':>6} {'SSIM mask':>9} {'feat':>6} {'wall s':>6}"
+    lines = [f"## {r['scene']}, novel views (SPIn-NeRF protocol): {len(r['test_views'])} held-out views "
+             f"({', '.join(r['test_views'])}), trained on {r['train_views']}", head, "-" * len(head)]
+    for x in r["rows"]:
+        lines.append(f"{x['method']:<14} {_f(x['psnr_mask'], '.2f'):>9} {_f(x['psnr_bbox'], '.2f'):>6} "
+                     f"{_f(x['ssim_mask'], '.4f'):>9} {_f(x['feat_mask'], '.4f'):>6} "
+                     f"{_f(x.get('wall_seconds'), '.0f'):>6}")
+    return "\n".join(lines)
 
 
 def iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -640,6 +782,18 @@ def summarise(results: dict[str, dict[str, Any]]) -> tuple[dict[str, Any], list[
             checks.append(f"[INFO] {scene}: RPR on the FSR fill (no-sbm - no-sbm-no-rpr) {g:+.3f} dB mask PSNR, feat "
                           f"{_f(feats['no-sbm'], '.4f')} vs {_f(feats['no-sbm-no-rpr'], '.4f')}; on ours, RPR "
                           f"refined {_f(r.get('refined_blocks'), 'd')} block(s)")
+        nv = r.get("novel")
+        if nv is not None:
+            nby = {x["method"]: x for x in nv["rows"]}
+            for method, x in nby.items():
+                for m in NOVEL_METRICS:
+                    kind, region = m.split("_")
+                    summary[f"{prefix}_novel_{region}_{kind}{SUFFIX[method]}"] = x.get(m)
+            o = nby["ours"]
+            checks.append(f"[INFO] {scene}, novel views (held out): ours - baseline mask PSNR "
+                          + ", ".join(f"{m} {o['psnr_mask'] - x['psnr_mask']:+.2f} dB" for m, x in nby.items()
+                                      if m in BASELINES) + "; feat "
+                          + ", ".join(f"{m} {_f(x.get('feat_mask'), '.4f')}" for m, x in nby.items()))
         for ablation, what in (("no-sbm", "SBM"), ("no-rpr", "RPR")):
             g = gains[ablation]
             ok = g >= HELPS_DB
@@ -678,6 +832,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenes", default="synthetic,lund,statue,room",
                     help="comma-separated: synthetic, lund, statue, room")
     ap.add_argument("--verbose", action="store_true", help="log every stage")
+    ap.add_argument("--novel", action="store_true",
+                    help="also protocol (d): every method scored at held-out views it never saw (a second run "
+                         "per ground-truth scene)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="config override added to every variant of the ground-truth scenes "
                          "(e.g. remove.min_views=2); repeatable")
@@ -697,11 +854,11 @@ def main(argv: list[str] | None = None) -> int:
     for scene in scenes:
         t0 = time.perf_counter()
         if scene == "synthetic":
-            r = protocol_synthetic(out, args.quick, args.set)
+            r = protocol_synthetic(out, args.quick, args.set, args.novel)
         elif not data.is_dir():
             r = {"scene": scene, "skipped": f"data folder {data} not found (pass --data)"}
         elif scene == "lund":
-            r = protocol_lund(data, out, args.quick, args.set)
+            r = protocol_lund(data, out, args.quick, args.set, args.novel)
         else:
             folder = data / ("statue" if scene == "statue" else "mip360-room")
             r = protocol_propagation(scene, folder, out, args.quick)
@@ -709,6 +866,8 @@ def main(argv: list[str] | None = None) -> int:
         results[scene] = r
         print(format_removal_table(r) if scene in ("synthetic", "lund") else format_propagation_table([r]),
               flush=True)
+        if r.get("novel"):
+            print(format_novel_table(r["novel"]), flush=True)
         (out / "removal_benchmark.json").write_text(json.dumps(results, indent=1, default=str))
 
     print("\n# removal benchmark" + (" (quick)" if args.quick else "") + f": {out}")
@@ -716,6 +875,9 @@ def main(argv: list[str] | None = None) -> int:
         if scene in results:
             print()
             print(format_removal_table(results[scene]))
+            if results[scene].get("novel"):
+                print()
+                print(format_novel_table(results[scene]["novel"]))
     prop = [results[s] for s in ("statue", "room") if s in results]
     if prop:
         print()
@@ -727,6 +889,7 @@ def main(argv: list[str] | None = None) -> int:
         print("\n# targets")
         print("\n".join(checks))
     sheets = [r["sheet"] for r in results.values() if r.get("sheet")]
+    sheets += [r["novel"]["sheet"] for r in results.values() if r.get("novel")]
     plot = speed_error_plot(results, out / "removal_speed_error.png")
     if plot is not None:
         sheets.append(str(plot))

@@ -138,3 +138,50 @@ def test_speed_error_plot(bench, tmp_path):
 
     assert path is not None and read_image(path).shape[1] == 550  # one 5.5-inch panel at 100 dpi
     assert bench.speed_error_plot({"lund": {"scene": "lund", "skipped": "x"}}, tmp_path / "q.png") is None
+
+
+def test_novel_split_and_scene(bench, tmp_path):
+    """Protocol (d): a quarter of the views is held out; their files are withheld, their cameras kept
+    as novel cameras, and the split is stable and resumable."""
+    from sgpor_pipeline.imageio import write_mask01, write_png
+    from sgpor_pipeline.scene import Camera, load_cameras, save_cameras
+
+    names = [f"v{i:02d}" for i in range(10)]
+    train, test = bench.novel_split(list(reversed(names)))
+    assert test == ["v02", "v06"] and len(train) == 8 and not set(train) & set(test)
+    assert bench.novel_split(names, every=1) == (names, [])  # (every view held out would leave none to train)
+    scene = tmp_path / "scene"
+    for sub in ("images", "masks", "groundtruth"):
+        (scene / sub).mkdir(parents=True)
+    cams = []
+    for n in names:
+        write_png(scene / "images" / f"{n}.png", np.zeros((6, 8, 3), np.float32))
+        write_png(scene / "groundtruth" / f"{n}.png", np.zeros((6, 8, 3), np.float32))
+        write_mask01(scene / "masks" / f"{n}.png", np.ones((6, 8), bool))
+        cams.append(Camera(n, 8, 6, np.diag([5.0, 5.0, 1.0]), np.eye(4), image=n))
+    save_cameras(scene / "cameras.json", cams)
+    out = tmp_path / "novel"
+    assert bench.make_novel_scene(scene, out) == (train, test)
+    for sub in ("images", "masks", "groundtruth"):
+        assert sorted(p.stem for p in (out / sub).iterdir()) == train
+    loaded = load_cameras(out / "cameras.json")
+    assert [c.image for c in loaded] == train + [None, None]
+    assert [c.name for c in loaded if c.image is None] == ["test_v02", "test_v06"]
+    stamp = (out / "stamp.json").stat().st_mtime_ns
+    assert bench.make_novel_scene(scene, out) == (train, test)  # unchanged input: nothing rewritten
+    assert (out / "stamp.json").stat().st_mtime_ns == stamp
+
+
+def test_novel_table_and_summary(bench):
+    methods = ["ours", "delete-only", "fsr-refit", "no-sbm", "no-rpr"]
+    scene = {"scene": "lund", "rows": [_row(m, 20.0) for m in methods], "wall_seconds": 1.0}
+    scene["novel"] = {"scene": "lund", "test_views": ["03", "07"], "train_views": 6, "wall_seconds": 2.0,
+                      "rows": [dict(_row(m, 18.0 - i), feat_mask=0.1 * (i + 1), wall_seconds=3.0)
+                               for i, m in enumerate(methods)]}
+    table = bench.format_novel_table(scene["novel"])
+    assert "03, 07" in table and "trained on 6" in table and all(m in table for m in methods)
+    summary, checks = bench.summarise({"lund": scene})
+    assert summary["lund_inserted_novel_mask_psnr"] == 18.0
+    assert summary["lund_inserted_novel_mask_psnr_fsr_refit"] == 16.0
+    assert summary["lund_inserted_novel_mask_feat_no_rpr"] == pytest.approx(0.5)
+    assert any("novel views" in c and "fsr-refit +2.00 dB" in c for c in checks)

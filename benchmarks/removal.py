@@ -7,8 +7,8 @@
 Besides the methods, each ground-truth table prints the *inpainting headroom*: the delete-only
 renders with their hole pixels replaced by the truth (``..._mask_psnr_holes_oracle`` in the JSON).
 It is the most any filling of the holes can reach while the background other views saw stays as
-fitted; a target above it cannot be met by inpainting alone (synthetic: 29.99 dB vs delete-only
-24.39; lund + box: 20.62 vs 12.31).
+fitted; a target above it cannot be met by inpainting alone (synthetic: 26.25 dB vs delete-only
+24.39; lund + box: 19.03 vs 12.31).
 
 Every number comes from FULL pipeline runs (:func:`sgpor_pipeline.runner.run_pipeline`, ingest ..
 finetune + evaluate, no export). The variants of a scene run in the SAME run folder with different

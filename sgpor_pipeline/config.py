@@ -39,8 +39,8 @@ def added_param(default: Any, neutral: Any = None) -> Any:
     value (the one that reproduces them, typically "off"; by default the default) it is left out of
     the cache keys (:func:`params_key`), so upgrading does not recompute cached stages. Use as
     ``order: str = added_param("onion")``. A default that later moves off the neutral value
-    (``min_views: int = added_param(1, neutral=0)``) recomputes runs at the new default and keeps the
-    results cached with the neutral one. A new parameter that changes results at its default must be
+    (``added_param(1, neutral=0)``) recomputes runs at the new default and keeps the results cached
+    with the neutral one. A new parameter that changes results at its default must be
     a plain field (or bump the stage's VERSION)."""
     return dataclasses.field(default=default, metadata={KEY_NEUTRAL: default if neutral is None else neutral})
 

@@ -510,7 +510,7 @@ def run_novel(scene: str, scene_dir: Path, run_out: Path, base: list[str], out: 
     from sgpor_pipeline.dag import RunInputs
     from sgpor_pipeline.gaussians.ply import read_ply
     from sgpor_pipeline.imageio import read_image, read_mask
-    from sgpor_pipeline.metrics import crop_features, mean_scores, score_image
+    from sgpor_pipeline.metrics import crop_features, feature_crop, mean_scores, score_image
     from sgpor_pipeline.removal.features import DinoBackend
     from sgpor_pipeline.removal.holes import subset
     from sgpor_pipeline.runner import run_pipeline
@@ -561,10 +561,13 @@ def run_novel(scene: str, scene_dir: Path, run_out: Path, base: list[str], out: 
             rows.append(score("delete-only", subset(removed, keep), cams, {"wall_seconds": None, "ran": []}))
     by = {r["method"]: r for r in rows}
     pick = sorted(test, key=lambda n: -int(masks[n].sum()))[:4]
-    sheet = [[mask_overlay(truth[n], masks[n]), by["delete-only"]["renders"][n], by["fsr-refit"]["renders"][n],
-              by["ours"]["renders"][n], truth[n]] for n in pick]
+    sheet = []
+    for n in pick:  # the view, then the methods and the truth around the mask (the feature distance's crop)
+        y0, y1, x0, x1 = feature_crop(masks[n].shape, masks[n])
+        sheet.append([mask_overlay(truth[n], masks[n])] + [img[y0:y1, x0:x1] for img in (
+            by["delete-only"]["renders"][n], by["fsr-refit"]["renders"][n], by["ours"]["renders"][n], truth[n])])
     sheet_path = out / f"{scene}_novel_sheet.png"
-    contact_sheet(sheet, ["held-out view, mask", "delete-only", "fsr-refit", "ours", "truth"], sheet_path)
+    contact_sheet(sheet, ["held-out view, mask", "delete-only (crop)", "fsr-refit", "ours", "truth"], sheet_path)
     for r in rows:
         r.pop("renders")
     return {"scene": scene, "rows": rows, "test_views": test, "train_views": len(train), "features": why,

@@ -142,6 +142,13 @@ def run_cell(n: int, width: int, height: int, backend: str, reps: int, warmup: i
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+def result_key(metric: str, backend: str, cell: str) -> str:
+    """JSON key of a cell's measurement: ``fwd_ms_min`` -> ``fwd_ms_<backend>_min_<cell>``, ``peak_mb`` ->
+    ``peak_mb_<backend>_<cell>``."""
+    name = metric.replace("_ms", f"_ms_{backend}", 1) if "_ms" in metric else f"{metric}_{backend}"
+    return f"{name}_{cell}"
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="only 50k Gaussians at 256x192")
@@ -197,15 +204,14 @@ def main(argv: list[str] | None = None) -> int:
                   f"{cpu['fwdbwd_ms']:8.1f} ({cpu['fwdbwd_ms_min']:6.1f}) | "
                   f"{cpu['evals_per_s_per_core'] / 1e6:13.0f} | {cpu['peak_mb']:8.0f} |", flush=True)
             for k in ("fwd_ms", "fwd_ms_min", "fwdbwd_ms", "fwdbwd_ms_min", "peak_mb", "evals_per_s_per_core"):
-                result[f"{k.replace('_ms', '_ms_cpu', 1) if '_ms' in k else k + '_cpu'}_{key}"] = round(cpu[k], 3)
+                result[result_key(k, "cpu", key)] = round(cpu[k], 3)
             if args.gsplat:
                 gs = run_cell(n, width, height, "gsplat", args.reps, 3, args.threads)
                 print(f"{'':>7} {'':>9} {'gsplat':>7} | {gs['fwd_ms']:7.2f} ({gs['fwd_ms_min']:5.2f}) | "
                       f"{gs['fwdbwd_ms']:8.2f} ({gs['fwdbwd_ms_min']:6.2f}) | {'-':>13} | {gs['peak_mb']:8.0f} | "
                       f"gpu; cpu/gsplat {cpu['fwdbwd_ms'] / gs['fwdbwd_ms']:.0f}x (fwd+bwd, medians)", flush=True)
                 for k in ("fwd_ms", "fwdbwd_ms", "peak_mb"):
-                    result[f"{k.replace('_ms', '_ms_gsplat', 1) if '_ms' in k else k + '_gsplat'}_{key}"] = \
-                        round(gs[k], 3)
+                    result[result_key(k, "gsplat", key)] = round(gs[k], 3)
             note = ""
             if args.no_torch:
                 note = "skipped (--no-torch)"

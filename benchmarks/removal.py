@@ -480,6 +480,7 @@ def make_novel_scene(scene_dir: Path, out_dir: Path, every: int = NOVEL_EVERY) -
     from dataclasses import replace
 
     from sgpor_pipeline.scene import load_cameras, save_cameras
+    from sgpor_pipeline.stages.evaluate import find_truth
 
     cams = load_cameras(scene_dir / "cameras.json")
     by_image = {c.image: c for c in cams if c.image is not None}
@@ -493,7 +494,9 @@ def make_novel_scene(scene_dir: Path, out_dir: Path, every: int = NOVEL_EVERY) -
     for sub in ("images", "masks", "groundtruth"):
         (out_dir / sub).mkdir(parents=True)
         for n in train:
-            src = next(p for p in (scene_dir / sub).iterdir() if p.stem == n)
+            src = find_truth(scene_dir / sub, n)  # (the view's file, whatever its image extension)
+            if src is None:
+                raise FileNotFoundError(f"{scene_dir / sub} has no file for view {n}")
             shutil.copyfile(src, out_dir / sub / src.name)
     novel = [replace(by_image[n], name=f"test_{n}", image=None) for n in test]
     save_cameras(out_dir / "cameras.json", [by_image[n] for n in train] + novel)

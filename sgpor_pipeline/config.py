@@ -34,15 +34,13 @@ class NoParams:
 KEY_NEUTRAL = "sgpor_key_neutral"
 
 
-def added_param(default: Any, neutral: Any = None) -> Any:
-    """A dataclass field for a parameter added to a stage after results were cached: at its *neutral*
-    value (the one that reproduces them, typically "off"; by default the default) it is left out of
-    the cache keys (:func:`params_key`), so upgrading does not recompute cached stages. Use as
-    ``order: str = added_param("onion")``. A default that later moves off the neutral value
-    (``added_param(1, neutral=0)``) recomputes runs at the new default and keeps the results cached
-    with the neutral one. A new parameter that changes results at its default must be
+def added_param(default: Any) -> Any:
+    """A dataclass field for a parameter added to a stage after results were cached, whose default
+    reproduces them (typically an option that is off by default): while it has that value it is left
+    out of the cache keys (:func:`params_key`), so upgrading does not recompute cached stages. Use as
+    ``order: str = added_param("onion")``. A new parameter that changes results at its default must be
     a plain field (or bump the stage's VERSION)."""
-    return dataclasses.field(default=default, metadata={KEY_NEUTRAL: default if neutral is None else neutral})
+    return dataclasses.field(default=default, metadata={KEY_NEUTRAL: default})
 
 
 def params_key(params: Any) -> dict[str, Any]:

@@ -189,12 +189,16 @@ def run_method(scene: Scene, work: Path, inpaint: InpaintParams | None, refine: 
 
 def methods(dino: bool, priority_share: float = InpaintParams.priority_share
             ) -> list[tuple[str, InpaintParams | None, RefineParams | None]]:
-    sbm = InpaintParams()
+    # The fixtures' completed depth is the true depth, so every part of a hole is pinned and "+mv" carries
+    # all of it (carry_max_rim 0). The pipeline's default carries only parts within a block of their rim
+    # (its depth inside a thick hole is interpolated); on these thick holes that is the single-view row.
+    sbm = InpaintParams(carry_max_rim=0)
+    fsr_mv = InpaintParams(backend="opencv", multiview=True, carry_max_rim=0)
     out = [
         ("delete-only", None, None),
         ("opencv-fsr", InpaintParams(backend="opencv", multiview=False), None),
-        ("opencv-fsr+mv", InpaintParams(backend="opencv", multiview=True), None),
-        ("opencv-fsr+mv+rpr", InpaintParams(backend="opencv", multiview=True), RefineParams()),
+        ("opencv-fsr+mv", fsr_mv, None),
+        ("opencv-fsr+mv+rpr", fsr_mv, RefineParams()),
         ("sbm", replace(sbm, multiview=False), None),
         ("sbm+mv", sbm, None),
         ("sbm+mv+rpr", sbm, RefineParams()),

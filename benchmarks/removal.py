@@ -67,9 +67,9 @@ Protocols:
     and scored against the truth inside the object's mask there. A method cannot memorise its own 2D
     fill at a view it never saw: multi-view agreement and the 3D model are what is measured. JSON keys
     ``<scene>_novel_mask_psnr<suffix>`` (and ``_bbox_psnr``, ``_mask_ssim``, ``_mask_feat``). Opt-in:
-    about 13 more minutes on 2 cores (synthetic 6, lund 7). Measured (``min_views`` 0): ours 25.56 dB /
-    feat 0.083 on synthetic (delete-only 24.93, fsr-refit 20.87), 13.96 / 0.225 on lund + box
-    (fsr-refit 14.75 / 0.247).
+    about 13 more minutes on 2 cores (synthetic 6, lund 7). Measured (``min_views`` 0,
+    ``carry_max_rim`` -1): ours 25.56 dB / feat 0.083 on synthetic (delete-only 24.93, fsr-refit
+    20.87), 14.48 / 0.214 on lund + box (fsr-refit 14.75 / 0.247).
 
 Multi-view consistency (``cons``, lower = more consistent): for up to 6 views with the largest
 object masks, every ordered pair: the colours inside the object mask of view i are carried into view

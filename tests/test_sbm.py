@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -18,7 +19,7 @@ from sgpor_pipeline.removal.features import (
     block_descriptors,
     make_backend,
 )
-from sgpor_pipeline.removal.multiview import sample_bilinear, warp_from_reference, write_remove_fixture
+from sgpor_pipeline.removal.multiview import pinned_parts, sample_bilinear, warp_from_reference, write_remove_fixture
 from sgpor_pipeline.removal.rpr import hf_energy
 from sgpor_pipeline.removal.sbm import (
     SBMParams,
@@ -289,7 +290,9 @@ def test_inpaint_stage_multiview_is_consistent_and_cached(scene, tmp_path):
 
     remove = write_remove_fixture(scene, tmp_path / "remove", holes="mask")
     builds: list = []
-    ctx = StageContext.standalone(tmp_path, "inpaint", InpaintParams(), {"remove": remove}, builds)
+    # the fixture's completed depth is the true depth, so every part of a hole may be carried
+    carry_all = InpaintParams(carry_max_rim=0)
+    ctx = StageContext.standalone(tmp_path, "inpaint", carry_all, {"remove": remove}, builds)
     InpaintStage().run(ctx)
     out = ctx.out_dir
     report = json.loads((out / "inpaint.json").read_text())
@@ -299,7 +302,7 @@ def test_inpaint_stage_multiview_is_consistent_and_cached(scene, tmp_path):
     for i, cam in enumerate(scene.cameras):
         img = read_image(out / "images" / f"{cam.name}.png")
         assert img.shape == (120, 160, 3)
-        ff = np.asarray(__import__("cv2").imread(str(out / "filled_from" / f"{cam.name}.png"), -1))
+        ff = np.asarray(cv2.imread(str(out / "filled_from" / f"{cam.name}.png"), -1))
         assert set(np.unique(ff)) <= {0, 1, 2}
         assert np.array_equal(ff > 0, scene.masks[i])
         if cam.name == ref:
@@ -309,7 +312,7 @@ def test_inpaint_stage_multiview_is_consistent_and_cached(scene, tmp_path):
     assert len(builds) == 4
     mv_err = consistency_error(scene, out)
 
-    ctx2 = StageContext.standalone(tmp_path, "inpaint", InpaintParams(), {"remove": remove}, builds)
+    ctx2 = StageContext.standalone(tmp_path, "inpaint", carry_all, {"remove": remove}, builds)
     InpaintStage().run(ctx2)
     assert len(builds) == 4  # every view was a cached item
 
@@ -327,7 +330,7 @@ def test_inpaint_stage_progressive_order_carries_every_earlier_fill(scene, tmp_p
 
     remove = write_remove_fixture(scene, tmp_path / "remove", holes="mask")
     builds: list = []
-    params = InpaintParams(reference="smallest_first")
+    params = InpaintParams(reference="smallest_first", carry_max_rim=0)  # exact depth: carry every part
     ctx = StageContext.standalone(tmp_path, "inpaint", params, {"remove": remove}, builds)
     InpaintStage().run(ctx)
     report = json.loads((ctx.out_dir / "inpaint.json").read_text())
@@ -342,6 +345,37 @@ def test_inpaint_stage_progressive_order_carries_every_earlier_fill(scene, tmp_p
     assert prog_err < 0.6 * consistency_error(scene, ctx_single.out_dir)
     InpaintStage().run(StageContext.standalone(tmp_path, "inpaint", params, {"remove": remove}, builds))
     assert len(builds) == 4  # cached
+
+
+def test_pinned_parts_keeps_the_thin_parts_of_a_hole():
+    hole = np.zeros((100, 120), bool)
+    hole[10:20, 10:30] = True  # 10 px thick: every pixel within 5 px of the rim
+    hole[40:90, 40:100] = True  # 50 px thick: its centre is 25 px from the rim
+    hole[95:97, 0:120] = True  # a 2 px sliver
+    thin = pinned_parts(hole, 15)
+    assert thin[10:20, 10:30].all() and thin[95:97].all() and not thin[40:90, 40:100].any()
+    assert not (thin & ~hole).any()
+    assert np.array_equal(pinned_parts(hole, 0), hole) and np.array_equal(pinned_parts(hole, 30), hole)
+    assert not pinned_parts(np.zeros((5, 5), bool), 15).any()
+
+
+def test_inpaint_stage_carries_only_pinned_parts(scene, tmp_path):
+    """By default (carry_max_rim = -1: the block size) a part of the reference's hole deeper than a block
+    is not carried: its completed depth is a guess. Holes eroded to a thin rim are carried as before."""
+    from sgpor_pipeline.stages.inpaint import InpaintParams, InpaintStage
+
+    remove = write_remove_fixture(scene, tmp_path / "remove", holes="mask")
+    deep = [float(cv2.distanceTransform(m.astype(np.uint8), cv2.DIST_L2, 3).max()) for m in scene.masks]
+    assert min(deep) > 15  # the object masks are thicker than two blocks
+    ctx = StageContext.standalone(tmp_path / "thick", "inpaint", InpaintParams(), {"remove": remove})
+    InpaintStage().run(ctx)
+    report = json.loads((ctx.out_dir / "inpaint.json").read_text())
+    assert report["multiview"] and report["projected"] == 0
+    assert report["inpainted"] == sum(int(m.sum()) for m in scene.masks)
+    # the same holes with the stage told to carry every part: projections happen
+    ctx = StageContext.standalone(tmp_path / "all", "inpaint", InpaintParams(carry_max_rim=100), {"remove": remove})
+    InpaintStage().run(ctx)
+    assert json.loads((ctx.out_dir / "inpaint.json").read_text())["projected"] > 0
 
 
 def test_opencv_backend_respects_the_mask_convention(scene, tmp_path):

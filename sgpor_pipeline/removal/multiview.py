@@ -23,11 +23,13 @@ part of them), which the tests and benchmarks use.
 
 Multi-view consistency (DESIGN.md section 7): a reference view is filled first, its filled pixels
 are lifted to 3D with its completed depth and carried into the other views, and only what is still
-missing there is inpainted. Two ways to carry them: ``backward`` (default: every hole pixel of the
-other view is lifted with that view's completed depth, projected into the reference, and takes the
-reference's filled colour there when the depths agree, i.e. the same surface point; no cracks) and
-``splat`` (the reference's filled pixels are projected into the other view, z-buffered, nearest
-pixel, kept where they land on a hole pixel whose completed depth agrees).
+missing there is inpainted. The inpaint stage carries only the :func:`pinned_parts` of a hole, where
+the completed depth is held by the surrounding surface. Two ways to carry them: ``backward``
+(default: every hole pixel of the other view is lifted with that view's completed depth, projected
+into the reference, and takes the reference's filled colour there when the depths agree, i.e. the
+same surface point; no cracks) and ``splat`` (the reference's filled pixels are projected into the
+other view, z-buffered, nearest pixel, kept where they land on a hole pixel whose completed depth
+agrees).
 """
 
 from __future__ import annotations
@@ -330,6 +332,23 @@ def write_remove_fixture(scene, folder: str | Path, holes: str = "mask", erode: 
 
 
 FILLED_NONE, FILLED_PROJECTED, FILLED_INPAINTED = 0, 1, 2
+
+
+def pinned_parts(hole: np.ndarray, max_rim_distance: float) -> np.ndarray:
+    """The connected parts of ``hole`` (8-connected) none of whose pixels lies farther than
+    ``max_rim_distance`` pixels from the part's rim: there the completed depth is pinned by the
+    surrounding surface on every side, so a fill lifted with it lands in the right place in another
+    view. ``max_rim_distance`` <= 0: the whole hole."""
+    hole = np.asarray(hole, bool)
+    if max_rim_distance <= 0 or not hole.any():
+        return hole.copy()
+    n, labels = cv2.connectedComponents(hole.astype(np.uint8), connectivity=8)
+    rim = cv2.distanceTransform(hole.astype(np.uint8), cv2.DIST_L2, 3)
+    deepest = np.zeros(n, np.float32)
+    np.maximum.at(deepest, labels[hole], rim[hole])
+    thin = deepest <= max_rim_distance
+    thin[0] = False  # label 0 is the background
+    return thin[labels]
 
 
 def fill_view(render: np.ndarray, hole: np.ndarray, backend: str, bank, params,

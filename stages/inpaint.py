@@ -87,8 +87,8 @@ class InpaintParams:
     guide_weight: float = added_param(0.5)  # SBMParams.guide_weight
     # The method (DESIGN.md section 7): views agree by construction. Mask PSNR / feat, multi-view vs
     # independent per-view fills (what the fsr-refit baseline does): synthetic 25.88 / 0.056 vs 25.55 /
-    # 0.056 (held-out views 25.56 vs 25.34). Where the holes are thick only their rims are carried
-    # (carry_max_rim): lund + box's views then fill themselves.
+    # 0.056 (held-out views 25.56 vs 25.34). A part of a hole thicker than two blocks is not carried
+    # (carry_max_rim): lund + box's views fill themselves.
     multiview: bool = True
     # "largest" hole, "central" camera or a view name: that view is filled first and carried into the
     # others; "smallest_first": no single reference, every view (smallest hole first, the order the

@@ -472,6 +472,16 @@ def novel_split(names: Sequence[str], every: int = NOVEL_EVERY) -> tuple[list[st
     return [n for n in ordered if n not in test], test
 
 
+def view_file(folder: Path, view: str) -> Path:
+    """The view's file in ``folder`` (images, masks or groundtruth), whatever its image extension."""
+    from sgpor_pipeline.stages.evaluate import find_truth
+
+    path = find_truth(folder, view)
+    if path is None:
+        raise FileNotFoundError(f"{folder} has no file for view {view}")
+    return path
+
+
 def make_novel_scene(scene_dir: Path, out_dir: Path, every: int = NOVEL_EVERY) -> tuple[list[str], list[str]]:
     """Writes ``out_dir``: the ground-truth scene folder ``scene_dir`` without its held-out views' photos,
     masks and truth; their cameras stay in cameras.json as novel cameras named ``test_<view>`` (``image``
@@ -480,7 +490,6 @@ def make_novel_scene(scene_dir: Path, out_dir: Path, every: int = NOVEL_EVERY) -
     from dataclasses import replace
 
     from sgpor_pipeline.scene import load_cameras, save_cameras
-    from sgpor_pipeline.stages.evaluate import find_truth
 
     cams = load_cameras(scene_dir / "cameras.json")
     by_image = {c.image: c for c in cams if c.image is not None}
@@ -494,9 +503,7 @@ def make_novel_scene(scene_dir: Path, out_dir: Path, every: int = NOVEL_EVERY) -
     for sub in ("images", "masks", "groundtruth"):
         (out_dir / sub).mkdir(parents=True)
         for n in train:
-            src = find_truth(scene_dir / sub, n)  # (the view's file, whatever its image extension)
-            if src is None:
-                raise FileNotFoundError(f"{scene_dir / sub} has no file for view {n}")
+            src = view_file(scene_dir / sub, n)
             shutil.copyfile(src, out_dir / sub / src.name)
     novel = [replace(by_image[n], name=f"test_{n}", image=None) for n in test]
     save_cameras(out_dir / "cameras.json", [by_image[n] for n in train] + novel)
@@ -529,8 +536,8 @@ def run_novel(scene: str, scene_dir: Path, run_out: Path, base: list[str], out: 
     inputs = RunInputs(images=novel_dir / "images", masks=novel_dir / "masks", cameras=novel_dir / "cameras.json")
     model_path, why = feature_model(EvaluateParams())
     features = None if model_path is None else DinoBackend(model_path).tokens
-    truth = {n: read_image(scene_dir / "groundtruth" / f"{n}.png") for n in test}
-    masks = {n: read_mask(scene_dir / "masks" / f"{n}.png") for n in test}
+    truth = {n: read_image(view_file(scene_dir / "groundtruth", n)) for n in test}
+    masks = {n: read_mask(view_file(scene_dir / "masks", n)) for n in test}
     test = [n for n in test if masks[n].any()]
     truth_feats = {n: None if features is None else crop_features(truth[n], masks[n], features) for n in test}
 

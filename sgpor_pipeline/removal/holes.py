@@ -53,8 +53,8 @@ class RemoveParams:
     # sky's Gaussians reach down behind the billboard, where the street's trees and facades are, and
     # the fill keeps their sky-blue). 0 = opacity only (the default). Measured min_views 0 / 1 (before
     # inpaint.carry_max_rim, with every part of a hole carried), at the training views (finetune seed
-    # 0): lund + box mask PSNR 14.28 / 14.36, feature distance 0.1945 /
-    # 0.1815, holes 83 / 92 % of the mask; synthetic 25.88 / 25.84, 0.0561 / 0.0560, holes 4.7 / 14 %
+    # 0): lund + box mask PSNR 14.28 / 14.36, feature distance 0.1945 / 0.1815, holes 83 / 92 % of the
+    # mask; synthetic 25.88 / 25.84, 0.0561 / 0.0560, holes 4.7 / 14 %
     # (the rendered depth is ~10 % off inside the mask; truly unseen is ~5 %). At held-out views
     # (benchmarks/removal.py --novel, the SPIn-NeRF protocol) min_views 1 loses: synthetic 25.56 /
     # 23.77 dB, feature distance 0.083 / 0.106 (delete-only: 24.93 / 0.092), lund + box 13.96 / 13.87,

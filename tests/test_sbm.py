@@ -361,7 +361,7 @@ def test_pinned_parts_keeps_the_thin_parts_of_a_hole():
 
 def test_inpaint_stage_carries_only_pinned_parts(scene, tmp_path):
     """By default (carry_max_rim = -1: the block size) a part of the reference's hole deeper than a block
-    is not carried: its completed depth is a guess. Holes eroded to a thin rim are carried as before."""
+    is not carried: its completed depth is a guess. With a limit above the holes' depth they are carried."""
     from sgpor_pipeline.stages.inpaint import InpaintParams, InpaintStage
 
     remove = write_remove_fixture(scene, tmp_path / "remove", holes="mask")

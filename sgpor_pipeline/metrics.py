@@ -103,8 +103,8 @@ def feature_distance(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray, feat
     crop = feature_crop(mask.shape, mask)
     if crop is None:
         return float("nan")
-    ft = truth_features if truth_features is not None else crop_features(truth, mask, features)
-    fp = crop_features(pred, mask, features)
+    ft = truth_features if truth_features is not None else crop_features(truth, mask, features, crop)
+    fp = crop_features(pred, mask, features, crop)
     y0, y1, x0, x1 = crop
     share = cv2.resize(mask[y0:y1, x0:x1].astype(np.float32), (ft.shape[1], ft.shape[0]),
                        interpolation=cv2.INTER_AREA)
@@ -117,9 +117,11 @@ def feature_distance(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray, feat
     return float(np.clip(1.0 - cos[cover], 0.0, 2.0).mean())
 
 
-def crop_features(image: np.ndarray, mask: np.ndarray, features: PatchFeatures) -> np.ndarray:
-    """Patch features of the :func:`feature_crop` of ``image`` around ``mask``, resized to a square."""
-    y0, y1, x0, x1 = feature_crop(mask.shape, np.asarray(mask, bool)) or (0, mask.shape[0], 0, mask.shape[1])
+def crop_features(image: np.ndarray, mask: np.ndarray, features: PatchFeatures,
+                  crop: tuple[int, int, int, int] | None = None) -> np.ndarray:
+    """Patch features of the :func:`feature_crop` of ``image`` around ``mask`` (``crop``: that box, when
+    the caller has it), resized to a square."""
+    y0, y1, x0, x1 = crop or feature_crop(mask.shape, np.asarray(mask, bool)) or (0, mask.shape[0], 0, mask.shape[1])
     crop = np.ascontiguousarray(np.asarray(image, np.float32)[y0:y1, x0:x1])
     side = (FEATURE_SIDE, FEATURE_SIDE)
     interp = cv2.INTER_AREA if max(crop.shape[:2]) > FEATURE_SIDE else cv2.INTER_LINEAR

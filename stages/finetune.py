@@ -13,8 +13,8 @@ in the hole, the render after deletion on the rest of the mask); "inpainted" use
 images everywhere (renders with view-independent colours outside the holes). Measured on the
 forward synthetic scene (24 views): both give 20.16 dB mask PSNR.
 
-The rest of the mask (background other views saw, kept as fitted) has loss weight ``seen_weight``
-(default 0: not supervised). Its target would be the render after deletion, which has the DC colours
+The rest of the grown mask (background other views saw, kept as fitted) has loss weight
+``seen_weight`` (default 0: not supervised). Its target would be the render after deletion, which has the DC colours
 only: weight 1 pulls the trained Gaussians there towards view-independent colours and away from what
 the photos of the other views taught them. The photos outside the masks keep them in place.
 
@@ -72,9 +72,9 @@ class FinetuneParams:
     targets: str = "photos"  # "photos" or "inpainted" (see the module docstring)
     mask_margin: int = 2  # px: the object mask is grown by this (within_margin) before photos supervise the rest
     min_hole_pixels: int = 64  # below this many hole pixels (all views) nothing is re-fitted
-    # Loss weight of the mask pixels outside the holes (see the module doc). Mask PSNR / feat, 1 -> 0:
-    # synthetic 25.88 / 0.056 -> 26.19 / 0.049 (held-out views 25.56 -> 25.64), lund + box 14.77 / 0.180
-    # -> 14.98 / 0.179 (held out 14.48 -> 14.59), forward synthetic 20.38 -> 20.39.
+    # Loss weight of the band around the mask outside the holes (see the module doc). benchmarks/removal.py,
+    # mask PSNR / feat, 1 -> 0: synthetic 25.88 / 0.056 -> 26.05 / 0.048 (held-out views 25.56 -> 25.61),
+    # lund + box 14.77 / 0.180 -> 15.04 / 0.177 (held out 14.48 -> 14.61); forward synthetic 20.38 -> 20.37.
     seen_weight: float = 0.0
     # SDS (needs the diffusion extra and local weights); 0 = off
     lambda_sds: float = 0.0

@@ -307,15 +307,18 @@ class FinetuneStage(Stage):
         fill = read_rgb8(ctx.inputs["refine"] / "images" / f"{cam.image}.png")
         sfm_dir = ctx.inputs.get("sfm")  # (a caller may run the stage without the photos)
         photo_path = Path(sfm_dir or ".") / "images" / f"{cam.image}.png"
-        mask = read_mask(ctx.inputs["remove"] / "masks" / f"{cam.image}.png")
+        with_photo = p.targets == "photos" and sfm_dir is not None and photo_path.is_file()
+        mask_path = ctx.inputs["remove"] / "masks" / f"{cam.image}.png"
+        if not with_photo and not mask_path.is_file():  # (a caller without photos and masks: the fill alone)
+            return make_view(cam.image, fill, cam, p.max_size)
+        mask = read_mask(mask_path)
         if mask.shape != hole.shape or mask.shape != fill.shape[:2]:
             raise PipelineError(f"finetune: the mask and the inpainted image of {cam.image} differ in size",
-                                path=ctx.inputs["remove"] / "masks" / f"{cam.image}.png",
-                                fix="rerun from the remove stage (--force remove)")
+                                path=mask_path, fix="rerun from the remove stage (--force remove)")
         band = within_margin(mask, p.mask_margin)  # where the target is the refine stage's image
         seen = band & ~hole  # there that image is the render after deletion: weight seen_weight
         weight = np.where(seen, p.seen_weight, 1.0).astype(np.float32) if p.seen_weight != 1 and seen.any() else None
-        if p.targets == "inpainted" or sfm_dir is None or not photo_path.is_file():
+        if not with_photo:
             return make_view(cam.image, fill, cam, p.max_size, weight)
         photo = read_rgb8(photo_path)
         if photo.shape != fill.shape:

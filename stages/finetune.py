@@ -14,9 +14,10 @@ images everywhere (renders with view-independent colours outside the holes). Mea
 forward synthetic scene (24 views): both give 20.16 dB mask PSNR.
 
 The rest of the grown mask (background other views saw, kept as fitted) has loss weight
-``seen_weight`` (default 0: not supervised). Its target would be the render after deletion, which has the DC colours
-only: weight 1 pulls the trained Gaussians there towards view-independent colours and away from what
-the photos of the other views taught them. The photos outside the masks keep them in place.
+``seen_weight`` (default 0: not supervised). Its target would be the render after deletion, which
+has the DC colours only: weight 1 pulls the trained Gaussians there towards view-independent colours
+and away from what the photos of the other views taught them. The photos outside the masks keep them
+in place.
 
 When the holes are negligible (fewer than ``min_hole_pixels`` pixels over all views: everything
 behind the object was seen from another view) nothing is trained: the scene after deletion is the

@@ -225,36 +225,38 @@ def consistency(images: dict[str, np.ndarray], remove_dir: Path, max_views: int 
     return float(np.mean(errs)) if errs else float("nan")
 
 
-def hole_psnr(images: dict[str, np.ndarray], remove_dir: Path, truth_dir: Path, part: str = "hole") -> float:
-    """PSNR over the remove stage's hole pixels (the part no view saw: where inpainting matters),
-    pooled over all views (one MSE), against the ground truth. ``part="seen"``: over the rest of the
-    object mask instead (background other views saw, kept as fitted by the method)."""
+def split_psnr(images: dict[str, np.ndarray], remove_dir: Path, truth_dir: Path) -> dict[str, float]:
+    """Pooled PSNR (one MSE over all views) against the ground truth on the two parts of the object
+    mask as ``remove_dir``'s remove stage splits it: ``psnr_unseen`` over its holes (the part no view
+    saw: where inpainting matters; the whole hole where a view has no mask file), ``psnr_seen`` over the
+    rest of the mask (background other views saw, kept as fitted by ours; fsr-refit repaints it). One
+    pass: each view's hole, mask and truth are read once."""
     from sgpor_pipeline.imageio import read_image, read_mask
 
-    se, n = 0.0, 0
+    se = {"psnr_unseen": 0.0, "psnr_seen": 0.0}
+    n = {"psnr_unseen": 0, "psnr_seen": 0}
     for name, img in images.items():
+        truth_path = truth_dir / f"{name}.png"
+        if not truth_path.is_file():
+            continue
         hole = read_mask(remove_dir / "holes" / f"{name}.png")
         mask_path = remove_dir / "masks" / f"{name}.png"
+        parts = {"psnr_unseen": hole}
         if mask_path.is_file():  # (not the hole's rim outside the mask)
             mask = read_mask(mask_path)
-            hole = hole & mask if part == "hole" else mask & ~hole
-        elif part != "hole":
+            parts = {"psnr_unseen": hole & mask, "psnr_seen": mask & ~hole}
+        if not any(part.any() for part in parts.values()):
             continue
-        truth = truth_dir / f"{name}.png"
-        if not hole.any() or not truth.is_file():
-            continue
-        d = (img[hole] - read_image(truth)[hole]) ** 2
-        se += float(d.sum())
-        n += d.size
-    return float(10 * np.log10(1.0 / max(se / n, 1e-12))) if n else float("nan")
+        err = ((img - read_image(truth_path)) ** 2).mean(axis=-1)
+        for key, part in parts.items():
+            se[key] += float(err[part].sum())
+            n[key] += int(part.sum())
+    return {key: float(10 * np.log10(1.0 / max(se[key] / n[key], 1e-12))) if n[key] else float("nan") for key in se}
 
 
-def split_psnr(images: dict[str, np.ndarray], remove_dir: Path, truth_dir: Path) -> dict[str, float]:
-    """Pooled PSNR on the two parts of the object mask as ``remove_dir`` (ours) splits it: ``psnr_unseen``
-    over its holes, ``psnr_seen`` over the rest (where ours keeps the fitted background and the
-    fsr-refit baseline repaints). Every method is scored on the same pixels."""
-    return {"psnr_unseen": hole_psnr(images, remove_dir, truth_dir),
-            "psnr_seen": hole_psnr(images, remove_dir, truth_dir, part="seen")}
+def hole_psnr(images: dict[str, np.ndarray], remove_dir: Path, truth_dir: Path) -> float:
+    """PSNR over the remove stage's hole pixels, pooled over all views (:func:`split_psnr`)."""
+    return split_psnr(images, remove_dir, truth_dir)["psnr_unseen"]
 
 
 def detail_ratio(images: dict[str, np.ndarray], masks_dir: Path, truth_dir: Path) -> float:
@@ -322,24 +324,26 @@ def run_variants(scene: str, run_out: Path, inputs: Any, base: list[str], out: P
         names = sorted(ev["per_view"])
         final = read_folder(res.path("finetune") / "renders", names)
         inpainted = read_folder(res.path("refine") / "images", names)
+        # every method on the same pixels: ours' holes and the rest of the mask ("ours" runs first)
+        ours_remove = ours_paths.get("remove", remove_dir)
+        split = split_psnr(final, ours_remove, truth_dir)
+        own_holes = split["psnr_unseen"] if remove_dir == ours_remove else hole_psnr(final, remove_dir, truth_dir)
         row = {"method": name, "overrides": overrides, **{k: ev["means"]["final"].get(k, math.nan) for k in METRICS},
-               "psnr_hole": hole_psnr(final, remove_dir, truth_dir),
+               "psnr_hole": own_holes, **split,
                "detail": detail_ratio(final, res.path("masks") / "masks", truth_dir),
                "seconds": ev["seconds"], "total_seconds": ev["total_seconds"], "wall_seconds": wall,
                "ran": res.ran, "views": ev["views"],
                "cons": consistency(final, remove_dir), "cons2d": consistency(inpainted, remove_dir),
-               # every method on the same pixels: ours' holes and the rest of the mask ("ours" runs first)
-               **split_psnr(final, ours_paths.get("remove", remove_dir), truth_dir),
                "inpainted_2d": {k: ev["means"]["inpainted_2d"].get(k, math.nan) for k in METRICS}}
         rows.append(row)
         if name == "ours":
             ours_paths = {s: res.path(s) for s in ("sfm", "masks", "remove", "refine", "finetune")}
             deleted = read_folder(remove_dir / "renders", names)
             secs = {s: v for s, v in ev["seconds"].items() if s in STAGES[:5]}
+            split = split_psnr(deleted, remove_dir, truth_dir)
             rows.append({"method": "delete-only", "overrides": [],
                          **{k: ev["means"]["delete_only"].get(k, math.nan) for k in METRICS},
-                         "psnr_hole": hole_psnr(deleted, remove_dir, truth_dir),
-                         **split_psnr(deleted, remove_dir, truth_dir),
+                         "psnr_hole": split["psnr_unseen"], **split,
                          "detail": detail_ratio(deleted, res.path("masks") / "masks", truth_dir),
                          "seconds": secs, "total_seconds": sum(secs.values()), "wall_seconds": None, "ran": [],
                          "views": ev["views"], "cons": consistency(deleted, remove_dir), "cons2d": None})

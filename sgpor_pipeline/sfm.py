@@ -34,6 +34,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from .config import added_param
 from .errors import PipelineError
 from .imageio import read_mask, read_rgb8, write_mask01, write_png
 from .scene import Camera, load_cameras, save_cameras
@@ -92,6 +93,10 @@ class SfmParams:
     # small share of the time: extraction and matching dominate).
     deterministic: bool = True
     keep_database: bool = False  # keep colmap/ (database.db, raw models) for inspection in COLMAP's GUI
+    # Known cameras: also triangulate points seen in only two images (COLMAP ignores two-view tracks
+    # when it estimates poses; with the poses given, a two-view point is checked by its triangulation
+    # angle and reprojection error like any other).
+    two_view_tracks: bool = added_param(False)
 
 
 @dataclass
@@ -629,8 +634,10 @@ def import_known_cameras(ingest_dir: Path, views: Sequence[View], cameras: Seque
             rec = _known_reconstruction(db, posed_out)
             tri_dir = work / "triangulated"
             tri_dir.mkdir()
+            options = incremental_options(params)
+            options.triangulation.ignore_two_view_tracks = not params.two_view_tracks
             rec = pycolmap.triangulate_points(rec, db, image_dir, tri_dir, clear_points=True,
-                                              options=incremental_options(params), refine_intrinsics=False)
+                                              options=options, refine_intrinsics=False)
     stats = database_stats(db)
     _finish_colmap_dir(work, params)
     (out_dir / SPARSE_DIR).mkdir()

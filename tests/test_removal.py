@@ -195,6 +195,24 @@ def test_hole_modes():
         hole_mask(mask, alpha, RemoveParams(hole_mode="everything"))
 
 
+def test_thin_mask_parts_are_holes_as_a_whole():
+    """With thin_mask_rim, a part of the object mask no pixel of which lies farther than that from its
+    rim becomes a hole entirely (covered background or not); a thicker part keeps only its uncovered
+    pixels; 0 leaves the opacity rule alone."""
+    mask = np.zeros((80, 120), bool)
+    mask[10:20, 10:30] = True  # thin: at most 5 px from its rim
+    mask[30:75, 50:110] = True  # thick: 22 px deep
+    alpha = np.ones(mask.shape, np.float32)
+    alpha[45:55, 70:80] = 0.1  # the only uncovered pixels
+    off = hole_mask(mask, alpha, RemoveParams(hole_close=0, thin_mask_rim=0))
+    assert off.sum() == 100
+    on = hole_mask(mask, alpha, RemoveParams(hole_close=0, thin_mask_rim=8))
+    assert on[10:20, 10:30].all() and on.sum() == 200 + 100
+    deep = hole_mask(mask, alpha, RemoveParams(hole_close=0, thin_mask_rim=30))
+    assert (deep == mask).all()
+    assert (hole_mask(mask, alpha, RemoveParams(hole_close=0, thin_mask_rim=8, rim_alpha=0)) <= mask).all()
+
+
 def test_hole_rim_outside_the_mask():
     """Darkened pixels just outside the mask join the hole where they border it (rim_alpha), within
     context_margin px; far from the hole, or well covered, or with rim_alpha 0, they do not."""

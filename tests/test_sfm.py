@@ -268,6 +268,22 @@ def test_known_cameras_imported_and_triangulated(scene_dir, tmp_path):
     assert np.median(d) < 0.01 * extent and np.mean(d < 0.05 * extent) > 0.85, (np.median(d), extent)
 
 
+def test_known_cameras_two_view_tracks_add_points_on_the_surfaces(scene_dir, tmp_path):
+    """sfm.two_view_tracks: points seen in only two images are triangulated too (the poses are given),
+    so there are more of them, and they still lie on the true surfaces."""
+    scene, folder = scene_dir
+    inputs = RunInputs(images=folder / "images", cameras=folder / "cameras.json")
+    counts = {}
+    for flag in (False, True):
+        result = run_pipeline(tmp_path / "out", inputs, overrides=[f"sfm.two_view_tracks={str(flag).lower()}"],
+                              until="sfm")
+        sfm = load_sfm(result.path("sfm"))
+        counts[flag] = len(sfm.points)
+        d = distance_to_geometry(scene, sfm.points.xyz)
+        assert np.median(d) < 0.01 * scene_extent(scene)
+    assert counts[True] > counts[False] > 0, counts
+
+
 def test_known_cameras_from_transforms_json(scene_dir, tmp_path):
     scene, folder = scene_dir
     _, sfm = run_sfm(tmp_path / "out", images=folder / "images", cameras=folder / "transforms.json")

@@ -17,6 +17,12 @@ with ``fit.seed`` 0 / 1 / 2 (each method on the same fit): ours 15.04 / 14.85 / 
 15.08 / 15.16 / 14.85, no-sbm 14.76 / 14.73 / 14.12; feat ours 0.177 / 0.184 / 0.180, fsr-refit
 0.184 / 0.208 / 0.209.
 
+The numbers quoted here were measured in earlier sessions; the rasterizer kernel build (x86-64 level,
+printed in the header and stored as ``kernel``) changes every fit, so a machine of another level gets
+other numbers (an x86_64_v3 machine, same code and seeds: synthetic ours 24.99, delete-only 23.30,
+fsr-refit 20.92, no-sbm 24.29; lund + box ours 14.87, delete-only 12.20, fsr-refit 15.35, no-sbm
+14.55). Compare methods within one run.
+
 Every number comes from FULL pipeline runs (:func:`sgpor_pipeline.runner.run_pipeline`, ingest ..
 finetune + evaluate, no export). The variants of a scene run in the SAME run folder with different
 config overrides, so the content-addressed cache shares ingest / sfm / fit / masks / remove between

@@ -966,7 +966,8 @@ def main(argv: list[str] | None = None) -> int:
 def rasterizer_kernel() -> str:
     """The CPU kernel build in use (e.g. ``x86_64_v3``). Builds for different x86-64 levels round
     differently (v3/v4 contract multiply-adds into FMAs, v2 cannot: one render of the synthetic fit
-    differs in 80 % of its pixels, by up to 2.5e-5), so a fit's trajectory and every number downstream
+    differs in 80 % of its pixels, by up to 2.5e-5; the backward pass also sums SIMD lanes in a tree
+    whose shape follows the vector width), so a fit's trajectory and every number downstream
     depend on the machine: the synthetic demo's mask PSNR was 26.05 in an earlier session and is 24.99
     on an x86_64_v3 machine with the same code and seed (delete-only 24.39 / 23.30). Compare methods
     within one run."""

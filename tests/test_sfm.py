@@ -91,8 +91,8 @@ def iou(a: np.ndarray, b: np.ndarray) -> float:
     return float((a & b).sum() / max(1, (a | b).sum()))
 
 
-def run_sfm(out: Path, **inputs) -> tuple:
-    result = run_pipeline(out, RunInputs(**inputs), until="sfm")
+def run_sfm(out: Path, overrides: tuple[str, ...] = (), **inputs) -> tuple:
+    result = run_pipeline(out, RunInputs(**inputs), overrides=list(overrides), until="sfm")
     return result, load_sfm(result.path("sfm"))
 
 
@@ -272,12 +272,10 @@ def test_known_cameras_two_view_tracks_add_points_on_the_surfaces(scene_dir, tmp
     """sfm.two_view_tracks: points seen in only two images are triangulated too (the poses are given),
     so there are more of them, and they still lie on the true surfaces."""
     scene, folder = scene_dir
-    inputs = RunInputs(images=folder / "images", cameras=folder / "cameras.json")
     counts = {}
     for flag in (False, True):
-        result = run_pipeline(tmp_path / "out", inputs, overrides=[f"sfm.two_view_tracks={str(flag).lower()}"],
-                              until="sfm")
-        sfm = load_sfm(result.path("sfm"))
+        _, sfm = run_sfm(tmp_path / "out", (f"sfm.two_view_tracks={str(flag).lower()}",),
+                         images=folder / "images", cameras=folder / "cameras.json")
         counts[flag] = len(sfm.points)
         d = distance_to_geometry(scene, sfm.points.xyz)
         assert np.median(d) < 0.01 * scene_extent(scene)

@@ -489,7 +489,7 @@ def write_known_sfm(folder: Path, cameras: list, images: np.ndarray, depths: np.
 
 class FitStage(Stage):
     name = "fit"
-    VERSION = 1
+    VERSION = 2  # 2: the kernel sums SIMD lanes in a fixed tree (AVX2 and AVX-512 builds agree bitwise)
     Params = FitParams
     inputs = ("sfm",)
     libraries = ("torch",)

@@ -7,6 +7,7 @@ a minute on 2 cores.
 from __future__ import annotations
 
 import math
+import os
 import warnings
 
 import pytest
@@ -262,6 +263,49 @@ def test_bitwise_identical_across_thread_counts(dtype):
     four = run(scene, "cpu", num_threads=4, render_mode="RGB+D")
     assert_bitwise(one, two)
     assert_bitwise(one, four)
+
+
+def _level_probe(path: str) -> None:
+    """Renders and backpropagates a scene with the kernel variant the environment selects
+    (``SGPOR_KERNEL``), for both tile sizes; saves everything (run in a subprocess)."""
+    torch.set_num_threads(1)
+    out = {"kernel": _raster_cpu.kernel_name()}
+    for tile in (8, 16):
+        scene = random_scene(2000, 96, 64, seed=21, sigma_px=2.0, sh_degree=2)
+        res = run(scene, "cpu", tile_size=tile, render_mode="RGB+D")
+        out.update({f"{k}_{tile}": v for k, v in res.items() if k != "backend" and v is not None})
+    torch.save(out, path)
+
+
+@requires_kernel
+def test_bitwise_identical_across_fma_build_levels(tmp_path):
+    """The x86-64 builds with FMA (v3: AVX2, v4: AVX-512) give the same bits: a tile row's lanes
+    are summed in a fixed tree, not in the order of the vector width. Without this, every fit (and
+    every benchmark number after it) changed between an AVX2 and an AVX-512 machine. v2 has no
+    FMA, so its multiply-adds round differently: close, not equal. Runs every variant this CPU
+    can execute; skipped where fewer than two FMA builds can run."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    usable = _raster_cpu.usable_variants()
+    fma = [k for k in usable if k in ("x86_64_v3", "x86_64_v4", "native")]
+    if len(fma) < 2:
+        pytest.skip(f"fewer than two FMA builds run on this CPU ({usable})")
+    results = {}
+    for key in usable:
+        path = tmp_path / f"{key}.pt"
+        code = (f"import sys; sys.path.insert(0, {str(Path(__file__).parent)!r}); "
+                f"from test_rasterizer import _level_probe; _level_probe({str(path)!r})")
+        env = {**os.environ, "SGPOR_KERNEL": key}
+        subprocess.run([sys.executable, "-c", code], env=env, check=True, timeout=300)
+        results[key] = torch.load(path)
+        assert results[key].pop("kernel") == key
+    ref = results[fma[0]]
+    for key in fma[1:]:
+        assert_bitwise(ref, results[key])
+    if "x86_64_v2" in results:
+        assert_close(results["x86_64_v2"], ref, rtol=1e-4, atol=1e-4)
 
 
 @requires_kernel

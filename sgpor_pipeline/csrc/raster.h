@@ -711,6 +711,19 @@ void pack_gaussians(int C, int N, const T* means2d, const T* conics, const T* fe
 // forward, -25 % backward time at 50k Gaussians, 256x192).
 constexpr int kPrefetch = 4;
 
+// The sum of a row's TS lanes as a fixed halving tree (lane j + lane j + w for w = TS/2, ..., 1).
+// Every step is element-wise, so it vectorises at any width with the same result; an `omp simd
+// reduction` would sum in an order set by the vector width (8 lanes for AVX2, 16 for AVX-512),
+// and the x86-64 builds of the kernel would then disagree in the last bits.
+template <typename T, int TS>
+inline T lane_sum(const T* a) {
+  alignas(64) T b[TS];
+  for (int j = 0; j < TS; ++j) b[j] = a[j];
+  for (int w = TS / 2; w >= 1; w /= 2)
+    for (int j = 0; j < w; ++j) b[j] = b[j] + b[j + w];
+  return b[0];
+}
+
 template <typename T, int TS, int CH>
 void raster_fwd(int C, int N, int W, int H, const GaussPix<T, CH>* gp, const int64_t* tile_off,
                 const Isect* isect, const int64_t* gauss_off,
@@ -797,10 +810,7 @@ void raster_fwd(int C, int N, int W, int H, const GaussPix<T, CH>* gp, const int
           csum[j] += w * msk[p];
         }
       }
-      T cs = 0;  // lanes summed as a tree (fixed order: deterministic)
-#pragma omp simd reduction(+ : cs)
-      for (int j = 0; j < TS; ++j) cs += csum[j];
-      crec[isect[s].gen] = cs;
+      crec[isect[s].gen] = lane_sum<T, TS>(csum);
       if ((kk & 7) == 0) {
         bool any = false;
         for (int r = 0; r < TS; ++r) {
@@ -963,12 +973,7 @@ void raster_bwd(int C, int N, int W, int H, const GaussPix<T, CH>* gp, const int
         acc[0][j] = acc[0][j] * dx;
       }
       T sum[NA];
-      for (int i = 0; i < NA; ++i) {
-        T v = 0;  // lanes summed as a tree (fixed order: deterministic)
-#pragma omp simd reduction(+ : v)
-        for (int j = 0; j < TS; ++j) v += acc[i][j];
-        sum[i] = v;
-      }
+      for (int i = 0; i < NA; ++i) sum[i] = lane_sum<T, TS>(acc[i]);
       T* rr = &rec[int64_t(isect[s].gen) * R];
       // sigma = 0.5 a dx^2 + b dx dy + 0.5 c dy^2 with dx = px - u, dy = py - v
       const T ca = g.a, cb = g.b, cc = g.c;

@@ -78,6 +78,24 @@ def _cpuinfo_level() -> int:
     return 2 if {"sse4_2", "popcnt"} <= flags else 1
 
 
+def _usable(found: dict[str, Path]) -> list[str]:
+    """The built variants this CPU can run, best first."""
+    level = None
+    if "x86_64_v2" in found:  # the baseline build asks the CPU (cpuid) what it supports
+        try:
+            level = int(ctypes.CDLL(str(found["x86_64_v2"])).sgpor_cpu_level())
+        except (OSError, AttributeError):
+            level = None
+    if level is None:
+        level = _cpuinfo_level()
+    return [k for k in _PREFERENCE if k in found and _LEVEL_OF.get(k, 0) <= level]
+
+
+def usable_variants() -> list[str]:
+    """Names of the built kernel variants this CPU can run, best first (each a valid ``SGPOR_KERNEL``)."""
+    return _usable(_candidates())
+
+
 def _open(path: Path) -> ctypes.CDLL:
     # With the default active wait, idle OpenMP threads spin after each parallel region and starve
     # the threads that have work on a busy 2-core machine (measured: 3-50x slower steps). Passive
@@ -118,15 +136,7 @@ def _load() -> None:
             return
         order = [key]
     else:
-        level = None
-        if "x86_64_v2" in found:  # the baseline build asks the CPU (cpuid) what it supports
-            try:
-                level = int(ctypes.CDLL(str(found["x86_64_v2"])).sgpor_cpu_level())
-            except (OSError, AttributeError):
-                level = None
-        if level is None:
-            level = _cpuinfo_level()
-        order = [k for k in _PREFERENCE if k in found and _LEVEL_OF.get(k, 0) <= level]
+        order = _usable(found)
     errors = []
     for key in order:
         try:

@@ -67,6 +67,34 @@ def test_tables_and_summary(bench, capsys):
     assert any("feature distance" in c and "lowest: no-rpr" in c for c in checks)
 
 
+def test_fit_seeds_table_and_targets_on_the_mean_gain(bench):
+    """With several fit seeds the targets are judged on the mean paired gain (ours - method on the same
+    fit), and the table shows every seed, the mean and the gain's range."""
+    methods = ["ours", "delete-only", "fsr-refit", "no-sbm", "no-rpr"]
+    # seed 0: ours leads every baseline by 2.5 dB or more; seed 7: no-sbm beats ours by 2 dB
+    run0 = {"scene": "synthetic", "rows": [_row(m, 25.0 - 2.0 * (i > 0) - 0.5 * i) for i, m in enumerate(methods)],
+            "wall_seconds": 1.0, "demo_seconds": 300.0}
+    run1 = {"scene": "synthetic", "rows": [_row(m, v) for m, v in zip(methods, [24.0, 21.0, 20.0, 26.0, 23.0])],
+            "wall_seconds": 1.0}
+    fs = bench.seed_runs([(0, run0), (7, run1)])
+    assert fs["seeds"] == [0, 7]
+    assert fs["mask_psnr"]["no-sbm"] == [21.5, 26.0]
+    assert fs["gains"]["no-sbm"] == pytest.approx([3.5, -2.0])
+    table = bench.format_seed_table("synthetic", fs)
+    assert "seed 7" in table and "+0.75 (-2.00 .. +3.50)" in table
+    single, _ = bench.summarise({"synthetic": run0})
+    assert single["synthetic_target_beats_baselines"]
+    summary, checks = bench.summarise({"synthetic": dict(run0, fit_seeds=fs)})
+    assert summary["synthetic_mask_psnr_no_sbm_seeds"] == [21.5, 26.0]
+    assert summary["synthetic_mask_psnr_seed_mean"] == pytest.approx(24.5)
+    assert summary["synthetic_fit_seeds"] == [0, 7]
+    assert summary["synthetic_mask_psnr"] == 25.0  # the first seed's keys are unchanged
+    assert summary["synthetic_sbm_helps"]  # mean gain +0.75 dB >= 0.1
+    assert not summary["synthetic_target_beats_baselines"]  # no-sbm: mean +0.75 < 1 dB
+    line = next(c for c in checks if "beats every baseline" in c)
+    assert "mean over fit seeds 0, 7" in line and "no-sbm -2.00 .. +3.50" in line
+
+
 def test_iou_and_sheet(bench, tmp_path):
     a = np.zeros((8, 8), bool)
     a[:4] = True

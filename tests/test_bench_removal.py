@@ -226,3 +226,23 @@ def test_novel_table_and_summary(bench):
     assert summary["lund_inserted_novel_mask_psnr_fsr_refit"] == 16.0
     assert summary["lund_inserted_novel_mask_feat_no_rpr"] == pytest.approx(0.5)
     assert any("novel views" in c and "fsr-refit +2.00 dB" in c for c in checks)
+
+
+def test_method_subset_runs_ours_first_and_leaves_the_target_unjudged(bench):
+    """--methods: ours always runs (first); with a baseline missing the target is neither passed nor failed,
+    and an ablation that did not run is not reported as helping or not."""
+    assert [v[0] for v in bench.selected_variants(["fsr-refit"])] == ["ours", "fsr-refit"]
+    assert [v[0] for v in bench.selected_variants(None)] == [v[0] for v in bench.VARIANTS]
+    with pytest.raises(ValueError, match="nope"):
+        bench.selected_variants(["nope"])
+    with pytest.raises(SystemExit):
+        bench.main(["--methods", "nope"])
+    scene = {"scene": "statue-box", "rows": [_row(m, v) for m, v in
+                                             (("ours", 25.0), ("delete-only", 20.0), ("fsr-refit", 22.0))],
+             "wall_seconds": 1.0}
+    summary, checks = bench.summarise({"statue-box": scene})
+    assert summary["statue_inserted_target_beats_baselines"] is None
+    assert summary["statue_inserted_mask_psnr_fsr_refit"] == 22.0
+    line = next(c for c in checks if "beats every baseline" in c)
+    assert line.startswith("[----]") and "not judged: no-sbm, no-rpr" in line
+    assert not any("helps" in c for c in checks)

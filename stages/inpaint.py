@@ -59,6 +59,7 @@ from sgpor_pipeline.removal.multiview import (
     gather_from_views,
     load_remove_folder,
     pinned_parts,
+    planar_parts,
 )
 from sgpor_pipeline.removal.sbm import SBMParams, build_source_bank
 
@@ -108,6 +109,12 @@ class InpaintParams:
     # 0.225 -> 14.48 / 0.214 (FSR instead of SBM: 13.79 -> 14.54). With exact depth (the fixtures of
     # benchmarks/inpaint.py) carrying thick holes pays: +0.3 to +0.8 dB there; 0 restores it.
     carry_max_rim: int = -1
+    # A connected part of a hole is carried from, and into, a view only when its rim lies on a plane:
+    # the RMS residual of an affine fit to the rim's inverse depth is at most this x its mean
+    # (:func:`~sgpor_pipeline.removal.multiview.planar_parts`; 0 = no limit). The completed depth is
+    # exact for a plane; a rim across a depth step (a box in front of a statue's arm and the hedge
+    # behind it) makes it a guess, and the lifted fill lands in the wrong place in the other views.
+    carry_max_misfit: float = added_param(0.0)
     depth_tol: float = 0.02
     seed: int = 0
     # diffusion backend (see sgpor_pipeline.removal.diffusion); "" = $SGPOR_DIFFUSION_MODEL
@@ -249,6 +256,7 @@ class InpaintStage(Stage):
                 filled = read_labels(item / "filled_from.png")
                 carry = filled == FILLED_INPAINTED if progressive else filled > 0
                 carry &= pinned_parts(holes[j], p.block_size if p.carry_max_rim < 0 else p.carry_max_rim)
+                carry &= planar_parts(holes[j], sv.depth(), p.carry_max_misfit)
                 carriers[j] = (read_image(item / "image.png"), sv.camera, sv.depth(), carry) if carry.any() else None
             return carriers[j]
 
@@ -258,7 +266,9 @@ class InpaintStage(Stage):
             if not loaded:
                 return None
             view = data.views[i]
-            return gather_from_views(loaded, view.camera, view.depth(), holes[i], p.projection, p.depth_tol)
+            depth = view.depth()
+            return gather_from_views(loaded, view.camera, depth, planar_parts(holes[i], depth, p.carry_max_misfit),
+                                     p.projection, p.depth_tol)
 
         def build(folder: Path, i: int, sources: list[int]) -> None:
             t0 = time.perf_counter()

@@ -40,7 +40,6 @@ from sgpor_pipeline.removal.holes import (
     complete_depths_jointly,
     concat_models,
     context_image,
-    contradicted_background,
     hole_mask,
     initial_colour,
     median_spacing,
@@ -49,10 +48,8 @@ from sgpor_pipeline.removal.holes import (
     observing_views,
     render_background,
     seed_hole_gaussians,
-    seen_colour_error,
     subset,
 )
-from sgpor_pipeline.removal.selection import within_margin
 from sgpor_pipeline.scene import Camera, save_cameras
 from sgpor_pipeline.sfm import load_sfm
 
@@ -108,30 +105,17 @@ class RemoveStage(Stage):
         front = subset(model, surface)
         floors = [object_depth(front, cam, p.backend) for cam in cameras] if p.behind_object else None
         depths = complete_hole_depths(cameras, raw_depths, [a >= p.hole_alpha for a in alphas], holes, p, floors)
-        by_colour = [np.zeros_like(m) for m in masks]
-        if (p.min_views > 0 or p.seen_error_ratio > 0) and p.hole_mode == "unseen":
-            # second pass: seen mask pixels that too few other views observed, or whose fitted colour
-            # those views' photos contradict, become holes too
+        if p.min_views > 0 and p.hole_mode == "unseen":
+            # second pass: mask pixels that too few other views observed become holes too
             seen = [m & ~h for m, h in zip(masks, holes)]
-            extra = [np.zeros_like(m) for m in masks]
-            if p.min_views > 0:
-                counts = observing_views(cameras, masks, depths, seen, p)
-                extra = [e | (s & (c < p.min_views)) for e, s, c in zip(extra, seen, counts)]
-            if p.seen_error_ratio > 0:
-                bands = [within_margin(m, p.seen_error_band) & ~m & (a >= p.hole_alpha) for m, a in zip(masks, alphas)]
-                photos = [self._photo(sfm, cam, p, always=True) for cam in cameras]
-                if all(ph is not None for ph in photos):
-                    errors = seen_colour_error(cameras, renders, photos, masks, depths,
-                                               [s | b for s, b in zip(seen, bands)], p)
-                    by_colour = [contradicted_background(e, s, b, p) for e, s, b in zip(errors, seen, bands)]
-                    extra = [e | c for e, c in zip(extra, by_colour)]
-            holes = [hole_mask(m, a, p, u) for m, a, u in zip(masks, alphas, extra)]
+            counts = observing_views(cameras, masks, depths, seen, p)
+            unobserved = [s & (c < p.min_views) for s, c in zip(seen, counts)]
+            holes = [hole_mask(m, a, p, u) for m, a, u in zip(masks, alphas, unobserved)]
             depths = complete_hole_depths(cameras, raw_depths, [(a >= p.hole_alpha) & ~h for a, h in
                                                                 zip(alphas, holes)], holes, p, floors)
         colours = []
         per_view = {}
-        for cam, mask, rgb, alpha, hole, filled_depth, contradicted in zip(cameras, masks, renders, alphas, holes,
-                                                                        depths, by_colour):
+        for cam, mask, rgb, alpha, hole, filled_depth in zip(cameras, masks, renders, alphas, holes, depths):
             write_png(ctx.out_dir / "renders" / f"{cam.image}.png", rgb)
             write_png(ctx.out_dir / "context" / f"{cam.image}.png",
                       context_image(rgb, self._photo(sfm, cam, p), mask, p.context_margin))
@@ -141,8 +125,7 @@ class RemoveStage(Stage):
             colours.append(initial_colour(rgb, hole))
             per_view[cam.image] = {"mask_pixels": int(mask.sum()), "hole_pixels": int(hole.sum()),
                                    "rim_pixels": int((hole & ~mask).sum()),
-                                   "hole_pixels_by_opacity": int((mask & (alpha < p.hole_alpha)).sum()),
-                                   "hole_pixels_by_colour": int(contradicted.sum())}
+                                   "hole_pixels_by_opacity": int((mask & (alpha < p.hole_alpha)).sum())}
         spacing = median_spacing(background.means.detach().double().numpy())
         seeds = seed_hole_gaussians(cameras, holes, depths, colours, spacing, model.max_sh_degree, p, p.seed)
         cleaned = concat_models(background, seeds)
@@ -158,11 +141,10 @@ class RemoveStage(Stage):
         ctx.notes.update({k: v for k, v in summary.items() if k != "views"})
 
     @staticmethod
-    def _photo(sfm, cam: Camera, p: RemoveStageParams, always: bool = False) -> np.ndarray | None:
-        """The view's undistorted photo for ``context = photos`` or when ``always`` (None: renders, or no
-        photo on disk)."""
+    def _photo(sfm, cam: Camera, p: RemoveStageParams) -> np.ndarray | None:
+        """The view's undistorted photo for ``context = photos`` (None: renders, or no photo on disk)."""
         path = sfm.image_path(cam.image)
-        if (p.context != "photos" and not always) or not path.is_file():
+        if p.context != "photos" or not path.is_file():
             return None
         photo = read_image(path)
         if photo.shape[:2] != (cam.height, cam.width):

@@ -15,14 +15,12 @@ from sgpor_pipeline.removal.holes import (
     complete_depth,
     concat_models,
     context_image,
-    contradicted_background,
     hole_mask,
     initial_colour,
     objects_to_delete,
     observing_views,
     render_background,
     seed_hole_gaussians,
-    seen_colour_error,
     subset,
 )
 from sgpor_pipeline.removal.selection import (
@@ -272,37 +270,6 @@ def test_observing_views_finds_the_background_no_other_view_saw(scene_and_model)
     unobserved[: mask.shape[0] // 2] = True
     hole = hole_mask(mask, np.ones(mask.shape, np.float32), RemoveParams(hole_close=0), unobserved)
     assert (hole == (mask & unobserved)).all()
-
-
-def test_background_the_photos_contradict_becomes_a_hole(scene_and_model):
-    """seen_error_ratio: with the true depths, a render that shows the true background agrees with the
-    other views' photos (the with-object photos, their object masked out); a patch of it painted a
-    wrong colour is contradicted and becomes a hole, the rest of the mask stays seen."""
-    scene, _, _ = scene_and_model
-    masks, depths = list(scene.masks), list(scene.depth_gt)
-    params = RemoveParams(seen_error_ratio=3.0, view_mask_dilate=1)
-    i = int(np.argmax([m.sum() for m in masks]))
-    renders = [im.copy() for im in scene.images_gt]
-    ys, xs = np.nonzero(masks[i])
-    wrong = np.zeros_like(masks[i])
-    wrong[ys.min():(ys.min() + ys.max()) // 2 + 1] = True
-    wrong &= masks[i]
-    renders[i][wrong] = 1.0 - renders[i][wrong]  # the fit got this part of the background wrong
-    band = within_margin(masks[i], params.seen_error_band) & ~masks[i]
-    pixels = [np.zeros_like(m) for m in masks]
-    pixels[i] = masks[i] | band
-    errors = seen_colour_error(scene.cameras, renders, list(scene.images), masks, depths, pixels, params)
-    assert all(np.isnan(e[~p]).all() for e, p in zip(errors, pixels))
-    assert np.nanmedian(errors[i][wrong]) > 5 * np.nanmedian(errors[i][band])
-    bad = contradicted_background(errors[i], masks[i], band, params)
-    assert not (bad & ~masks[i]).any()
-    deep = cv2.erode(wrong.astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
-    right = masks[i] & ~cv2.dilate(wrong.astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool)
-    assert deep.any() and right.any()
-    assert bad[deep].mean() > 0.9, bad[deep].mean()
-    assert bad[right].mean() < 0.2, bad[right].mean()
-    # nothing to compare with: nothing is contradicted
-    assert not contradicted_background(errors[i], masks[i], np.zeros_like(band), params).any()
 
 
 def test_depth_completion_is_exact_for_planes():

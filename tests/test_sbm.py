@@ -19,7 +19,13 @@ from sgpor_pipeline.removal.features import (
     block_descriptors,
     make_backend,
 )
-from sgpor_pipeline.removal.multiview import pinned_parts, sample_bilinear, warp_from_reference, write_remove_fixture
+from sgpor_pipeline.removal.multiview import (
+    pinned_parts,
+    planar_parts,
+    sample_bilinear,
+    warp_from_reference,
+    write_remove_fixture,
+)
 from sgpor_pipeline.removal.rpr import hf_energy
 from sgpor_pipeline.removal.sbm import (
     SBMParams,
@@ -357,6 +363,22 @@ def test_pinned_parts_keeps_the_thin_parts_of_a_hole():
     assert not (thin & ~hole).any()
     assert np.array_equal(pinned_parts(hole, 0), hole) and np.array_equal(pinned_parts(hole, 30), hole)
     assert not pinned_parts(np.zeros((5, 5), bool), 15).any()
+
+
+def test_planar_parts_keeps_the_parts_whose_rim_lies_on_a_plane():
+    ys, xs = np.mgrid[0:100, 0:120].astype(np.float32)
+    depth = 1.0 / (0.1 + 0.004 * ys + 0.001 * xs)  # a slanted plane: depth 3.3 .. 10 across the image
+    depth[50:, :30] = 1.0  # a foreground object in the lower left
+    hole = np.zeros((100, 120), bool)
+    hole[10:30, 70:100] = True  # on the plane
+    hole[40:60, 20:40] = True  # across the object's edge: a depth step on its rim
+    hole[80:90, 5:15] = True  # inside the object: flat
+    keep = planar_parts(hole, depth, 0.1)
+    assert keep[10:30, 70:100].all() and keep[80:90, 5:15].all() and not keep[40:60, 20:40].any()
+    assert planar_parts(hole, depth, 10.0)[40:60, 20:40].all()
+    assert np.array_equal(planar_parts(hole, depth, 0), hole)
+    assert not planar_parts(hole, np.full_like(depth, np.inf), 0.1).any()  # no known rim depth
+    assert not planar_parts(np.zeros((5, 5), bool), depth[:5, :5], 0.1).any()
 
 
 def test_inpaint_stage_carries_only_pinned_parts(scene, tmp_path):

@@ -75,17 +75,6 @@ class RemoveParams:
     # held-out views (--novel protocol, 25 px): 14.73 / 0.232 -> 14.90 / 0.236 (fsr-refit 15.18 / 0.264).
     # The rule helps where the fit's geometry is poor, which the mask size does not tell: off by default.
     thin_mask_rim: float = added_param(0.0)
-    # "unseen": a seen mask pixel (background covers it) is a hole too when the fit's render there
-    # disagrees with the photos that saw its background point (lifted with the completed depth,
-    # projected into the other views that show it outside their masks, unoccluded): its error, the
-    # mean |render - median of those photos| over a (2 seen_error_radius + 1)^2 window, is above this
-    # ratio x the same error's median over a band of known pixels just outside the mask. The band
-    # calibrates the test per view (exposure, the fit's blur); a background that the photos contradict
-    # was fitted with wrong geometry or colour, and a 2D fill from the surroundings does better there.
-    # 0 = off.
-    seen_error_ratio: float = added_param(0.0)
-    seen_error_radius: int = added_param(3)
-    seen_error_band: int = added_param(8)  # px: width of the calibration band outside the mask
     view_depth_tol: float = 0.05  # relative: a point deeper than another view's surface is occluded there
     view_mask_dilate: int = 2  # px: other views' object masks are dilated by this (their edge pixels mix)
     # Hole depths completed view by view, smallest hole first, each constrained by the hole surfaces
@@ -196,7 +185,9 @@ def observing_views(cameras: list[Camera], masks: list[np.ndarray], depths: list
     point (lifted with ``depths[i]``): it projects inside their image, outside their (dilated) object
     mask, and not behind their own surface (``depths``: completed background z-depth of every view).
     HxW int32 maps, 0 outside ``pixels``."""
-    dilated = _dilated_masks(masks, max(0, params.view_mask_dilate))
+    d = max(0, params.view_mask_dilate)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * d + 1, 2 * d + 1)) if d else None
+    dilated = [m if kernel is None else cv2.dilate(m.astype(np.uint8), kernel) > 0 for m in masks]
     counts = []
     for i, cam_i in enumerate(cameras):
         out = np.zeros(pixels[i].shape, np.int32)
@@ -208,73 +199,16 @@ def observing_views(cameras: list[Camera], masks: list[np.ndarray], depths: list
         good = np.isfinite(z) & (z > 0)
         X = cam_i.unproject(ys, xs, np.where(good, z, 1.0))
         count = np.zeros(len(ys), np.int32)
-        for _, ok, _, _ in _other_views(cameras, dilated, depths, i, X, good, params.view_depth_tol):
+        for j, cam in enumerate(cameras):
+            if j == i:
+                continue
+            px, zj, inside = cam.pixels(X)
+            ok = good & inside
+            u, v = px[ok, 0], px[ok, 1]
+            ok[ok] = ~dilated[j][v, u] & ~(zj[ok] > depths[j][v, u] * (1 + params.view_depth_tol))
             count += ok
         out[ys, xs] = count
     return counts
-
-
-def _other_views(cameras: list[Camera], dilated: list[np.ndarray], depths: list[np.ndarray], i: int,
-                 X: np.ndarray, good: np.ndarray, tol: float):
-    """For each other view j: (j, shown [n] bool, u, v): the points ``X`` that project inside view j,
-    outside its dilated object mask and not behind its surface, with their pixel columns / rows."""
-    for j, cam in enumerate(cameras):
-        if j == i:
-            continue
-        px, zj, inside = cam.pixels(X)
-        ok = good & inside
-        u, v = px[ok, 0], px[ok, 1]
-        ok[ok] = ~dilated[j][v, u] & ~(zj[ok] > depths[j][v, u] * (1 + tol))
-        yield j, ok, px[ok, 0], px[ok, 1]
-
-
-def _dilated_masks(masks: list[np.ndarray], d: int) -> list[np.ndarray]:
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * d + 1, 2 * d + 1)) if d > 0 else None
-    return [m if kernel is None else cv2.dilate(m.astype(np.uint8), kernel) > 0 for m in masks]
-
-
-def seen_colour_error(cameras: list[Camera], renders: list[np.ndarray], photos: list[np.ndarray],
-                      masks: list[np.ndarray], depths: list[np.ndarray], pixels: list[np.ndarray],
-                      params: RemoveParams) -> list[np.ndarray]:
-    """Per view i, for its ``pixels[i]``: mean over RGB of |render_i - median of the photos of the other
-    views that show the pixel's background point| (lifted with ``depths[i]``; shown as in
-    :func:`observing_views`). HxW float32, NaN where no other view shows the point or outside ``pixels``."""
-    dilated = _dilated_masks(masks, max(0, params.view_mask_dilate))
-    errors = []
-    for i, cam_i in enumerate(cameras):
-        out = np.full(pixels[i].shape, np.nan, np.float32)
-        errors.append(out)
-        ys, xs = np.nonzero(pixels[i])
-        if len(ys) == 0:
-            continue
-        z = depths[i][ys, xs].astype(np.float64)
-        good = np.isfinite(z) & (z > 0)
-        X = cam_i.unproject(ys, xs, np.where(good, z, 1.0))
-        seen = np.full((len(cameras) - 1, len(ys), 3), np.nan, np.float32)
-        for k, (j, ok, u, v) in enumerate(_other_views(cameras, dilated, depths, i, X, good,
-                                                       params.view_depth_tol)):
-            seen[k, ok] = photos[j][v, u, :3]
-        shown = np.isfinite(seen[..., 0]).any(0)
-        med = np.full((len(ys), 3), np.nan, np.float32)
-        med[shown] = np.nanmedian(seen[:, shown], axis=0)
-        out[ys, xs] = np.abs(renders[i][ys, xs, :3] - med).mean(1)
-    return errors
-
-
-def contradicted_background(error: np.ndarray, seen: np.ndarray, band: np.ndarray,
-                            params: RemoveParams) -> np.ndarray:
-    """``seen`` pixels whose local colour error (``error`` averaged over finite values in a window of
-    ``2 seen_error_radius + 1``) exceeds ``seen_error_ratio`` x its median over ``band``; nothing when the
-    band has no finite error to compare with."""
-    finite = np.isfinite(error)
-    k = 2 * max(0, params.seen_error_radius) + 1
-    num = cv2.boxFilter(np.where(finite, error, 0).astype(np.float32), -1, (k, k), normalize=False)
-    den = cv2.boxFilter(finite.astype(np.float32), -1, (k, k), normalize=False)
-    local = np.where(den > 0, num / np.maximum(den, 1e-6), np.nan)
-    ref = local[band & np.isfinite(local)]
-    if ref.size == 0:
-        return np.zeros_like(seen)
-    return seen & np.isfinite(local) & (local > params.seen_error_ratio * float(np.median(ref)))
 
 
 def complete_depth(depth: np.ndarray, valid: np.ndarray, hole: np.ndarray,

@@ -351,6 +351,36 @@ def pinned_parts(hole: np.ndarray, max_rim_distance: float) -> np.ndarray:
     return thin[labels]
 
 
+def planar_parts(hole: np.ndarray, depth: np.ndarray, max_misfit: float, ring: int = 3) -> np.ndarray:
+    """The connected parts of ``hole`` (8-connected) whose rim, the known pixels within ``ring`` px
+    outside the hole, lies on a plane: a plane's inverse depth is affine in pixel coordinates, so an
+    affine least-squares fit to the rim's 1 / ``depth`` leaves an RMS residual of at most
+    ``max_misfit`` x its mean. That is where the hole's completed depth (harmonic interpolation of
+    inverse depth from the rim, exact for planes) can be trusted. A rim across a depth step (a
+    foreground object beside the far background) misfits by tens of percent. ``max_misfit`` <= 0: the
+    whole hole. A part with fewer than 3 known rim depths is not planar."""
+    hole = np.asarray(hole, bool)
+    if max_misfit <= 0 or not hole.any():
+        return hole.copy()
+    n, labels = cv2.connectedComponents(hole.astype(np.uint8), connectivity=8)
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * ring + 1, 2 * ring + 1))
+    grown = cv2.dilate(labels.astype(np.float32), k)  # the largest label within ring px (touching parts: either)
+    z = np.asarray(depth, np.float64)
+    rim = ~hole & (grown > 0) & np.isfinite(z) & (z > 0)
+    ys, xs = np.nonzero(rim)
+    lab, inv = grown[ys, xs].astype(np.int64), 1.0 / z[ys, xs]
+    planar = np.zeros(n, bool)
+    for part in range(1, n):
+        sel = lab == part
+        if sel.sum() < 3:
+            continue
+        A = np.stack([xs[sel], ys[sel], np.ones(int(sel.sum()))], 1).astype(np.float64)
+        coef, *_ = np.linalg.lstsq(A, inv[sel], rcond=None)
+        misfit = np.sqrt(np.mean((A @ coef - inv[sel]) ** 2)) / np.mean(inv[sel])
+        planar[part] = misfit <= max_misfit
+    return planar[labels] & hole
+
+
 def fill_view(render: np.ndarray, hole: np.ndarray, backend: str, bank, params,
               prior: tuple[np.ndarray, np.ndarray] | None = None):
     """Complete one view's hole: first the ``prior`` pixels (colours, mask) carried from a reference

@@ -400,6 +400,28 @@ def test_inpaint_stage_carries_only_pinned_parts(scene, tmp_path):
     assert json.loads((ctx.out_dir / "inpaint.json").read_text())["projected"] > 0
 
 
+def test_inpaint_stage_carries_no_hole_whose_rim_crosses_a_depth_step(scene, tmp_path):
+    """carry_max_misfit: with every view's completed depth cut by a step through the middle of its hole
+    (a foreground surface beside the far one), no part is carried by default; without the limit it is."""
+    from sgpor_pipeline.stages.inpaint import InpaintParams, InpaintStage
+
+    remove = write_remove_fixture(scene, tmp_path / "remove", holes="mask")
+    for i, cam in enumerate(scene.cameras):
+        path = remove / "depth" / f"{cam.name}.npy"
+        depth = np.load(path)
+        cx = int(np.nonzero(scene.masks[i])[1].mean())
+        depth[:, :cx] *= 0.3
+        np.save(path, depth)
+    runs = {}
+    for name, misfit in (("default", InpaintParams().carry_max_misfit), ("off", 0.0)):
+        params = InpaintParams(carry_max_rim=100, carry_max_misfit=misfit)
+        ctx = StageContext.standalone(tmp_path / name, "inpaint", params, {"remove": remove})
+        InpaintStage().run(ctx)
+        runs[name] = json.loads((ctx.out_dir / "inpaint.json").read_text())
+    assert runs["default"]["multiview"] and runs["default"]["projected"] == 0
+    assert runs["off"]["projected"] > 0
+
+
 def test_opencv_backend_respects_the_mask_convention(scene, tmp_path):
     from sgpor_pipeline.stages.inpaint import InpaintParams, InpaintStage
 

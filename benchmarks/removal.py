@@ -22,9 +22,11 @@ with ``fit.seed`` 0 / 1 / 2 (each method on the same fit): ours 15.04 / 14.85 / 
 
 The numbers quoted here were measured in earlier sessions; the rasterizer kernel build (x86-64 level,
 printed in the header and stored as ``kernel``) changes every fit, so a machine of another level gets
-other numbers (an x86_64_v3 machine, same code and seeds: synthetic ours 24.99, delete-only 23.30,
-fsr-refit 20.92, no-sbm 24.29; lund + box ours 14.87, delete-only 12.20, fsr-refit 15.35, no-sbm
-14.55). Compare methods within one run.
+other numbers (the v3 and v4 builds agree bitwise since the kernel sums SIMD lanes in a fixed tree; v2
+rounds multiply-adds differently). Mask PSNR on x86_64_v3 with the current code (session 14):
+synthetic ours 24.72, delete-only 24.43, fsr-refit 20.90, no-sbm 24.04; lund + box ours 15.06,
+delete-only 12.46, fsr-refit 15.37, no-sbm 14.92; statue + box ours 20.80, delete-only 19.37,
+fsr-refit 20.75, no-sbm 20.09. Compare methods within one run.
 
 Fit seeds (``--fit-seeds``): a fit's trajectory is chaotic (densification decisions amplify rounding),
 so one fit's numbers move by tenths of a dB to a dB with ``fit.seed`` while the methods compared on it

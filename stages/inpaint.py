@@ -262,8 +262,9 @@ class InpaintStage(Stage):
                 filled = read_labels(item / "filled_from.png")
                 carry = filled == FILLED_INPAINTED if progressive else filled > 0
                 carry &= pinned_parts(holes[j], p.block_size if p.carry_max_rim < 0 else p.carry_max_rim)
-                carry &= planar_parts(holes[j], sv.depth(), p.carry_max_misfit)
-                carriers[j] = (read_image(item / "image.png"), sv.camera, sv.depth(), carry) if carry.any() else None
+                depth = sv.depth()
+                carry &= planar_parts(holes[j], depth, p.carry_max_misfit)
+                carriers[j] = (read_image(item / "image.png"), sv.camera, depth, carry) if carry.any() else None
             return carriers[j]
 
         def carried(i: int, sources: list[int]):

@@ -86,6 +86,8 @@ class InpaintParams:
     priority_share: float = added_param(0.25)
     levels: int = added_param(1)  # coarse to fine: SBMParams.levels (1 = full size only)
     guide_weight: float = added_param(0.5)  # SBMParams.guide_weight
+    paste_top: int = added_param(1)  # > 1: a target pastes the weighted mean of its best candidates (SBMParams)
+    paste_temperature: float = added_param(1.0)  # SBMParams.paste_temperature
     # The method (DESIGN.md section 7): views agree by construction. Mask PSNR / feat, multi-view vs
     # independent per-view fills (what the fsr-refit baseline does): synthetic 25.88 / 0.056 vs 25.55 /
     # 0.056 (held-out views 25.56 vs 25.34). A part of a hole thicker than two blocks is not carried
@@ -140,7 +142,8 @@ class InpaintParams:
                          cells=self.cells, features=self.features, dino_model=self.dino_model,
                          metric=self.metric, top_k=self.top_k, rerank=self.rerank, blend=self.blend,
                          order=self.order, priority_share=self.priority_share, levels=self.levels,
-                         guide_weight=self.guide_weight, seed=self.seed)
+                         guide_weight=self.guide_weight, paste_top=self.paste_top,
+                         paste_temperature=self.paste_temperature, seed=self.seed)
 
     def diffusion(self) -> sd.DiffusionParams:
         return sd.DiffusionParams(prompt=self.diffusion_prompt, negative_prompt=self.diffusion_negative_prompt,

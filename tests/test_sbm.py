@@ -496,3 +496,33 @@ def test_inpaint_and_refine_complete_the_context_image_when_the_remove_folder_ha
         fill = read_image(ctx.out_dir / "images" / f"{cam.name}.png")[hole]
         redness = lambda x: float((x[:, 0] - x[:, 1:].mean(1)).mean())  # noqa: E731
         assert redness(fill) > redness(scene.images_gt[i][hole]) + 0.25, (redness(fill), cam.name)
+
+
+def test_paste_weights_follow_the_context_cost():
+    from sgpor_pipeline.removal.sbm import paste_weights
+
+    w = paste_weights(np.array([0.01, 0.01, 0.02, 0.5, 0.01]), 3, 1.0)
+    assert w.shape == (5,) and abs(w.sum() - 1) < 1e-12
+    assert w[0] == w[1] > w[2] > 0 and w[3] == w[4] == 0  # only the first 3; equal cost, equal weight
+    np.testing.assert_allclose(w[2] / w[0], np.exp(-1.0), rtol=1e-3)  # twice the best cost: e^-1
+    np.testing.assert_allclose(paste_weights(np.array([0.01, 0.9]), 5, 0.0), [0.5, 0.5])  # equal weights
+    np.testing.assert_allclose(paste_weights(np.array([0.01, np.nan, 0.01]), 3, 1.0), [1, 0, 0])  # no cost
+    np.testing.assert_allclose(paste_weights(np.array([0.01, np.inf]), 2, 1.0), [1, 0])
+    np.testing.assert_allclose(paste_weights(np.array([0.0, 0.0]), 2, 1.0), [0.5, 0.5])  # exact matches
+    assert paste_weights(np.zeros(0), 5, 1.0).shape == (0,)
+
+
+def test_paste_top_one_is_the_best_match_and_more_blend_similar_sources(scene):
+    names, renders, holes = scene_inputs(scene)
+    one = SBMParams(paste_top=1)
+    bank = build_source_bank(names, renders, list(scene.masks), holes, one)
+    gt, hole = scene.images_gt[2], holes[2]
+    r1 = inpaint_view(renders[2], hole, bank, one)
+    r5 = inpaint_view(renders[2], hole, bank, SBMParams(paste_top=5))
+    assert np.array_equal(r5.image[~hole], renders[2][~hole])
+    assert not np.allclose(r1.image[hole], r5.image[hole])
+    # the mean of the well-fitting sources: closer to the truth, and smoother than the best source alone
+    assert psnr(r5.image, gt, hole) > psnr(r1.image, gt, hole) + 0.1
+    e_gt, e1, e5 = (float(hf_energy(x)[hole].mean()) for x in (gt, r1.image, r5.image))
+    assert 0.4 * e_gt < e5 < e1, (e_gt, e1, e5)
+    assert inpaint_view(renders[2], hole, bank, SBMParams()).image.tobytes() == r1.image.tobytes()  # the default

@@ -1,7 +1,13 @@
-"""fit: 3D Gaussian Splatting of the whole scene (object included) from the SfM result.
+"""fit: 3D Gaussian Splatting of the scene from the SfM result: the whole scene, or without the object
+when every view has a mask.
 
 In (``ctx.inputs["sfm"]``): ``images/<view>.png`` (undistorted PINHOLE), ``cameras.json`` (cameras
-without an image are novel views and are ignored here), ``points.npz`` (``xyz``, ``rgb``).
+without an image are novel views and are ignored here), ``points.npz`` (``xyz``, ``rgb``) and
+``masks/<view>.png``. With a mask for every view (``object_masks = "auto"``, or ``"ignore"``) the
+object is left out of the fit (its pixels unsupervised), so the masks stage has nothing to select and
+the remove stage nothing to delete but unsupervised floaters; what the fit renders inside a mask is
+background other views saw. Otherwise (``"fit"``) the object is fitted with the rest, and ``fit.json``
+says which (``object_masks``: ``"ignore"`` or ``"fit"``).
 
 Out: ``gaussians.ply`` (INRIA 3DGS layout), ``curve.json`` and ``curve.png`` (loss, held-out
 PSNR/SSIM, Gaussian count and seconds per iteration), ``fit.json`` (final count and why it stopped,
@@ -16,6 +22,7 @@ The training loop lives in :mod:`sgpor_pipeline.gaussians.train`; checkpoints go
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import time
@@ -26,6 +33,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
+from sgpor_pipeline.config import added_param
 from sgpor_pipeline.dag import Stage, StageContext
 from sgpor_pipeline.errors import PipelineError
 
@@ -84,6 +92,17 @@ class FitParams:
     init_mode: Literal["depth", "jitter", "box"] = "depth"
     init_opacity: float = 0.0  # initial opacity; 0 = the strategy's (adc 0.1, mcmc 0.5)
     far_points: float = 100.0  # drop SfM points farther than this x the median point distance
+    # The given object masks: "fit" (the object is fitted like the rest of the scene; the masks stage
+    # then selects its Gaussians) or "ignore" (the pixels inside a view's given mask, dilated by
+    # mask_dilate px, are not supervised, SfM points seen mostly inside the masks and no initial point
+    # is lifted from them: the fit models the background alone, behind the object only what other
+    # views saw, and nothing of the object can be left behind). "ignore" needs every view's mask (a
+    # view without one would fit the object); "auto" = "ignore" when every view has one, else "fit".
+    # Mask PSNR of ours, fit / ignore (benchmarks/removal.py, x86_64_v3, fit.seed 0 and 1): synthetic
+    # 24.72 / 24.22 and 24.82 / 26.17; lund + box 15.06 / 15.43 (fsr-refit 15.37 / 15.02) and
+    # ? / 15.63 (fsr-refit ? / 15.28); statue + box 20.80 / 21.08 (fsr-refit 20.75 / 20.70).
+    object_masks: Literal["auto", "fit", "ignore"] = "auto"
+    mask_dilate: int = added_param(2)
     n_renders: int = 4  # held-out renders saved next to their ground truth
     # Test hooks (documented, for the test-suite only): inject a NaN into means[0] after the optimizer
     # step of iteration debug_inject_nan_at (0 = never), debug_inject_nan_times times.
@@ -91,12 +110,23 @@ class FitParams:
     debug_inject_nan_times: int = 1
 
 
-def load_sfm_views(sfm_dir: Path, max_size: int) -> tuple[list, list[str]]:
+def fit_ignored_masks(fit_dir: Path) -> bool:
+    """Whether the fit left the given masks' pixels out (``fit.object_masks = "ignore"``): it then
+    models the background alone and has no object Gaussians to select."""
+    path = Path(fit_dir) / "fit.json"
+    return path.is_file() and json.loads(path.read_text()).get("object_masks") == "ignore"
+
+
+def load_sfm_views(sfm_dir: Path, max_size: int, mask_dilate: int | None = None) -> tuple[list, list[str]]:
     """The registered views of an sfm folder as TrainViews (sorted by name), and the names of
-    cameras whose image is missing."""
+    cameras whose image is missing. With ``mask_dilate`` (px) a view with a given object mask gets
+    the loss weight 0 inside it (dilated by that much) and 1 elsewhere."""
+    import cv2
+
     from sgpor_pipeline.gaussians.train import make_view
-    from sgpor_pipeline.imageio import read_rgb8
+    from sgpor_pipeline.imageio import read_mask, read_rgb8
     from sgpor_pipeline.scene import load_cameras
+    from sgpor_pipeline.sfm import MASKS_DIR
 
     cam_file = sfm_dir / "cameras.json"
     if not cam_file.is_file():
@@ -111,7 +141,20 @@ def load_sfm_views(sfm_dir: Path, max_size: int) -> tuple[list, list[str]]:
         if not path.is_file():
             missing.append(cam.name)
             continue
-        views.append(make_view(cam.name, read_rgb8(path), cam, max_size))
+        image = read_rgb8(path)
+        weight = None
+        mask_path = sfm_dir / MASKS_DIR / f"{cam.image}.png"
+        if mask_dilate is not None and mask_path.is_file():
+            mask = read_mask(mask_path)
+            if mask.shape != image.shape[:2]:
+                raise PipelineError(f"the mask of {cam.image} is {mask.shape[1]}x{mask.shape[0]}, its image "
+                                    f"{image.shape[1]}x{image.shape[0]}", path=mask_path,
+                                    fix="rerun the sfm stage (sgpor-pipeline run ... --force sfm)")
+            if mask_dilate > 0 and mask.any():
+                k = 2 * mask_dilate + 1
+                mask = cv2.dilate(mask.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))) > 0
+            weight = (~mask).astype(np.float32)
+        views.append(make_view(cam.name, image, cam, max_size, weight))
     return views, missing
 
 
@@ -167,6 +210,42 @@ def load_points(path: Path, cameras: list, far_points: float) -> tuple[SfmPoints
     return SfmPoints(xyz[ok], None if rgb is None else rgb[ok], obs_point, obs_view), report
 
 
+def drop_masked_points(pts: SfmPoints, views: list, cam_index: dict[str, int]) -> tuple[SfmPoints, int]:
+    """The SfM points without those seen mostly inside the views' ignored pixels (loss weight < 0.5:
+    a masked-out object): a point counts as inside when at least half of the views that observed it
+    (all views it projects into, when observations are unknown) see it there. Returns the kept
+    points and how many were dropped."""
+    masked = [(v, cam_index.get(v.name, -1)) for v in views if v.weight is not None]
+    if not masked or not len(pts.xyz):
+        return pts, 0
+    inside = np.zeros(len(pts.xyz))
+    seen = np.zeros(len(pts.xyz))
+    for v, ci in masked:
+        if pts.obs_view is not None:
+            ids = np.unique(pts.obs_point[pts.obs_view == ci])
+        else:
+            ids = np.arange(len(pts.xyz))
+        uv, z = v.camera.project(pts.xyz[ids])
+        wt = v.weight.numpy()
+        h, w = wt.shape
+        ok = (z > 1e-6) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+        ids, uv = ids[ok], uv[ok]
+        seen[ids] += 1
+        inside[ids] += wt[uv[:, 1].astype(np.int64), uv[:, 0].astype(np.int64)] < 0.5
+    drop = (seen > 0) & (inside >= 0.5 * seen)
+    if not drop.any():
+        return pts, 0
+    keep = ~drop
+    new_index = np.full(len(keep), -1, np.int64)
+    new_index[keep] = np.arange(int(keep.sum()))
+    obs_point = obs_view = None
+    if pts.obs_point is not None and pts.obs_view is not None:
+        sel = keep[pts.obs_point]
+        obs_point, obs_view = new_index[pts.obs_point[sel]], pts.obs_view[sel]
+    rgb = None if pts.rgb is None else pts.rgb[keep]
+    return SfmPoints(pts.xyz[keep], rgb, obs_point, obs_view), int(drop.sum())
+
+
 def random_points(cameras: list, n: int, seed: int) -> tuple[np.ndarray, None]:
     """Fallback when SfM gave no points: uniform in a box around the cameras' look-at region."""
     from sgpor_pipeline.synthetic import viewing_axes_center
@@ -209,6 +288,12 @@ def depth_points(pts: SfmPoints, views: list, cam_index: dict[str, int], n_new: 
             continue
         uv, z = uv[inside], z[inside]
         px = np.stack([rng.uniform(0, cam.width, per_view), rng.uniform(0, cam.height, per_view)], axis=1)
+        if v.weight is not None:  # no point from pixels the loss ignores (a masked-out object)
+            wt = v.weight.numpy()
+            px = px[wt[np.clip(px[:, 1].astype(np.int64), 0, wt.shape[0] - 1),
+                       np.clip(px[:, 0].astype(np.int64), 0, wt.shape[1] - 1)] >= 0.5]
+            if not len(px):
+                continue
         kk = min(k, len(z))
         d, nn = cKDTree(uv).query(px, k=kk)
         d, nn = d.reshape(len(px), kk), nn.reshape(len(px), kk)
@@ -333,8 +418,17 @@ def fit_scene(sfm_dir: Path, out_dir: Path, params: FitParams, checkpoint_dir: P
         raise PipelineError(f"fit.sh_degree must be 0..3, got {params.sh_degree}", fix="use 0, 1, 2 or 3")
     if params.iterations < 1:
         raise PipelineError("fit.iterations must be at least 1")
+    if params.object_masks not in ("auto", "fit", "ignore"):
+        raise PipelineError(f"unknown fit.object_masks {params.object_masks!r}", fix="use auto, fit or ignore")
     sfm_dir = Path(sfm_dir)
-    views, missing = load_sfm_views(sfm_dir, params.max_size)
+    ignore_masks = params.object_masks != "fit"
+    views, missing = load_sfm_views(sfm_dir, params.max_size, max(params.mask_dilate, 0) if ignore_masks else None)
+    if params.object_masks == "auto":
+        # only with a mask for every view, one of them showing the object; else the object is fitted
+        ignore_masks = all(v.weight is not None for v in views) and any(bool((v.weight < 0.5).any()) for v in views)
+        if not ignore_masks:
+            views = [dataclasses.replace(v, weight=None) for v in views]
+    object_masks = "ignore" if ignore_masks else "fit"
     if missing:
         log.warning(f"fit: {len(missing)} registered view(s) have no image and are skipped: {', '.join(missing)}")
     if not views:
@@ -343,6 +437,16 @@ def fit_scene(sfm_dir: Path, out_dir: Path, params: FitParams, checkpoint_dir: P
     train_views, test_views = split_views(views, params.holdout_every)
     extent = scene_extent([v.camera for v in views])
     pts, report = load_points(sfm_dir / "points.npz", [v.camera for v in views], params.far_points)
+    cam_index = {c.name: i for i, c in enumerate(load_cameras(sfm_dir / "cameras.json"))}
+    if ignore_masks:
+        unmasked = [v.name for v in views if v.weight is None]
+        if unmasked:
+            raise PipelineError(
+                f"fit.object_masks=ignore needs an object mask for every view; {len(unmasked)} have none: "
+                f"{', '.join(unmasked[:8])}{' ...' if len(unmasked) > 8 else ''}", path=sfm_dir / "masks",
+                fix="pass --masks with a mask for every photo (an empty one where the object is not seen), "
+                    "or use fit.object_masks=fit (the masks stage then propagates the given masks)")
+        pts, report["points_masked"] = drop_masked_points(pts, train_views, cam_index)
     xyz, rgb = pts.xyz, pts.rgb
     if len(xyz) < 4:
         log.warning(f"fit: only {len(xyz)} usable SfM point(s); adding random points around the cameras' focus")
@@ -356,7 +460,6 @@ def fit_scene(sfm_dir: Path, out_dir: Path, params: FitParams, checkpoint_dir: P
     if params.budget:
         init_points = min(init_points, params.budget)
     if init_points > len(xyz):
-        cam_index = {c.name: i for i, c in enumerate(load_cameras(sfm_dir / "cameras.json"))}
         n_before = len(xyz)
         xyz, rgb = upsample_points(xyz, rgb, init_points, params.init_mode, params.seed, pts=pts,
                                    views=train_views, cam_index=cam_index)
@@ -411,6 +514,7 @@ def fit_scene(sfm_dir: Path, out_dir: Path, params: FitParams, checkpoint_dir: P
         "mean_color_baseline_psnr": baseline,
         "background": [0.0, 0.0, 0.0],
         "strategy": params.strategy,
+        "object_masks": object_masks,
         "sh_degree": params.sh_degree,
         "points": {**report, "used": int(len(xyz))},
         "renders": renders,

@@ -24,6 +24,10 @@ the dataset's masks on the views not given, from 1 / 2 / 4 given masks): statue 
 0.945 (0.951 / 0.951 / 0.953 without GrabCut, 0.954 / 0.956 / 0.961 before the tightening: GrabCut
 follows the object's edges, the dataset's masks are a little wider); room 0.572 / 0.740 / 0.794
 (0.654 / 0.740 / 0.794 before; 3 evaluated views, its SfM registers 5-7 of 24).
+
+After a fit that left the given masks' pixels out (``fit.object_masks = "ignore"``, which needs a mask
+for every view) there is no object to select: ``object_ids.npy`` is empty, every view keeps its given
+mask (none given: empty) and ``masks.json`` says ``"fit_object_masks": "ignore"``.
 """
 
 from __future__ import annotations
@@ -56,6 +60,7 @@ from sgpor_pipeline.removal.selection import (
 )
 from sgpor_pipeline.scene import Camera
 from sgpor_pipeline.sfm import SfmResult, load_sfm
+from sgpor_pipeline.stages.fit import fit_ignored_masks
 
 MIN_MARGIN = 2.0
 
@@ -98,6 +103,15 @@ class MasksStage(Stage):
         sel_params = _selection_params(p)
         sfm = load_sfm(ctx.inputs["sfm"])
         model = read_ply(ctx.inputs["fit"] / "gaussians.ply")
+        if fit_ignored_masks(ctx.inputs["fit"]):
+            summary = _write_given_only(ctx.out_dir, model, sfm, _read_given_masks(sfm, 0, ctx.run_inputs.masks))
+            ctx.log.info("masks: the fit left the masked pixels out (fit.object_masks=ignore): no object "
+                         "Gaussians to select, every view keeps its given mask")
+            if p.max_given > 0:
+                ctx.log.warning(f"masks: max_given={p.max_given} is not used: the fit needed every view's mask "
+                                "(fit.object_masks=ignore)")
+            ctx.notes.update({k: v for k, v in summary.items() if k != "views"})
+            return
         given_pairs = _read_given_masks(sfm, p.max_given, ctx.run_inputs.masks)
         sfm_pts = _sfm_points(sfm) if p.use_sfm_points else None
         given, widths = _tighten_given(model, given_pairs, p)
@@ -133,6 +147,29 @@ class _GivenViews:
     def __post_init__(self) -> None:
         self.names = {c.image for c in self.cams}
         self.index = {c.image: i for i, c in enumerate(self.cams)}
+
+
+def _write_given_only(out_dir: Path, model: GaussianModel, sfm: SfmResult,
+                      given: list[tuple[Camera, np.ndarray]]) -> dict[str, Any]:
+    """The stage's output after a fit that ignored the masks: no object Gaussians, every view's mask as
+    given (the fit needed one for every view; an absent mask file is an empty mask), masks.json."""
+    np.save(out_dir / "object_ids.npy", np.zeros(0, np.int64))
+    np.save(out_dir / "scores.npy", np.zeros(len(model), np.float32))
+    (out_dir / "masks").mkdir()
+    (out_dir / "prob").mkdir()
+    masks = {c.image: m for c, m in given}
+    per_view = {}
+    for cam in sfm.posed:
+        mask = masks.get(cam.image)
+        if mask is None:
+            mask = np.zeros((cam.height, cam.width), bool)
+        write_mask01(out_dir / "masks" / f"{cam.image}.png", mask)
+        write_png(out_dir / "prob" / f"{cam.image}.png", mask.astype(np.float32))
+        per_view[cam.image] = {"source": "given", "confidence": 1.0, "pixels": int(mask.sum())}
+    summary = {"views": per_view, "object_gaussians": 0, "object_gaussians_first_pass": 0, "reselected": False,
+               "gaussians": len(model), "given": sorted(masks), "fit_object_masks": "ignore"}
+    (out_dir / "masks.json").write_text(json.dumps(summary, indent=1))
+    return summary
 
 
 def _selection_params(p: MasksParams) -> SelectionParams:

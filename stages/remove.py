@@ -20,10 +20,15 @@ Out (the contract the inpaint and refine stages read):
   ``seed_ids.npy``: indices of the new ones; ``object.ply``: the deleted Gaussians (a reusable asset),
 - ``remove.json``: counts (``hull_centres``: Gaussians deleted because no view shows their centre
   outside its mask) and per-view hole sizes (``hole_pixels_by_opacity``: before ``min_views``).
+
+After a fit without the masked pixels (``fit.object_masks = "ignore"``) nothing is deleted by its object
+score: a Gaussian mostly inside the masks is then background that other views saw behind the object.
+The floaters and hull centres (unsupervised there) still go.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from dataclasses import dataclass
@@ -52,6 +57,7 @@ from sgpor_pipeline.removal.holes import (
 )
 from sgpor_pipeline.scene import Camera, save_cameras
 from sgpor_pipeline.sfm import load_sfm
+from sgpor_pipeline.stages.fit import fit_ignored_masks
 
 
 @dataclass
@@ -89,7 +95,12 @@ class RemoveStage(Stage):
         masks_dir = ctx.inputs["masks"] / "masks"
         masks = [read_mask(masks_dir / f"{c.image}.png") for c in cameras]
         object_ids = np.load(ctx.inputs["masks"] / "object_ids.npy")
-        delete, stats, surface = objects_to_delete(model, cameras, masks, object_ids, p)
+        select = p
+        if fit_ignored_masks(ctx.inputs["fit"]):
+            # no object was fitted: a Gaussian mostly inside the masks is background other views saw
+            # behind the object (the floaters no view shows outside the masks are still deleted)
+            select = dataclasses.replace(p, score_threshold=float("inf"))
+        delete, stats, surface = objects_to_delete(model, cameras, masks, object_ids, select)
         background = subset(model, ~delete)
         write_ply(ctx.out_dir / "object.ply", subset(model, delete))
         save_cameras(ctx.out_dir / "cameras.json", cameras)

@@ -95,6 +95,16 @@ def test_ply_round_trip_is_exact(tmp_path, degree):
         assert np.array_equal(raw[:, first_rest:first_rest + k1], model.params["shN"].detach().numpy()[:, :, 0])
 
 
+@pytest.mark.parametrize("degree", [0, 3])
+def test_an_empty_model_round_trips(tmp_path, degree):
+    """e.g. the remove stage's object.ply when nothing was deleted"""
+    from sgpor_pipeline.removal.holes import subset
+
+    empty = subset(random_model(5, degree), np.zeros(5, bool))
+    back = read_ply(write_ply(tmp_path / "empty.ply", empty))
+    assert len(back) == 0 and back.max_sh_degree == degree
+
+
 def test_ply_is_read_by_open3d(tmp_path):
     o3d = pytest.importorskip("open3d")
     model = random_model(11, 3)
@@ -373,6 +383,74 @@ def test_hard_cases_stay_finite(tmp_path, small_scene):
     res = fit_scene(sfm, out, quick_params(iterations=120, max_size=48, far_points=0.0), None, LOG)
     assert res["points"]["points_in"] == 310 and res["points"]["points_far"] == 0
     assert res["points"]["used"] == 310 + res["points"].get("points_added", 0) and all_finite(out / "gaussians.ply")
+
+
+def test_drop_masked_points_drops_what_most_observers_see_inside_a_mask():
+    from sgpor_pipeline.gaussians.train import make_view
+    from sgpor_pipeline.stages.fit import SfmPoints, drop_masked_points
+
+    scene = generate_scene(SceneParams(seed=0, n_views=4, width=48, height=36))
+    views = [make_view(c.name, img, c, 0, ~m) for c, img, m in zip(scene.cameras, scene.images, scene.masks)]
+    on_object = np.asarray(scene.object_mesh.sample_points_uniformly(200).points)
+    lo, hi = scene.object_bounds
+    background = np.asarray(scene.background_mesh.sample_points_uniformly(2000).points)
+    background = background[~((background > lo - 0.3) & (background < hi + 0.3)).all(1)][:300]
+    xyz = np.concatenate([on_object, background])
+    pts = SfmPoints(xyz, np.zeros((len(xyz), 3), np.uint8))
+    kept, dropped = drop_masked_points(pts, views, {c.name: i for i, c in enumerate(scene.cameras)})
+    assert dropped >= 0.8 * len(on_object) and len(kept.xyz) == len(xyz) - dropped
+    assert np.isin(background, kept.xyz).all(1).sum() >= 0.95 * len(background)  # the background stays
+    # observations follow the kept points; a view without a weight map changes nothing
+    n = len(xyz)
+    obs_point, obs_view = np.arange(n).repeat(4), np.tile(np.arange(4), n)
+    kept2, dropped2 = drop_masked_points(SfmPoints(xyz, None, obs_point, obs_view), views,
+                                         {c.name: i for i, c in enumerate(scene.cameras)})
+    assert dropped2 == dropped and len(kept2.obs_point) == 4 * len(kept2.xyz) and kept2.obs_point.max() < len(kept2.xyz)
+    unweighted = [make_view(c.name, img, c) for c, img in zip(scene.cameras, scene.images)]
+    assert drop_masked_points(pts, unweighted, {})[1] == 0
+
+
+def test_fit_can_leave_the_given_masks_out(tmp_path, small_scene):
+    """``fit.object_masks = "ignore"``: the pixels inside the given masks are not supervised, so the
+    fit models the background alone: inside the masks its renders do not show the object (they are
+    farther from the photos than the ordinary fit's and closer to the object-free truth), the SfM
+    points on the object are dropped, and a view without a mask is refused with a clear error."""
+    from sgpor_pipeline.errors import PipelineError
+    from sgpor_pipeline.gaussians.train import render_view
+    from sgpor_pipeline.imageio import write_mask01
+
+    sfm = make_sfm(tmp_path / "sfm", small_scene)
+    (sfm / "masks").mkdir()
+    for name, mask in zip(small_scene.names, small_scene.masks):
+        write_mask01(sfm / "masks" / f"{name}.png", mask)
+    errors = {}
+    for mode in ("fit", "ignore"):
+        out = tmp_path / mode
+        out.mkdir()
+        res = fit_scene(sfm, out, quick_params(iterations=300, sh_degree=0, holdout_every=0, init_points=3000,
+                                               object_masks=mode), None, LOG)
+        assert res["object_masks"] == mode
+        model = read_ply(out / "gaussians.ply")
+        to_photo, to_truth = [], []
+        for cam, photo, truth, mask in zip(small_scene.cameras, small_scene.images, small_scene.images_gt,
+                                           small_scene.masks):
+            with torch.no_grad():
+                img = render_view(model, cam, 0).clamp(0, 1).numpy()
+            to_photo.append(np.abs(img - photo)[mask].mean())
+            to_truth.append(np.abs(img - truth)[mask].mean())
+        errors[mode] = (float(np.mean(to_photo)), float(np.mean(to_truth)), res["points"].get("points_masked", 0))
+    assert errors["fit"][2] == 0 and errors["ignore"][2] > 0, errors
+    assert errors["ignore"][0] > 1.5 * errors["fit"][0], errors  # the object is not reproduced ...
+    assert errors["ignore"][1] < errors["ignore"][0], errors  # ... the background behind it is
+    out = tmp_path / "auto"
+    out.mkdir()
+    assert fit_scene(sfm, out, quick_params(iterations=10, object_masks="auto"), None, LOG)["object_masks"] == "ignore"
+    (sfm / "masks" / "view_003.png").unlink()
+    with pytest.raises(PipelineError, match="view_003"):
+        fit_scene(sfm, tmp_path / "ignore", quick_params(iterations=10, object_masks="ignore"), None, LOG)
+    # "auto" fits the object when a view has no mask
+    res = fit_scene(sfm, out, quick_params(iterations=10, object_masks="auto"), None, LOG)
+    assert res["object_masks"] == "fit" and "points_masked" not in res["points"]
 
 
 def test_mcmc_strategy_fits(tmp_path, small_scene):

@@ -74,3 +74,30 @@ def test_resumed_run_is_all_hits_and_status_lists_every_stage(finished_run):
     assert again.ran == [] and set(again.hits) == set(STAGES)
     states = {r.name: r.state for r in pipeline_status(out)}
     assert all(states[s] == "hit" for s in STAGES), states
+
+
+@pytest.mark.slow
+def test_with_every_mask_given_the_fit_leaves_the_object_out(finished_run, tmp_path):
+    """Every view has a mask here, so ``fit.object_masks=auto`` (the default) fits without the masked
+    pixels: the masks stage selects no Gaussian and keeps every given mask, the remove stage deletes
+    nothing by its object score (a Gaussian mostly inside the masks is background other views saw
+    behind the object), and the holes are what no view saw. With ``fit.object_masks=fit`` the object
+    is fitted, selected and deleted."""
+    _, inputs, result = finished_run
+    assert json.loads((result.path("fit") / "fit.json").read_text())["object_masks"] == "ignore"
+    masks_dir, remove_dir = result.path("masks"), result.path("remove")
+    info = json.loads((masks_dir / "masks.json").read_text())
+    assert info["fit_object_masks"] == "ignore" and info["object_gaussians"] == 0
+    assert np.load(masks_dir / "object_ids.npy").size == 0
+    for name in info["views"]:
+        given = read_mask(inputs.masks / f"{name}.png")
+        assert np.array_equal(read_mask(masks_dir / "masks" / f"{name}.png"), given), name
+    stats = json.loads((remove_dir / "remove.json").read_text())
+    assert stats["from_masks_stage"] == 0 and stats["by_score"] == 0
+    assert 0 < stats["hole_pixels"] < stats["mask_pixels"]  # some of the mask is background other views saw
+    fitted = run_pipeline(tmp_path / "out", inputs, overrides=[*FAST, "fit.object_masks=fit"], until="remove")
+    assert json.loads((fitted.path("fit") / "fit.json").read_text())["object_masks"] == "fit"
+    selected = json.loads((fitted.path("masks") / "masks.json").read_text())["object_gaussians"]
+    deleted = json.loads((fitted.path("remove") / "remove.json").read_text())
+    assert selected > 0 and deleted["from_masks_stage"] == selected
+    assert deleted["deleted"] > 10 * max(stats["deleted"], 1)

@@ -41,7 +41,8 @@ def model_to_array(model: GaussianModel) -> np.ndarray:
     """[N, P] float32 rows in the property order of :func:`property_names`."""
     p = model.numpy()
     n = len(model)
-    rest = np.ascontiguousarray(p["shN"].transpose(0, 2, 1)).reshape(n, -1)  # channel-major
+    shn = p["shN"]  # (the explicit width: reshape(0, -1) is ambiguous for an empty model)
+    rest = np.ascontiguousarray(shn.transpose(0, 2, 1)).reshape(n, shn.shape[1] * shn.shape[2])  # channel-major
     cols = [p["means"], np.zeros((n, 3), np.float32), p["sh0"].reshape(n, 3), rest,
             p["opacities"].reshape(n, 1), p["scales"], p["quats"]]
     return np.concatenate(cols, axis=1).astype(np.float32, copy=False)

@@ -44,7 +44,7 @@ measured with the object fitted (now ``--set fit.object_masks=fit``). Mask PSNR 
 same machine: synthetic ours 24.72 / 0.060 -> 24.22 / 0.055 (delete-only 24.43 -> 23.94, fsr-refit
 20.90 -> 21.00, no-sbm 24.04 -> 24.46), with fit.seed 1 ours 24.82 / 0.075 -> 26.17 / 0.046; lund + box
 ours 15.06 / 0.199 -> 15.43 / 0.205 (delete-only 12.46 -> 14.96, fsr-refit 15.37 / 0.207 -> 15.02 /
-0.244, no-sbm 14.92 -> 15.16), with fit.seed 1 ours LUNDS1 -> 15.63 / 0.177 (fsr-refit LUNDS1FSR -> 15.28 /
+0.244, no-sbm 14.92 -> 15.16), with fit.seed 1 ours 14.96 / 0.209 -> 15.63 / 0.177 (fsr-refit 15.57 / 0.261 -> 15.28 /
 0.224); statue + box ours 20.80 / 0.141 -> 21.08 / 0.115 (delete-only 19.37 -> 21.77, fsr-refit 20.75
 -> 20.70, no-sbm 20.09 -> 20.98; with ``remove.hole_alpha=0.5`` ours 22.27 / 0.084, but synthetic
 fit.seed 1 falls 26.17 -> 24.62, so 0.9 stays). Ours leads fsr-refit on every one of these fits. The

@@ -100,7 +100,7 @@ class FitParams:
     # view without one would fit the object); "auto" = "ignore" when every view has one, else "fit".
     # Mask PSNR of ours, fit / ignore (benchmarks/removal.py, x86_64_v3, fit.seed 0 and 1): synthetic
     # 24.72 / 24.22 and 24.82 / 26.17; lund + box 15.06 / 15.43 (fsr-refit 15.37 / 15.02) and
-    # ? / 15.63 (fsr-refit ? / 15.28); statue + box 20.80 / 21.08 (fsr-refit 20.75 / 20.70).
+    # 14.96 / 15.63 (fsr-refit 15.57 / 15.28); statue + box 20.80 / 21.08 (fsr-refit 20.75 / 20.70).
     object_masks: Literal["auto", "fit", "ignore"] = "auto"
     mask_dilate: int = added_param(2)
     n_renders: int = 4  # held-out renders saved next to their ground truth

@@ -168,12 +168,10 @@ def write_object_assets(folder: Path, object_model: Any, cameras: list[Camera], 
 
 
 class ObjectExporter(Exporter):
-    """The removed object as its own asset (``object/object.ply`` + ``object/object.glb``).
-
-    NOT registered yet: it needs the ``remove`` stage, which does not exist. Expected contract
-    (to confirm with the remove stage): ``<remove folder>/object.ply``, the object's Gaussians in the
-    INRIA layout, SfM frame. Register with
-    ``object = "sgpor_pipeline.exporters.gaussians:ObjectExporter"`` once it does.
+    """The removed object as its own asset (``object/object.ply`` + ``object/object.glb``), from the
+    remove stage's ``object.ply`` (the deleted Gaussians, INRIA layout, SfM frame). After a fit that
+    left the object out (``fit.object_masks``: every view had a mask; ``object_fitted`` false in
+    remove.json) there is no object to export: nothing is written and the log says why.
     """
 
     name = "object"
@@ -187,6 +185,11 @@ class ObjectExporter(Exporter):
         from sgpor_pipeline.meshing import MeshSettings
 
         t0 = time.perf_counter()
+        info = ctx.inputs["remove"] / "remove.json"
+        if info.is_file() and not json.loads(info.read_text()).get("object_fitted", True):
+            ctx.log.info("object: the fit left the object out (every view had a mask), so there is no object "
+                         "asset; --set fit.object_masks=fit models it (and deletes it) instead")
+            return
         scene = load_scene(ctx)
         cameras = load_run_cameras(ctx)
         frame = export_frame(ctx, scene, cameras, out_dir)

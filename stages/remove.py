@@ -17,7 +17,8 @@ Out (the contract the inpaint and refine stages read):
   and, with ``consistent_depth``, from the hole surfaces of the views with smaller holes (one surface
   for all views: :func:`~sgpor_pipeline.removal.holes.complete_depths_jointly`),
 - ``gaussians.ply``: the background Gaussians followed by the new hole Gaussians,
-  ``seed_ids.npy``: indices of the new ones; ``object.ply``: the deleted Gaussians (a reusable asset),
+  ``seed_ids.npy``: indices of the new ones; ``object.ply``: the deleted Gaussians (a reusable asset
+  when the fit modelled the object: ``object_fitted`` in remove.json),
 - ``remove.json``: counts (``hull_centres``: Gaussians deleted because no view shows their centre
   outside its mask) and per-view hole sizes (``hole_pixels_by_opacity``: before ``min_views``).
 
@@ -96,7 +97,8 @@ class RemoveStage(Stage):
         masks = [read_mask(masks_dir / f"{c.image}.png") for c in cameras]
         object_ids = np.load(ctx.inputs["masks"] / "object_ids.npy")
         select = p
-        if fit_ignored_masks(ctx.inputs["fit"]):
+        object_fitted = not fit_ignored_masks(ctx.inputs["fit"])
+        if not object_fitted:
             # no object was fitted: a Gaussian mostly inside the masks is background other views saw
             # behind the object (the floaters no view shows outside the masks are still deleted)
             select = dataclasses.replace(p, score_threshold=float("inf"))
@@ -145,7 +147,8 @@ class RemoveStage(Stage):
         mask_px = sum(v["mask_pixels"] for v in per_view.values())
         hole_px = sum(v["hole_pixels"] for v in per_view.values())
         rim_px = sum(v["rim_pixels"] for v in per_view.values())
-        summary = {**stats, "gaussians_before": len(model), "background": len(background), "seeds": len(seeds),
+        summary = {**stats, "object_fitted": object_fitted,
+                   "gaussians_before": len(model), "background": len(background), "seeds": len(seeds),
                    "mask_pixels": mask_px, "hole_pixels": hole_px, "rim_pixels": rim_px,
                    "hole_fraction_of_mask": (hole_px - rim_px) / mask_px if mask_px else 0.0, "views": per_view}
         (ctx.out_dir / "remove.json").write_text(json.dumps(summary, indent=1))

@@ -489,7 +489,7 @@ def test_mesh_files_glb_is_y_up_with_colours(tmp_path):
 
 
 def test_object_asset_writer(tmp_path):
-    """The removed object's own asset (the object exporter is not registered until remove is)."""
+    """The removed object's own asset, and none after a fit without the object."""
     import trimesh
 
     from sgpor_pipeline.exporters.gaussians import ObjectExporter, export_frame
@@ -517,6 +517,12 @@ def test_object_asset_writer(tmp_path):
     err = np.abs(glb.bounds - np.stack([true_pts.min(0), true_pts.max(0)])).max()
     print(f"object mesh: {len(glb.faces)} faces, bounds error {err:.4f} ({err / voxel:.2f} voxel)")
     assert err < 3 * voxel  # the sides seen by no camera (the bottom) may close a little off the truth
+    # after a fit that left the object out there is no object: nothing is written
+    (remove / "remove.json").write_text(json.dumps({"object_fitted": False}))
+    out2 = tmp_path / "export_no_object"
+    out2.mkdir()
+    ObjectExporter().export(ctx, out2)
+    assert not (out2 / "object").exists()
 
 
 def test_export_of_a_ply_from_another_trainer(tmp_path):

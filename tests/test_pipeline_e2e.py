@@ -83,7 +83,7 @@ def test_with_every_mask_given_the_fit_leaves_the_object_out(finished_run, tmp_p
     nothing by its object score (a Gaussian mostly inside the masks is background other views saw
     behind the object), and the holes are what no view saw. With ``fit.object_masks=fit`` the object
     is fitted, selected and deleted."""
-    _, inputs, result = finished_run
+    out, inputs, result = finished_run
     assert json.loads((result.path("fit") / "fit.json").read_text())["object_masks"] == "ignore"
     masks_dir, remove_dir = result.path("masks"), result.path("remove")
     info = json.loads((masks_dir / "masks.json").read_text())
@@ -93,8 +93,10 @@ def test_with_every_mask_given_the_fit_leaves_the_object_out(finished_run, tmp_p
         given = read_mask(inputs.masks / f"{name}.png")
         assert np.array_equal(read_mask(masks_dir / "masks" / f"{name}.png"), given), name
     stats = json.loads((remove_dir / "remove.json").read_text())
-    assert stats["from_masks_stage"] == 0 and stats["by_score"] == 0
+    assert stats["from_masks_stage"] == 0 and stats["by_score"] == 0 and stats["object_fitted"] is False
     assert 0 < stats["hole_pixels"] < stats["mask_pixels"]  # some of the mask is background other views saw
+    export = out / "export"
+    assert (export / "scene.ply").is_file() and not (export / "object").exists()  # no object modelled, no asset
     fitted = run_pipeline(tmp_path / "out", inputs, overrides=[*FAST, "fit.object_masks=fit"], until="remove")
     assert json.loads((fitted.path("fit") / "fit.json").read_text())["object_masks"] == "fit"
     selected = json.loads((fitted.path("masks") / "masks.json").read_text())["object_gaussians"]

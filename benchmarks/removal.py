@@ -42,7 +42,8 @@ The fit without the object (session 16): every scene of (a) and (b) gives a mask
 the default ``fit.object_masks=auto`` leaves the masked pixels out of the fit; the numbers above were
 measured with the object fitted (now ``--set fit.object_masks=fit``). Mask PSNR / feat, fit -> ignore,
 same machine: synthetic ours 24.72 / 0.060 -> 24.22 / 0.055 (delete-only 24.43 -> 23.94, fsr-refit
-20.90 -> 21.00, no-sbm 24.04 -> 24.46), with fit.seed 1 ours 24.82 / 0.075 -> 26.17 / 0.046; lund + box
+20.90 -> 21.00, no-sbm 24.04 -> 24.46), with fit.seed 1 ours 24.82 / 0.075 -> 26.17 / 0.046, with
+fit.seed 2 25.09 / 0.056 -> 24.94 / 0.057 (mean of the three 24.88 -> 25.11); lund + box
 ours 15.06 / 0.199 -> 15.43 / 0.205 (delete-only 12.46 -> 14.96, fsr-refit 15.37 / 0.207 -> 15.02 /
 0.244, no-sbm 14.92 -> 15.16), with fit.seed 1 ours 14.96 / 0.209 -> 15.63 / 0.177 (fsr-refit 15.57 / 0.261 -> 15.28 /
 0.224); statue + box ours 20.80 / 0.141 -> 21.08 / 0.115 (delete-only 19.37 -> 21.77, fsr-refit 20.75

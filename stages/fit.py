@@ -225,13 +225,10 @@ def drop_masked_points(pts: SfmPoints, views: list, cam_index: dict[str, int]) -
             ids = np.unique(pts.obs_point[pts.obs_view == ci])
         else:
             ids = np.arange(len(pts.xyz))
-        uv, z = v.camera.project(pts.xyz[ids])
-        wt = v.weight.numpy()
-        h, w = wt.shape
-        ok = (z > 1e-6) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
-        ids, uv = ids[ok], uv[ok]
+        px, _, in_image = v.camera.pixels(pts.xyz[ids])
+        ids, px = ids[in_image], px[in_image]
         seen[ids] += 1
-        inside[ids] += wt[uv[:, 1].astype(np.int64), uv[:, 0].astype(np.int64)] < 0.5
+        inside[ids] += v.weight.numpy()[px[:, 1], px[:, 0]] < 0.5
     drop = (seen > 0) & (inside >= 0.5 * seen)
     if not drop.any():
         return pts, 0
@@ -288,10 +285,12 @@ def depth_points(pts: SfmPoints, views: list, cam_index: dict[str, int], n_new: 
             continue
         uv, z = uv[inside], z[inside]
         px = np.stack([rng.uniform(0, cam.width, per_view), rng.uniform(0, cam.height, per_view)], axis=1)
+        img = v.image.numpy()
+        ix = np.clip(px[:, 0].astype(np.int64), 0, img.shape[1] - 1)
+        iy = np.clip(px[:, 1].astype(np.int64), 0, img.shape[0] - 1)
         if v.weight is not None:  # no point from pixels the loss ignores (a masked-out object)
-            wt = v.weight.numpy()
-            px = px[wt[np.clip(px[:, 1].astype(np.int64), 0, wt.shape[0] - 1),
-                       np.clip(px[:, 0].astype(np.int64), 0, wt.shape[1] - 1)] >= 0.5]
+            supervised = v.weight.numpy()[iy, ix] >= 0.5
+            px, ix, iy = px[supervised], ix[supervised], iy[supervised]
             if not len(px):
                 continue
         kk = min(k, len(z))
@@ -306,9 +305,6 @@ def depth_points(pts: SfmPoints, views: list, cam_index: dict[str, int], n_new: 
         pc_new = (rays * depth[None]).T
         R, t = cam.cam_from_world[:3, :3], cam.cam_from_world[:3, 3]
         out_xyz.append((pc_new - t) @ R)  # world = R^T (p - t)
-        img = v.image.numpy()
-        ix = np.clip(px[:, 0].astype(np.int64), 0, img.shape[1] - 1)
-        iy = np.clip(px[:, 1].astype(np.int64), 0, img.shape[0] - 1)
         out_rgb.append(np.clip(np.round(img[iy, ix] * 255), 0, 255).astype(np.uint8))
     if not out_xyz:
         return np.zeros((0, 3)), np.zeros((0, 3), np.uint8)

@@ -75,11 +75,12 @@ Methods (rows), DESIGN.md sections 7 and 8:
   (the SPIn-NeRF-style baseline: no use of what other views saw behind the object):
   ``remove.hole_mode=mask inpaint.backend=opencv inpaint.multiview=false refine.max_rounds=0``
   (finetune on). Multi-view projection is switched off too, otherwise the "per-view" baseline would
-  still carry the reference view's fill into the others (stages/inpaint.py does that for any backend).
+  still fuse the views' fills (``inpaint.reference``; stages/inpaint.py does that for any backend).
 * ``no-sbm``: ours with FSR instead of SBM: ``inpaint.backend=opencv`` (multi-view + RPR + finetune;
   RPR then retrieves source blocks itself for the FSR fill, see stages/refine.py).
 * ``no-rpr``: ours without RPR: ``refine.max_rounds=0`` (stages/removal/rpr.py ``refine_view`` then
-  returns the inpainted image unchanged; the refine stage still re-projects the unchanged reference).
+  returns the inpainted image unchanged; with a single reference view the refine stage still
+  re-projects the unchanged reference).
 * ``no-sbm-no-rpr`` (not a baseline of the target): FSR without RPR, ``inpaint.backend=opencv
   refine.max_rounds=0``. SBM's fills have no block with too little detail, so ours vs no-rpr cannot
   show what RPR does; no-sbm vs this row shows it where it has work (an [INFO] line).

@@ -23,15 +23,23 @@ diffusers is installed, else sbm; the report says which ran and why). The defaul
 no weights on the machine and no benchmark of the diffusion refinement on ground truth yet, nothing
 supports making a backend with multi-GB weights the default.
 
-Multi-view (``multiview = true`` and the remove folder has cameras and completed depth): the
-reference view (``reference``: ``largest`` hole, ``central`` camera, or a view name) is filled first;
-its fill is lifted to 3D and carried into every other view (``projection``), which inpaints only what
-is still missing. Only the parts of a hole that lie within ``carry_max_rim`` pixels of their rim are
-carried: the completed depth that lifts the fill is interpolated from the rim, so deep inside a thick
-hole it is a guess (see ``InpaintParams.carry_max_rim``). Each view is a cached item; the other views'
-keys include the reference's result.
-``reference = "smallest_first"``: no single reference; the views are filled smallest hole first and
-each takes what every view before it inpainted (their results enter its key).
+Multi-view (``multiview = true`` and the remove folder has cameras and completed depth), by
+``reference``:
+
+* ``consensus`` (default): every view is filled on its own (a cached item, the same as with
+  ``multiview = false``); then each hole pixel that may be carried is lifted to 3D with its completed
+  depth, looked up in every other view's own fill (``projection``) and set to the per-channel median
+  of those fills and its own (:func:`~sgpor_pipeline.removal.multiview.consensus_fill`). The views
+  agree, and no single view's unlucky fill is copied into all the others.
+* ``largest`` hole, ``central`` camera, or a view name: that reference view is filled first; its fill
+  is lifted to 3D and carried into every other view, which inpaints only what is still missing. The
+  other views' item keys include the reference's result.
+* ``smallest_first``: no single reference; the views are filled smallest hole first and each takes
+  what every view before it inpainted (their results enter its key).
+
+Only the parts of a hole that lie within ``carry_max_rim`` pixels of their rim and whose rim lies on
+a plane (``carry_max_misfit``) are carried: the completed depth that lifts a fill is interpolated
+from the rim, so deep inside a thick hole or across a depth step it is a guess.
 """
 
 from __future__ import annotations
@@ -52,9 +60,12 @@ from sgpor_pipeline.hashing import hash_obj
 from sgpor_pipeline.imageio import read_image, read_labels, write_labels, write_mask01, write_png
 from sgpor_pipeline.removal import diffusion as sd
 from sgpor_pipeline.removal.multiview import (
+    CONSENSUS,
     FILLED_INPAINTED,
+    FILLED_PROJECTED,
     PROGRESSIVE,
     choose_reference,
+    consensus_fill,
     fill_view,
     gather_from_views,
     load_remove_folder,
@@ -93,12 +104,18 @@ class InpaintParams:
     # 0.056 (held-out views 25.56 vs 25.34). A part of a hole thicker than two blocks is not carried
     # (carry_max_rim): lund + box's views fill themselves.
     multiview: bool = True
-    # "largest" hole, "central" camera or a view name: that view is filled first and carried into the
-    # others; "smallest_first": no single reference, every view (smallest hole first, the order the
-    # remove stage completed the depths in) takes what the views before it inpainted. Mask PSNR,
-    # largest / smallest_first: synthetic 25.37 / 25.28, lund + box 13.51 / 14.03 (there the far
-    # views' small fills, magnified into the near views, are blocky but closer to a blur)
-    reference: str = "largest"
+    # "consensus": every view filled on its own, then its carried pixels take the median of all views'
+    # fills there (see the module doc); "largest" hole, "central" camera or a view name: that view is
+    # filled first and carried into the others; "smallest_first": no single reference, every view
+    # (smallest hole first, the order the remove stage completed the depths in) takes what the views
+    # before it inpainted. Older measurements, largest / smallest_first: synthetic 25.37 / 25.28,
+    # lund + box 13.51 / 14.03. benchmarks/removal.py (x86_64_v3, fit without the object), mask PSNR /
+    # feat, largest -> consensus: synthetic 24.22 / 0.055 -> 26.13 / 0.050 (no-sbm 24.46 -> 25.88;
+    # held-out views, --novel: 25.31 / 0.088 -> 25.31 / 0.086). The reference's fill of the synthetic
+    # contact patch was one unlucky match (16.2 dB in its hole; the views' own fills 17.2 on average,
+    # their median 18.3), and every view copied it. Lund + box and statue + box carry nothing (their
+    # rims are not planar: carry_max_misfit), so the mode does not change them.
+    reference: str = "consensus"
     projection: Literal["backward", "splat"] = "backward"
     # A connected part of a view's hole is carried into the other views only when none of its pixels
     # lies farther than this from its rim (:func:`~sgpor_pipeline.removal.multiview.pinned_parts`;
@@ -233,7 +250,8 @@ class InpaintStage(Stage):
         ref = -1
         multiview = p.multiview and data.has_geometry and len(with_hole) > 1
         progressive = multiview and p.reference == PROGRESSIVE
-        if multiview and not progressive:
+        consensus = multiview and p.reference == CONSENSUS
+        if multiview and not progressive and not consensus:
             ref = choose_reference(holes, [v.camera for v in data.views], p.reference, names)
         elif p.multiview and len(with_hole) > 1 and not data.has_geometry:
             ctx.log.warning("the remove folder has no cameras/depth: views are inpainted independently")
@@ -326,6 +344,9 @@ class InpaintStage(Stage):
             if progressive:
                 key.update(role="progressive", before=list(digests_done))
                 sources = list(done)
+            elif consensus:  # every view on its own first (the same item as with multiview off)
+                key.update(role="view", ref=None)
+                sources = []
             else:
                 key.update(role="reference" if i == ref else "view",
                            ref=digests_done[0] if (ref >= 0 and i != ref) else None)
@@ -337,15 +358,23 @@ class InpaintStage(Stage):
             if progressive or i == ref:
                 files = ("image.png", "filled_from.png")
                 digests_done.append(hash_obj([ctx.file_digest(items[name] / f) for f in files]))
+        fused = self._consensus(data, items, holes, p) if consensus else {}
         summary: dict[str, dict] = {}
         for i, v in enumerate(data.views):
             name = v.name
             if name in items:
                 item = items[name]
-                _link_or_copy(item / "image.png", ctx.out_dir / "images" / f"{name}.png")
-                _link_or_copy(item / "filled_from.png", ctx.out_dir / "filled_from" / f"{name}.png")
-                _link_or_copy(item / "source.npz", ctx.out_dir / "source" / f"{name}.npz")
                 summary[name] = json.loads((item / "info.json").read_text())
+                if name in fused:
+                    img, filled_from = fused[name]
+                    write_png(ctx.out_dir / "images" / f"{name}.png", img)
+                    write_labels(ctx.out_dir / "filled_from" / f"{name}.png", filled_from)
+                    summary[name].update(projected=int((filled_from == FILLED_PROJECTED).sum()),
+                                         inpainted=int((filled_from == FILLED_INPAINTED).sum()))
+                else:
+                    _link_or_copy(item / "image.png", ctx.out_dir / "images" / f"{name}.png")
+                    _link_or_copy(item / "filled_from.png", ctx.out_dir / "filled_from" / f"{name}.png")
+                _link_or_copy(item / "source.npz", ctx.out_dir / "source" / f"{name}.npz")
             else:  # no hole: the context image (see the remove stage) is the result
                 _link_or_copy(v.context_file, ctx.out_dir / "images" / f"{name}.png")
                 write_mask01(ctx.out_dir / "filled_from" / f"{name}.png", np.zeros(holes[i].shape, bool))
@@ -357,8 +386,9 @@ class InpaintStage(Stage):
             "backend_requested": p.backend,
             "backend_reason": reason,
             "features": p.features if uses_sbm else None,
-            "reference": names[ref] if ref >= 0 else (PROGRESSIVE if progressive else None),
-            "multiview": ref >= 0 or progressive,
+            "reference": names[ref] if ref >= 0 else (PROGRESSIVE if progressive else
+                                                      CONSENSUS if consensus else None),
+            "multiview": ref >= 0 or progressive or consensus,
             "block_size": p.block_size,
             "views": summary,
             "hole_pixels": sum(s["hole_pixels"] for s in summary.values()),
@@ -379,3 +409,28 @@ class InpaintStage(Stage):
                          views_with_hole=len(with_hole), projected=report["projected"], inpainted=report["inpainted"])
         if not with_hole:
             ctx.log.warning("no view has a hole to inpaint: the context images are passed through")
+
+    @staticmethod
+    def _consensus(data, items: dict[str, Path], holes: list[np.ndarray], p: InpaintParams
+                   ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """``reference = "consensus"``: every view's own fill, its carried parts replaced by the median
+        of all views' own fills there (:func:`~sgpor_pipeline.removal.multiview.consensus_fill`);
+        view name -> (image, filled_from: projected where another view's fill took part)."""
+        filled: list[tuple | None] = []
+        for v, hole in zip(data.views, holes):
+            if v.name not in items:
+                filled.append(None)
+                continue
+            depth = v.depth()
+            carry = pinned_parts(hole, p.block_size if p.carry_max_rim < 0 else p.carry_max_rim)
+            carry &= planar_parts(hole, depth, p.carry_max_misfit)
+            filled.append((read_image(items[v.name] / "image.png"), v.camera, depth, carry))
+        out = {}
+        for i, v in enumerate(data.views):
+            if filled[i] is None:
+                continue
+            img, from_others, _ = consensus_fill(i, filled, p.projection, p.depth_tol)
+            filled_from = read_labels(items[v.name] / "filled_from.png")
+            filled_from[from_others] = FILLED_PROJECTED
+            out[v.name] = (img, filled_from)
+        return out

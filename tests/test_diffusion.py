@@ -203,7 +203,8 @@ def test_inpaint_stage_diffusion_backend_multiview_and_cache(weights, tiny, tmp_
     remove = write_remove_fixture(scene, tmp_path / "remove", holes="mask")
     monkeypatch.delenv(sd.ENV_VAR, raising=False)
     # carry_max_rim 0: the fixture's depth is exact, every part of a hole is carried (multi-view plumbing)
-    small = {"diffusion_resolution": 32, "diffusion_steps": 4, "block_size": 9, "carry_max_rim": 0}
+    small = {"diffusion_resolution": 32, "diffusion_steps": 4, "block_size": 9, "carry_max_rim": 0,
+             "reference": "largest"}  # (one reference: only what a view inpainted itself is refined)
     builds: list = []
     params = InpaintParams(backend="diffusion", diffusion_model=str(weights[0]), **small)
     ctx = StageContext.standalone(tmp_path, "inpaint", params, {"remove": remove}, builds)

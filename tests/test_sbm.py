@@ -20,6 +20,7 @@ from sgpor_pipeline.removal.features import (
     make_backend,
 )
 from sgpor_pipeline.removal.multiview import (
+    consensus_fill,
     pinned_parts,
     planar_parts,
     sample_bilinear,
@@ -297,7 +298,7 @@ def test_inpaint_stage_multiview_is_consistent_and_cached(scene, tmp_path):
     remove = write_remove_fixture(scene, tmp_path / "remove", holes="mask")
     builds: list = []
     # the fixture's completed depth is the true depth, so every part of a hole may be carried
-    carry_all = InpaintParams(carry_max_rim=0)
+    carry_all = InpaintParams(reference="largest", carry_max_rim=0)
     ctx = StageContext.standalone(tmp_path, "inpaint", carry_all, {"remove": remove}, builds)
     InpaintStage().run(ctx)
     out = ctx.out_dir
@@ -351,6 +352,59 @@ def test_inpaint_stage_progressive_order_carries_every_earlier_fill(scene, tmp_p
     assert prog_err < 0.6 * consistency_error(scene, ctx_single.out_dir)
     InpaintStage().run(StageContext.standalone(tmp_path, "inpaint", params, {"remove": remove}, builds))
     assert len(builds) == 4  # cached
+
+
+def test_consensus_fill_outvotes_one_views_wrong_fill(scene):
+    """Every view's own fill at the same surface point: the median over them replaces one wrong fill
+    (view 0 painted white) by what the others agree on, in every view, and leaves the rest alone."""
+    n = len(scene.cameras)
+    filled = []
+    for i in range(n):
+        fill = scene.images_gt[i].copy()
+        if i == 0:
+            fill[scene.masks[i]] = 1.0
+        filled.append((fill, scene.cameras[i], scene.depth_gt[i], scene.masks[i]))
+    for i in range(n):
+        img, fused, votes = consensus_fill(i, filled, "backward", 0.01)
+        m = scene.masks[i]
+        assert img.dtype == np.float32 and img.shape == scene.images_gt[i].shape
+        assert not (fused & ~m).any() and fused.sum() > 0.5 * m.sum()
+        assert (votes[fused] >= 2).all() and (votes[m & ~fused] <= 1).all() and not votes[~m].any()
+        assert np.array_equal(img[~m], filled[i][0][~m])  # only the carried pixels change
+        err = np.abs(img - scene.images_gt[i]).mean(-1)
+        assert err[fused & (votes >= 3)].mean() < 0.03, i  # two right fills outvote the white one
+        if i == 0:
+            assert np.abs(filled[0][0] - scene.images_gt[0]).mean(-1)[fused].mean() > 5 * err[fused].mean()
+    # a view without a hole neither contributes nor is completed
+    no_hole = [None] + filled[1:]
+    img, fused, votes = consensus_fill(1, no_hole, "backward", 0.01)
+    assert votes.max() <= n - 1
+    assert np.abs(img - scene.images_gt[1]).mean(-1)[fused].mean() < 0.03
+
+
+def test_inpaint_stage_consensus_agrees_across_views_and_reuses_the_own_fills(scene, tmp_path):
+    """reference = consensus: every view is filled on its own (the items of multiview = false), then
+    each takes the median of all fills at its carried pixels: the views agree as well as with one
+    reference, and the own fills come from the cache."""
+    from sgpor_pipeline.stages.inpaint import InpaintParams, InpaintStage
+
+    remove = write_remove_fixture(scene, tmp_path / "remove", holes="mask")
+    builds: list = []
+    single = StageContext.standalone(tmp_path, "inpaint", InpaintParams(multiview=False), {"remove": remove}, builds)
+    InpaintStage().run(single)
+    assert len(builds) == 4
+    single_err = consistency_error(scene, single.out_dir)
+    params = InpaintParams(reference="consensus", carry_max_rim=0)  # exact depth: carry every part
+    ctx = StageContext.standalone(tmp_path, "inpaint", params, {"remove": remove}, builds)  # (same items)
+    InpaintStage().run(ctx)
+    assert len(builds) == 4  # the own fills were cached items
+    report = json.loads((ctx.out_dir / "inpaint.json").read_text())
+    assert report["multiview"] and report["reference"] == "consensus"
+    assert all(v["projected"] > 0 for v in report["views"].values())
+    for i, cam in enumerate(scene.cameras):
+        ff = np.asarray(cv2.imread(str(ctx.out_dir / "filled_from" / f"{cam.name}.png"), -1))
+        assert np.array_equal(ff > 0, scene.masks[i])
+    assert consistency_error(scene, ctx.out_dir) < 0.6 * single_err
 
 
 def test_pinned_parts_keeps_the_thin_parts_of_a_hole():

@@ -23,7 +23,9 @@ part of them), which the tests and benchmarks use.
 
 Multi-view consistency (DESIGN.md section 7): a reference view is filled first, its filled pixels
 are lifted to 3D with its completed depth and carried into the other views, and only what is still
-missing there is inpainted. The inpaint stage carries only the :func:`pinned_parts` of a hole, where
+missing there is inpainted; or (:func:`consensus_fill`, the inpaint stage's default) every view is
+filled on its own and each carried pixel takes the median of all views' fills at its surface point.
+The inpaint stage carries only the :func:`pinned_parts` and :func:`planar_parts` of a hole, where
 the completed depth is held by the surrounding surface. Two ways to carry them: ``backward``
 (default: every hole pixel of the other view is lifted with that view's completed depth, projected
 into the reference, and takes the reference's filled colour there when the depths agree, i.e. the
@@ -47,6 +49,7 @@ from sgpor_pipeline.scene import Camera, load_cameras, save_cameras
 PROJECTION_MODES = ("backward", "splat")
 REFERENCE_MODES = ("largest", "central")
 PROGRESSIVE = "smallest_first"  # no single reference: every view carries what the views before it inpainted
+CONSENSUS = "consensus"  # no reference: every view is filled on its own, then each takes the views' median
 
 
 # --------------------------------------------------------------------------------------------------
@@ -239,6 +242,38 @@ def gather_from_views(sources: list[tuple[np.ndarray, Camera, np.ndarray, np.nda
         out[g] = col[g]
         got |= g
     return out, got
+
+
+def consensus_fill(i: int, filled: list[tuple[np.ndarray, Camera, np.ndarray, np.ndarray] | None],
+                   mode: str = "backward", depth_tol: float = 0.02) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """View i's carried pixels completed by the per-channel median of every view's own fill there.
+
+    ``filled[j]``: (image filled on its own, camera, completed depth, mask of the pixels it may carry
+    and receive) or None (no hole). Each carried pixel of view i is lifted with its completed depth
+    and looked up in every other view's fill (:func:`warp_from_reference`: the same surface point,
+    depths within ``depth_tol``); the median over those colours and view i's own is the result.
+    Independent fills disagree where the photos do not decide what lies behind the object; the
+    median keeps what most of them agree on, and every view takes it from the same set of fills,
+    so the views agree. Returns (image HxWx3 float32: view i's fill with those pixels replaced,
+    fused bool HxW: pixels at least one other view contributed to, votes int32 HxW: fills that
+    reached each carried pixel, its own included)."""
+    image, cam, depth, carry = filled[i]
+    out = np.asarray(image, np.float32).copy()
+    votes = np.zeros(carry.shape, np.int32)
+    ys, xs = np.nonzero(carry)
+    if len(ys) == 0:
+        return out, np.zeros(carry.shape, bool), votes
+    stack = [out[ys, xs]]
+    for j, other in enumerate(filled):
+        if j == i or other is None or not other[3].any():
+            continue
+        col, got = warp_from_reference(other[0], other[1], other[2], other[3], cam, depth, carry, mode, depth_tol)
+        stack.append(np.where(got[ys, xs, None], col[ys, xs], np.nan).astype(np.float32))
+    values = np.stack(stack)  # [views, pixels, 3]; NaN where a view's fill does not reach the pixel
+    n = np.isfinite(values[..., 0]).sum(0)
+    out[ys, xs] = np.nanmedian(values, axis=0)
+    votes[ys, xs] = n
+    return out, votes > 1, votes
 
 
 def choose_reference(holes: list[np.ndarray], cameras: list[Camera | None], mode: str = "largest",

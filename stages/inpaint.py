@@ -145,7 +145,7 @@ class InpaintParams:
     # holes scored 18.79 dB, filled by each view itself 20.40, and the finetune no longer spreads the
     # misplaced fills over the seen background (20.28 -> 21.38 dB there).
     # With reference = consensus a misplaced fill is one vote of many: carrying every part (this and
-    # carry_max_rim 0) gives lund + box 15.43 / 0.205 -> 15.54 / 0.209 (the views' 2D fills agree:
+    # carry_max_rim 0) gives lund + box 15.43 / 0.206 -> 15.54 / 0.209 (the views' 2D fills agree:
     # cons2d 0.150 -> 0.028), statue + box 21.08 / 0.115 -> 21.28 / 0.112; one fit each, small gains
     # and a little blur: the limits stay.
     carry_max_misfit: float = 0.1

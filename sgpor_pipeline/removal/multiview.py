@@ -295,7 +295,7 @@ def choose_reference(holes: list[np.ndarray], cameras: list[Camera | None], mode
     if names is not None and mode in names:
         return names.index(mode)
     raise PipelineError(f"unknown reference view {mode!r}",
-                        fix=f"use {' or '.join(REFERENCE_MODES)} or a view name")
+                        fix=f"use {', '.join((CONSENSUS, PROGRESSIVE) + REFERENCE_MODES)} or a view name")
 
 
 # --------------------------------------------------------------------------------------------------

@@ -55,7 +55,7 @@ Consensus fills (session 17, ``inpaint.reference=consensus``, the default since)
 on its own and each carried hole pixel takes the median of all views' fills (before: the largest
 hole's view was filled first and copied into the others). Synthetic, fit without the object, mask
 PSNR / feat, largest -> consensus, fit.seed 0 / 1 / 2: ours 24.22 / 26.17 / 24.94 -> 26.13 / 26.31 /
-25.60 (mean 25.11 -> 26.01; feat 0.055 / 0.046 / 0.057 -> 0.050 / 0.046 / 0.049), no-sbm 24.46 /
+25.60 (mean 25.11 -> 26.01; feat 0.055 / 0.046 / 0.057 -> 0.050 / 0.042 / 0.052), no-sbm 24.46 /
 25.24 / 24.46 -> 25.88 / 25.89 / 25.44; delete-only (unchanged) 23.94 / 24.54 / 23.91. Held-out views
 (``--novel``, seed 0): 25.31 / 0.088 -> 25.31 / 0.086. With the object fitted (``fit.object_masks=fit``,
 seed 0): ours 24.72 / 0.060 -> 24.83 / 0.047, no-sbm 24.04 -> 24.66. Lund + box and statue + box carry nothing

@@ -113,7 +113,7 @@ class InpaintParams:
     # lund + box 13.51 / 14.03. benchmarks/removal.py (x86_64_v3, fit without the object), mask PSNR /
     # feat, largest -> consensus: synthetic 24.22 / 0.055 -> 26.13 / 0.050 (no-sbm 24.46 -> 25.88;
     # held-out views, --novel: 25.31 / 0.088 -> 25.31 / 0.086), fit.seed 1 26.17 / 0.046 -> 26.31 /
-    # 0.046, fit.seed 2 24.94 / 0.057 -> 25.60 / 0.049 (mean of the three 25.11 -> 26.01); with the
+    # 0.042, fit.seed 2 24.94 / 0.057 -> 25.60 / 0.052 (mean of the three 25.11 -> 26.01); with the
     # object fitted (fit.object_masks=fit, seed 0) 24.72 / 0.060 -> 24.83 / 0.047. Every view
     # on its own (multiview = false): 25.36 at the training views but 24.75 at held-out ones: the
     # re-fit memorises each view's own fill. The reference's fill of the synthetic

@@ -46,10 +46,12 @@ same machine: synthetic ours 24.72 / 0.060 -> 24.22 / 0.055 (delete-only 24.43 -
 fit.seed 2 25.09 / 0.056 -> 24.94 / 0.057 (mean of the three 24.88 -> 25.11); lund + box
 ours 15.06 / 0.199 -> 15.43 / 0.205 (delete-only 12.46 -> 14.96, fsr-refit 15.37 / 0.207 -> 15.02 /
 0.244, no-sbm 14.92 -> 15.16), with fit.seed 1 ours 14.96 / 0.209 -> 15.63 / 0.177 (fsr-refit 15.57 / 0.261 -> 15.28 /
-0.224); statue + box ours 20.80 / 0.141 -> 21.08 / 0.115 (delete-only 19.37 -> 21.77, fsr-refit 20.75
--> 20.70, no-sbm 20.09 -> 20.98; with ``remove.hole_alpha=0.5`` ours 22.27 / 0.084, but synthetic
-fit.seed 1 falls 26.17 -> 24.62, so 0.9 stays). Ours leads fsr-refit on every one of these fits. The
-masks are then given, not propagated: protocol (c) sets ``fit.object_masks=fit`` to measure propagation.
+0.224), with fit.seed 2 (session 17) ours 14.51 / 0.211 -> 15.37 / 0.189 (fsr-refit 14.95 / 0.235 -> 14.90 /
+0.215, delete-only 11.96 -> 15.04); statue + box ours 20.80 / 0.141 -> 21.08 / 0.115 (delete-only
+19.37 -> 21.77, fsr-refit 20.75 -> 20.70, no-sbm 20.09 -> 20.98; with ``remove.hole_alpha=0.5`` ours
+22.27 / 0.084, but synthetic fit.seed 1 falls 26.17 -> 24.62, so 0.9 stays). Ours leads fsr-refit
+on every one of these fits. The masks are then given, not propagated: protocol (c) sets
+``fit.object_masks=fit`` to measure propagation.
 
 Consensus fills (session 17, ``inpaint.reference=consensus``, the default since): every view is filled
 on its own and each carried hole pixel takes the median of all views' fills (before: the largest

@@ -292,8 +292,9 @@ class InpaintStage(Stage):
         carriers: dict[int, tuple | None] = {}  # view index -> what it carries, read once
 
         def carrier(j: int) -> tuple | None:
-            """(image, camera, completed depth, pixels to carry) of filled view j: the reference's filled
-            pixels, or (progressive) the pixels the view inpainted itself; None when there are none."""
+            """(image, camera, completed depth, pixels to carry) of filled view j: the reference's (or,
+            consensus, every view's own) filled pixels, or (progressive) the pixels the view inpainted
+            itself; None when there are none."""
             if j not in carriers:
                 item, sv = items[names[j]], data.views[j]
                 filled = read_labels(item / "filled_from.png")
@@ -372,7 +373,17 @@ class InpaintStage(Stage):
             if progressive or i == ref:
                 files = ("image.png", "filled_from.png")
                 digests_done.append(hash_obj([ctx.file_digest(items[name] / f) for f in files]))
-        fused = self._consensus(data, items, holes, p) if consensus else {}
+        # consensus: every view's own fill, its carried pixels replaced by the median of all views' own
+        # fills there; filled_from says "projected" where another view's fill took part
+        fused: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        if consensus:
+            filled = [carrier(i) if names[i] in items else None for i in range(len(names))]
+            for i, own in enumerate(filled):
+                if own is not None:
+                    img, from_others, _ = consensus_fill(i, filled, p.projection, p.depth_tol)
+                    filled_from = read_labels(items[names[i]] / "filled_from.png")
+                    filled_from[from_others] = FILLED_PROJECTED
+                    fused[names[i]] = (img, filled_from)
         summary: dict[str, dict] = {}
         for i, v in enumerate(data.views):
             name = v.name
@@ -423,26 +434,3 @@ class InpaintStage(Stage):
                          views_with_hole=len(with_hole), projected=report["projected"], inpainted=report["inpainted"])
         if not with_hole:
             ctx.log.warning("no view has a hole to inpaint: the context images are passed through")
-
-    @staticmethod
-    def _consensus(data, items: dict[str, Path], holes: list[np.ndarray], p: InpaintParams
-                   ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-        """``reference = "consensus"``: every view's own fill, its carried parts replaced by the median
-        of all views' own fills there (:func:`~sgpor_pipeline.removal.multiview.consensus_fill`);
-        view name -> (image, filled_from: projected where another view's fill took part)."""
-        filled: list[tuple | None] = []
-        for v, hole in zip(data.views, holes):
-            if v.name not in items:
-                filled.append(None)
-                continue
-            depth = v.depth()
-            filled.append((read_image(items[v.name] / "image.png"), v.camera, depth, carried_parts(hole, depth, p)))
-        out = {}
-        for i, v in enumerate(data.views):
-            if filled[i] is None:
-                continue
-            img, from_others, _ = consensus_fill(i, filled, p.projection, p.depth_tol)
-            filled_from = read_labels(items[v.name] / "filled_from.png")
-            filled_from[from_others] = FILLED_PROJECTED
-            out[v.name] = (img, filled_from)
-        return out

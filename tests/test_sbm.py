@@ -21,6 +21,7 @@ from sgpor_pipeline.removal.features import (
 )
 from sgpor_pipeline.removal.multiview import (
     consensus_fill,
+    consensus_partners,
     pinned_parts,
     planar_parts,
     sample_bilinear,
@@ -380,6 +381,29 @@ def test_consensus_fill_outvotes_one_views_wrong_fill(scene):
     img, fused, votes = consensus_fill(1, no_hole, "backward", 0.01)
     assert votes.max() <= n - 1
     assert np.abs(img - scene.images_gt[1]).mean(-1)[fused].mean() < 0.03
+
+
+def test_consensus_partners_rank_views_by_overlap_and_cap_the_votes(scene):
+    """consensus_views: the views whose fills reach most of a view's carried pixels vote, best first;
+    a view whose carried pixels lie elsewhere on the surface reaches none and is left out."""
+    n = len(scene.cameras)
+    filled = [(scene.images_gt[i], scene.cameras[i], scene.depth_gt[i], scene.masks[i]) for i in range(n)]
+    # the last view carries only a strip at its top edge, away from the other views' holes
+    far = np.zeros_like(scene.masks[-1])
+    far[:3] = True
+    filled[-1] = (scene.images_gt[-1], scene.cameras[-1], scene.depth_gt[-1], far & ~scene.masks[-1])
+    everyone = consensus_partners(0, filled, 0, 0.01)
+    assert 0 not in everyone and n - 1 not in everyone and len(everyone) >= 1
+    # the order follows the fraction of view 0's carried pixels each view's fill reaches (full warps)
+    reach = {j: int(warp_from_reference(filled[j][0], filled[j][1], filled[j][2], filled[j][3], scene.cameras[0],
+                                        scene.depth_gt[0], scene.masks[0], "backward", 0.01)[1].sum())
+             for j in everyone}
+    assert reach[everyone[0]] == max(reach.values()) and min(reach.values()) > 0
+    assert consensus_partners(0, filled, 1, 0.01) == everyone[:1]
+    _, _, votes_all = consensus_fill(0, filled, "backward", 0.01)
+    img, fused, votes = consensus_fill(0, filled, "backward", 0.01, max_views=1)
+    assert votes.max() <= 2 and votes_all.max() == len(everyone) + 1
+    assert np.abs(img - scene.images_gt[0]).mean(-1)[fused].mean() < 0.03
 
 
 def test_inpaint_stage_consensus_agrees_across_views_and_reuses_the_own_fills(scene, tmp_path):

@@ -244,8 +244,39 @@ def gather_from_views(sources: list[tuple[np.ndarray, Camera, np.ndarray, np.nda
     return out, got
 
 
+def consensus_partners(i: int, filled: list[tuple[np.ndarray, Camera, np.ndarray, np.ndarray] | None],
+                       max_views: int, depth_tol: float = 0.02, sample: int = 256) -> list[int]:
+    """The (at most ``max_views``) other views whose fills reach most of view i's carried pixels.
+
+    A regular subsample of at most ``sample`` carried pixels of view i is lifted with its completed
+    depth and projected into every other view; a view scores the points that land on its own carried
+    pixels at the same depth (within ``depth_tol``, relative); among views that reach as many, the
+    nearer camera (centre distance) ranks first. Views that reach none are left out. ``max_views``
+    <= 0: every view that reaches any point."""
+    image, cam, depth, carry = filled[i]
+    ys, xs = np.nonzero(carry & np.isfinite(depth) & (depth > 0))
+    if len(ys) == 0:
+        return []
+    pick = np.unique(np.linspace(0, len(ys) - 1, min(sample, len(ys))).astype(np.int64))
+    points = cam.unproject(ys[pick], xs[pick], depth[ys[pick], xs[pick]])
+    scores: list[tuple[int, float, int]] = []
+    for j, other in enumerate(filled):
+        if j == i or other is None or not other[3].any():
+            continue
+        px, z, inside = other[1].pixels(points)
+        px, z = px[inside], z[inside]
+        zo = other[2][px[:, 1], px[:, 0]]
+        hit = other[3][px[:, 1], px[:, 0]] & np.isfinite(zo) & (np.abs(zo - z) <= depth_tol * np.abs(z))
+        if hit.any():
+            scores.append((-int(hit.sum()), float(np.linalg.norm(other[1].center - cam.center)), j))
+    scores.sort()
+    chosen = [j for _, _, j in scores]
+    return chosen[:max_views] if max_views > 0 else chosen
+
+
 def consensus_fill(i: int, filled: list[tuple[np.ndarray, Camera, np.ndarray, np.ndarray] | None],
-                   mode: str = "backward", depth_tol: float = 0.02) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                   mode: str = "backward", depth_tol: float = 0.02,
+                   max_views: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """View i's carried pixels completed by the per-channel median of every view's own fill there.
 
     ``filled[j]``: (image filled on its own, camera, completed depth, mask of the pixels it may carry
@@ -254,9 +285,11 @@ def consensus_fill(i: int, filled: list[tuple[np.ndarray, Camera, np.ndarray, np
     depths within ``depth_tol``); the median over those colours and view i's own is the result.
     Independent fills disagree where the photos do not decide what lies behind the object; the
     median keeps what most of them agree on, and every view takes it from the same set of fills,
-    so the views agree. Returns (image HxWx3 float32: view i's fill with those pixels replaced,
-    fused bool HxW: pixels at least one other view contributed to, votes int32 HxW: fills that
-    reached each carried pixel, its own included)."""
+    so the views agree. With ``max_views`` > 0 only that many other views vote: those whose fills
+    reach most of view i's carried pixels (:func:`consensus_partners`), so a capture of hundreds of
+    views costs N x max_views warps instead of N^2. Returns (image HxWx3 float32: view i's fill with
+    those pixels replaced, fused bool HxW: pixels at least one other view contributed to, votes int32
+    HxW: fills that reached each carried pixel, its own included)."""
     image, cam, depth, carry = filled[i]
     out = np.asarray(image, np.float32).copy()
     votes = np.zeros(carry.shape, np.int32)
@@ -264,9 +297,10 @@ def consensus_fill(i: int, filled: list[tuple[np.ndarray, Camera, np.ndarray, np
     if len(ys) == 0:
         return out, np.zeros(carry.shape, bool), votes
     stack = [out[ys, xs]]
-    for j, other in enumerate(filled):
-        if j == i or other is None or not other[3].any():
-            continue
+    partners = (consensus_partners(i, filled, max_views, depth_tol) if max_views > 0 else
+                [j for j, other in enumerate(filled) if j != i and other is not None and other[3].any()])
+    for j in partners:
+        other = filled[j]
         col, got = warp_from_reference(other[0], other[1], other[2], other[3], cam, depth, carry, mode, depth_tol)
         stack.append(np.where(got[ys, xs, None], col[ys, xs], np.nan).astype(np.float32))
     values = np.stack(stack)  # [views, pixels, 3]; NaN where a view's fill does not reach the pixel

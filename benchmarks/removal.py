@@ -1096,8 +1096,10 @@ def main(argv: list[str] | None = None) -> int:
         (out / "removal_benchmark.json").write_text(json.dumps(results, indent=1, default=str))
 
     kernel = rasterizer_kernel()
+    versions = library_versions()
     print("\n# removal benchmark" + (" (quick)" if args.quick else "") + f": {out} (rasterizer kernel {kernel}; "
-          "numbers compare within one kernel build only)")
+          "numbers compare within one kernel build and one set of library versions only)")
+    print("# libraries: " + ", ".join(f"{k} {v}" for k, v in versions.items()))
     for scene in GT_SCENES:
         if scene in results:
             print()
@@ -1115,6 +1117,7 @@ def main(argv: list[str] | None = None) -> int:
     summary, checks = summarise(results)
     summary["quick"] = args.quick
     summary["kernel"] = kernel
+    summary["versions"] = versions
     summary["protocol_wall_seconds"] = {s: r.get("wall_seconds") for s, r in results.items()}
     if checks:
         print("\n# targets")
@@ -1144,6 +1147,25 @@ def rasterizer_kernel() -> str:
     from sgpor_pipeline.gaussians._raster_cpu import kernel_name
 
     return kernel_name() or "none (pure PyTorch)"
+
+
+def library_versions() -> dict[str, str]:
+    """Versions of the libraries whose output the numbers depend on (the synthetic scenes' textures,
+    SfM, image resampling and blending, torch's own CPU kernels). With the same code and rasterizer
+    bits (x86_64_v3 and v4 agree bitwise), session 17's synthetic demo gave mask PSNR 26.13 and session
+    18's 25.32, on an AVX-512 machine (torch dispatches its CPU kernels by instruction set too) with a
+    fresh install that took newer releases (opencv 5.0.0.93, numpy 2.4.6, pycolmap 4.2.1, scikit-image
+    0.26.0, open3d 0.20.0, kornia 0.9.0, scipy 1.17.1): which of the two moved it is not known."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    out = {}
+    for dist in ("numpy", "torch", "opencv-contrib-python-headless", "pycolmap", "open3d", "scikit-image",
+                 "kornia", "scipy"):
+        try:
+            out[dist] = version(dist)
+        except PackageNotFoundError:
+            out[dist] = "not installed"
+    return out
 
 
 def strict_json(value: Any) -> Any:

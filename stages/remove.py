@@ -81,8 +81,8 @@ CONTEXTS = ("photos", "renders")
 
 class RemoveStage(Stage):
     name = "remove"
-    VERSION = 5  # 3: the hole-depth floor renders the object proper only (no floaters); 4: rim holes;
-    # 5: rim holes with hole_mode mask too
+    VERSION = 6  # 3: the hole-depth floor renders the object proper only (no floaters); 4: rim holes;
+    # 5: rim holes with hole_mode mask too; 6: seeds behind the completed surface (seed_depth_offset 4)
     Params = RemoveStageParams
     inputs = ("sfm", "fit", "masks")
 

@@ -330,7 +330,7 @@ def test_seeded_gaussians_lie_on_the_completed_surface(scene_and_model):
     scene, _, _ = scene_and_model
     cam, mask, depth = scene.cameras[0], scene.masks[0], scene.depth_gt[0]
     colour = np.full(depth.shape + (3,), 0.3, np.float32)
-    seeds = seed_hole_gaussians([cam], [mask], [depth], [colour], 0.02, 0, RemoveParams())
+    seeds = seed_hole_gaussians([cam], [mask], [depth], [colour], 0.02, 0, RemoveParams(seed_depth_offset=0.0))
     assert len(seeds) > 10
     xyz = seeds.means.detach().double().numpy()
     # Re-project: every seed lands inside the hole at its depth.
@@ -341,6 +341,25 @@ def test_seeded_gaussians_lie_on_the_completed_surface(scene_and_model):
     assert mask[v, u].all()
     assert np.allclose(pc[:, 2], depth[v, u], rtol=1e-4)
     assert torch.isfinite(seeds.params["scales"]).all()
+
+
+def test_seeds_sit_behind_the_completed_surface_by_the_depth_offset(scene_and_model):
+    """remove.seed_depth_offset: each seed moves that many seed spacings away from its view along the
+    pixel's ray, so it still projects into the same hole pixel of that view."""
+    scene, _, _ = scene_and_model
+    cam, mask, depth = scene.cameras[0], scene.masks[0], scene.depth_gt[0]
+    colour = np.full(depth.shape + (3,), 0.3, np.float32)
+    spacing = 0.001  # finer than the seeds' stride: no two seeds share a voxel, so both sets pair up
+    on = seed_hole_gaussians([cam], [mask], [depth], [colour], spacing, 0, RemoveParams(seed_depth_offset=0.0))
+    behind = seed_hole_gaussians([cam], [mask], [depth], [colour], spacing, 0, RemoveParams(seed_depth_offset=2.0))
+    a, b = on.means.detach().double().numpy(), behind.means.detach().double().numpy()
+    assert a.shape == b.shape and len(a) > 10
+    ra, rb = np.linalg.norm(a - cam.center, axis=1), np.linalg.norm(b - cam.center, axis=1)
+    assert np.allclose(rb - ra, 2 * spacing, atol=2e-5)  # (float32 means)
+    assert np.allclose((b - cam.center) / rb[:, None], (a - cam.center) / ra[:, None], atol=1e-5)  # same rays
+    uv, _ = cam.project(b)
+    u, v = np.floor(uv).astype(int).T
+    assert mask[np.floor(v).astype(int), np.floor(u).astype(int)].all()
 
 
 # --------------------------------------------------------------------------------------------------

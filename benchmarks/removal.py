@@ -64,8 +64,8 @@ seed 0): ours 24.72 / 0.060 -> 24.83 / 0.047, no-sbm 24.04 -> 24.66. Lund + box 
 (``inpaint.carry_max_misfit``), so their numbers do not change.
 
 Seeds behind the surface (session 18, ``remove.seed_depth_offset=4``, the default since; measured on an
-x86_64_v4 machine with the library versions of :func:`library_versions`, where the old default gave
-lower numbers than session 17's: compare within these lines). The new hole Gaussians sit 4 seed
+x86_64_v4 machine with the library versions of :func:`library_versions`, on fits that differ from
+session 17's (see there): compare within these lines). The new hole Gaussians sit 4 seed
 spacings behind the completed depth instead of on it, so they cover the holes without painting over
 the background other views saw. Mask PSNR of ours, offset 0 -> 4, synthetic fit.seed 0 / 1 / 2: 25.32
 / 25.56 / 25.32 -> 25.96 / 25.84 / 25.92 (mean 25.40 -> 25.91; holes 18.48 / 18.29 / 18.41 -> 18.75 /
@@ -1160,11 +1160,13 @@ def rasterizer_kernel() -> str:
 
 def library_versions() -> dict[str, str]:
     """Versions of the libraries whose output the numbers depend on (the synthetic scenes' textures,
-    SfM, image resampling and blending, torch's own CPU kernels). With the same code and rasterizer
-    bits (x86_64_v3 and v4 agree bitwise), session 17's synthetic demo gave mask PSNR 26.13 and session
-    18's 25.32, on an AVX-512 machine (torch dispatches its CPU kernels by instruction set too) with a
-    fresh install that took newer releases (opencv 5.0.0.93, numpy 2.4.6, pycolmap 4.2.1, scikit-image
-    0.26.0, open3d 0.20.0, kornia 0.9.0, scipy 1.17.1): which of the two moved it is not known."""
+    SfM, image resampling and blending, torch's own CPU kernels), printed and stored with the numbers.
+    Session 18 (AVX-512 machine, fresh install: opencv 5.0.0.93, numpy 2.4.6, pycolmap 4.2.1,
+    scikit-image 0.26.0, open3d 0.20.0, kornia 0.9.0, scipy 1.17.1) got synthetic seed-0 mask PSNR
+    25.32 where session 17 got 26.13 with the same code. But that session's benchmark fit also
+    differs from an idle rerun with the same cache key: the synthetic fit, run while other jobs
+    loaded the 2 cores, wrote other Gaussians than two idle runs, which agree bitwise. So the fit's
+    result can depend on the machine's load, and which cause moved the number is not known."""
     from importlib.metadata import PackageNotFoundError, version
 
     out = {}

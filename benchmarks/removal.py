@@ -1163,10 +1163,11 @@ def library_versions() -> dict[str, str]:
     SfM, image resampling and blending, torch's own CPU kernels), printed and stored with the numbers.
     Session 18 (AVX-512 machine, fresh install: opencv 5.0.0.93, numpy 2.4.6, pycolmap 4.2.1,
     scikit-image 0.26.0, open3d 0.20.0, kornia 0.9.0, scipy 1.17.1) got synthetic seed-0 mask PSNR
-    25.32 where session 17 got 26.13 with the same code. But that session's benchmark fit also
-    differs from an idle rerun with the same cache key: the synthetic fit, run while other jobs
-    loaded the 2 cores, wrote other Gaussians than two idle runs, which agree bitwise. So the fit's
-    result can depend on the machine's load, and which cause moved the number is not known."""
+    25.32 where session 17 got 26.13 with the same code. But that benchmark's synthetic fit also
+    differs from two runs of ``sgpor-pipeline demo`` with the same cache key (which agree bitwise
+    with each other): the fit inside this benchmark's process is not bit-identical to the CLI's.
+    Neither time-based checkpoints nor two busy loops on the cores changed a 700-iteration fit, so
+    the cause is not known, nor which of the two moved the number."""
     from importlib.metadata import PackageNotFoundError, version
 
     out = {}

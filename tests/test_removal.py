@@ -359,7 +359,7 @@ def test_seeds_sit_behind_the_completed_surface_by_the_depth_offset(scene_and_mo
     assert np.allclose((b - cam.center) / rb[:, None], (a - cam.center) / ra[:, None], atol=1e-5)  # same rays
     uv, _ = cam.project(b)
     u, v = np.floor(uv).astype(int).T
-    assert mask[np.floor(v).astype(int), np.floor(u).astype(int)].all()
+    assert mask[v, u].all()
 
 
 # --------------------------------------------------------------------------------------------------

@@ -173,6 +173,22 @@ def sample_bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray, row: int = 
     return out.reshape(rows * row, *image.shape[2:])[:n]
 
 
+def on_same_surface(points: np.ndarray, cam: Camera, depth: np.ndarray, filled: np.ndarray,
+                    depth_tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """Where world points [N,3] land in a view: (continuous pixel coordinates [N,2], hit bool [N]).
+    A point hits when it lies in front of the camera, inside the image, on a ``filled`` pixel whose
+    completed ``depth`` agrees with its own within ``depth_tol`` (relative): the same surface point."""
+    h, w = filled.shape
+    uv, z = cam.project(points)
+    with np.errstate(invalid="ignore"):
+        iu, iv = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+    hit = (z > 0) & (iu >= 0) & (iu < w) & (iv >= 0) & (iv < h)
+    idx = np.nonzero(hit)[0]
+    zr, zi = depth[iv[idx], iu[idx]], z[idx]
+    hit[idx] = filled[iv[idx], iu[idx]] & np.isfinite(zr) & (np.abs(zr - zi) <= depth_tol * np.abs(zi))
+    return uv, hit
+
+
 def warp_from_reference(ref_image: np.ndarray, ref_cam: Camera, ref_depth: np.ndarray, ref_filled: np.ndarray,
                         cam: Camera, depth: np.ndarray, target: np.ndarray, mode: str = "backward",
                         depth_tol: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
@@ -184,19 +200,12 @@ def warp_from_reference(ref_image: np.ndarray, ref_cam: Camera, ref_depth: np.nd
     h, w = target.shape
     out = np.zeros((h, w, 3), np.float32)
     got = np.zeros((h, w), bool)
-    rh, rw = ref_filled.shape
     if mode == "backward":
         ys, xs = np.nonzero(target & np.isfinite(depth) & (depth > 0))
         if len(ys) == 0:
             return out, got
-        uv, z = ref_cam.project(cam.unproject(ys, xs, depth[ys, xs]))
-        u, v = uv[:, 0], uv[:, 1]
-        iu, iv = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
-        ok = (z > 0) & (iu >= 0) & (iu < rw) & (iv >= 0) & (iv < rh)
-        ys, xs, u, v, z, iu, iv = ys[ok], xs[ok], u[ok], v[ok], z[ok], iu[ok], iv[ok]
-        zr = ref_depth[iv, iu]
-        ok = ref_filled[iv, iu] & np.isfinite(zr) & (np.abs(zr - z) <= depth_tol * np.abs(z))
-        ys, xs, u, v = ys[ok], xs[ok], u[ok], v[ok]
+        uv, ok = on_same_surface(cam.unproject(ys, xs, depth[ys, xs]), ref_cam, ref_depth, ref_filled, depth_tol)
+        ys, xs, u, v = ys[ok], xs[ok], uv[ok, 0], uv[ok, 1]
         if len(ys) == 0:
             return out, got
         # bilinear sample, restricted to filled reference pixels (normalised weights)
@@ -253,7 +262,7 @@ def consensus_partners(i: int, filled: list[tuple[np.ndarray, Camera, np.ndarray
     pixels at the same depth (within ``depth_tol``, relative); among views that reach as many, the
     nearer camera (centre distance) ranks first. Views that reach none are left out. ``max_views``
     <= 0: every view that reaches any point."""
-    image, cam, depth, carry = filled[i]
+    _, cam, depth, carry = filled[i]
     ys, xs = np.nonzero(carry & np.isfinite(depth) & (depth > 0))
     if len(ys) == 0:
         return []
@@ -263,12 +272,9 @@ def consensus_partners(i: int, filled: list[tuple[np.ndarray, Camera, np.ndarray
     for j, other in enumerate(filled):
         if j == i or other is None or not other[3].any():
             continue
-        px, z, inside = other[1].pixels(points)
-        px, z = px[inside], z[inside]
-        zo = other[2][px[:, 1], px[:, 0]]
-        hit = other[3][px[:, 1], px[:, 0]] & np.isfinite(zo) & (np.abs(zo - z) <= depth_tol * np.abs(z))
-        if hit.any():
-            scores.append((-int(hit.sum()), float(np.linalg.norm(other[1].center - cam.center)), j))
+        hits = int(on_same_surface(points, other[1], other[2], other[3], depth_tol)[1].sum())
+        if hits:
+            scores.append((-hits, float(np.linalg.norm(other[1].center - cam.center)), j))
     scores.sort()
     chosen = [j for _, _, j in scores]
     return chosen[:max_views] if max_views > 0 else chosen

@@ -76,6 +76,16 @@ class RemoveParams:
     # The rule helps where the fit's geometry is poor, which the mask size does not tell: off by default.
     thin_mask_rim: float = added_param(0.0)
     view_depth_tol: float = 0.05  # relative: a point deeper than another view's surface is occluded there
+    # A pixel's background point is sought along its ray from the rendered depth to this much (relative)
+    # behind it, in steps of at most view_depth_tol: the rendered expected depth lies in front of the
+    # surface (Gaussians spread along a surface are composited in the order of their centres, so the
+    # nearer ones weigh most; synthetic scene: median -4 %, -15 % at the 5th percentile, while the
+    # centres lie at +0.6 %), and a point lifted in front of the floor next to an object falls inside
+    # the object's silhouette in the other views: "unobserved" although they saw the floor there.
+    # Against the ray-cast truth (fit.seed 0; holes of min_views 1: precision / recall): sphere demo
+    # 0.18 / 0.85 -> 0.37 / 0.79 (the opacity holes alone: 0.37 / 0.70), box 0.83 / 0.95 -> 0.94 / 0.89
+    # (opacity alone 0.95 / 0.57). 0 = the rendered depth only.
+    view_depth_search: float = added_param(0.06)
     view_mask_dilate: int = 2  # px: other views' object masks are dilated by this (their edge pixels mix)
     # Hole depths completed view by view, smallest hole first, each constrained by the hole surfaces
     # already completed (one surface for what no photo saw, so the views' fills and seeds agree; see
@@ -197,10 +207,14 @@ def observing_views(cameras: list[Camera], masks: list[np.ndarray], depths: list
     """Per view i, for its ``pixels[i]`` (HxW bool): how many OTHER views show the pixel's background
     point (lifted with ``depths[i]``): it projects inside their image, outside their (dilated) object
     mask, and not behind their own surface (``depths``: completed background z-depth of every view).
-    HxW int32 maps, 0 outside ``pixels``."""
+    HxW int32 maps, 0 outside ``pixels``. The point is sought from the depth to
+    ``view_depth_search`` behind it (a view observes it when it shows one of those positions)."""
     d = max(0, params.view_mask_dilate)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * d + 1, 2 * d + 1)) if d else None
     dilated = [m if kernel is None else cv2.dilate(m.astype(np.uint8), kernel) > 0 for m in masks]
+    search = max(0.0, params.view_depth_search)
+    steps = int(np.ceil(search / params.view_depth_tol - 1e-9)) if search > 0 and params.view_depth_tol > 0 else 0
+    factors = 1.0 + search * np.arange(steps + 1) / max(steps, 1)
     counts = []
     for i, cam_i in enumerate(cameras):
         out = np.zeros(pixels[i].shape, np.int32)
@@ -210,16 +224,19 @@ def observing_views(cameras: list[Camera], masks: list[np.ndarray], depths: list
             continue
         z = depths[i][ys, xs].astype(np.float64)
         good = np.isfinite(z) & (z > 0)
-        X = cam_i.unproject(ys, xs, np.where(good, z, 1.0))
+        points = [cam_i.unproject(ys, xs, np.where(good, z * f, 1.0)) for f in factors]
         count = np.zeros(len(ys), np.int32)
         for j, cam in enumerate(cameras):
             if j == i:
                 continue
-            px, zj, inside = cam.pixels(X)
-            ok = good & inside
-            u, v = px[ok, 0], px[ok, 1]
-            ok[ok] = ~dilated[j][v, u] & ~(zj[ok] > depths[j][v, u] * (1 + params.view_depth_tol))
-            count += ok
+            seen = np.zeros(len(ys), bool)
+            for X in points:
+                px, zj, inside = cam.pixels(X)
+                ok = good & inside & ~seen
+                u, v = px[ok, 0], px[ok, 1]
+                ok[ok] = ~dilated[j][v, u] & ~(zj[ok] > depths[j][v, u] * (1 + params.view_depth_tol))
+                seen |= ok
+            count += seen
         out[ys, xs] = count
     return counts
 

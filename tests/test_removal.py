@@ -239,43 +239,31 @@ def test_hole_rim_outside_the_mask():
 def test_observing_views_finds_the_background_no_other_view_saw(scene_and_model):
     """With the true background depths: mask pixels whose background point is the floor under the
     object (inside its footprint) are observed by no other view, the rest of the mask by some."""
-    scene, model, is_object = scene_and_model
+    scene, _, _ = scene_and_model
     lo, hi = scene.object_bounds
     masks, depths = list(scene.masks), list(scene.depth_gt)
-
-    def unobserved_under_and_observed_elsewhere(depths: list[np.ndarray], search: float) -> tuple[float, float]:
-        params = RemoveParams(min_views=1, view_mask_dilate=1, view_depth_search=search)
-        under, elsewhere = [], []
-        counts = observing_views(scene.cameras, masks, depths, masks, params)
-        for i, cam in enumerate(scene.cameras):
-            ys, xs = np.nonzero(masks[i])
-            if len(ys) == 0:
-                continue
-            assert counts[i].shape == masks[i].shape and (counts[i][~masks[i]] == 0).all()
-            count = counts[i][ys, xs]
-            assert count.min() >= 0 and count.max() <= len(scene.cameras) - 1
-            X = cam.unproject(ys, xs, scene.depth_gt[i][ys, xs].astype(np.float64))  # where the pixel truly is
-            shrink = 0.1 * (hi - lo)  # away from the footprint's edge (pixel-sized mask errors)
-            inside = np.all((X[:, :2] > lo[:2] + shrink[:2]) & (X[:, :2] < hi[:2] - shrink[:2]), axis=1)
-            under.append(count[inside])
-            elsewhere.append(count[~inside])
-        under, elsewhere = np.concatenate(under), np.concatenate(elsewhere)
-        assert len(under) > 20 and len(elsewhere) > 100
-        return float((under == 0).mean()), float((elsewhere >= 1).mean())
-
-    # the true depths: lifted exactly, nothing to search
-    under, elsewhere = unobserved_under_and_observed_elsewhere(depths, 0.0)
-    assert under > 0.9 and elsewhere > 0.9, (under, elsewhere)
-    # the background's rendered depth lies in front of the surface (here about -6 %): the floor next to
-    # the object, lifted there, falls inside the object's silhouette in other views; searching behind
-    # the rendered depth finds where they saw it
-    rendered = [render_background(subset(model, ~is_object), cam)[2] for cam in scene.cameras]
-    bias = np.median(np.concatenate([(r / d - 1)[m] for r, d, m in zip(rendered, depths, masks)]))
-    assert -0.1 < bias < -0.02, bias
-    under0, elsewhere0 = unobserved_under_and_observed_elsewhere(rendered, 0.0)
-    under1, elsewhere1 = unobserved_under_and_observed_elsewhere(rendered, 0.06)
-    assert elsewhere1 > elsewhere0 + 0.03 and elsewhere1 > 0.93, (elsewhere0, elsewhere1)
-    assert under1 > 0.85, under1
+    params = RemoveParams(min_views=1, view_mask_dilate=1)
+    under, elsewhere = [], []
+    counts = observing_views(scene.cameras, masks, depths, masks, params)
+    for i, cam in enumerate(scene.cameras):
+        ys, xs = np.nonzero(masks[i])
+        if len(ys) == 0:
+            continue
+        assert counts[i].shape == masks[i].shape and (counts[i][~masks[i]] == 0).all()
+        count = counts[i][ys, xs]
+        assert count.min() >= 0 and count.max() <= len(scene.cameras) - 1
+        wfc = cam.world_from_cam
+        z = depths[i][ys, xs]
+        pc = np.stack([(xs + 0.5 - cam.K[0, 2]) / cam.K[0, 0] * z, (ys + 0.5 - cam.K[1, 2]) / cam.K[1, 1] * z, z], 1)
+        X = pc @ wfc[:3, :3].T + wfc[:3, 3]
+        shrink = 0.1 * (hi - lo)  # away from the footprint's edge (pixel-sized mask errors)
+        inside = np.all((X[:, :2] > lo[:2] + shrink[:2]) & (X[:, :2] < hi[:2] - shrink[:2]), axis=1)
+        under.append(count[inside])
+        elsewhere.append(count[~inside])
+    under, elsewhere = np.concatenate(under), np.concatenate(elsewhere)
+    assert len(under) > 20 and len(elsewhere) > 100
+    assert (under == 0).mean() > 0.9, (under == 0).mean()
+    assert (elsewhere >= 1).mean() > 0.8, (elsewhere >= 1).mean()
     # the hole rule: unobserved mask pixels join the opacity holes, nothing outside the mask does
     mask = masks[0]
     unobserved = np.zeros_like(mask)

@@ -124,7 +124,10 @@ Protocols:
     holes, and the opaque, unsupervised (dark) Gaussians the fit left on the floor under the box stay
     as "seen" background in the rest; the SBM fills are not what decides. ``remove.min_views=1`` finds
     them (25.43 / 24.70 / 25.76) but costs the demo's sphere about 1 dB (see its comment in
-    sgpor_pipeline/removal/holes.py).
+    sgpor_pipeline/removal/holes.py). With those holes (35 % of the mask) no-sbm, i.e. FSR with RPR
+    retrieving source blocks for its low-detail blocks, beats ours: 26.69 / 25.62 / 27.15 (holes
+    22.83 against ours' 21.25 dB, seed 0): SBM's fill of the floor under the box is darker than the
+    rug around it, where the smooth fill keeps the rim's colour.
 (b) ``lund``: a synthetic object inserted into the real lund photos. First our SfM runs on the
     untouched photos at full size (pipeline until ``sfm``; with ``ingest.max_size`` 160 only 2, with
     640 only 15 of the 29 photos register); its undistorted PINHOLE images are then downscaled to 320 px (240 px

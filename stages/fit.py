@@ -75,6 +75,10 @@ class FitParams:
     checkpoint_seconds: float = 30.0  # also checkpoint after this many seconds (0: by count only)
     eval_every: int = 500  # held-out evaluation period; 0 = only at the end
     backend: str = "auto"  # rasterizer backend: auto, cpu, torch, gsplat
+    # Where the fit trains: "cpu", "cuda[:i]", or "auto" = CUDA when a GPU and gsplat (the [gpu] extra)
+    # are present and backend is auto or gsplat, else the CPU. Results differ from a CPU fit in float
+    # rounding only; the key leaves "auto" out, so a cached fit is reused on either machine.
+    device: str = added_param("auto")
     lr_means: float = 1.6e-4  # x scene extent; decays exponentially to lr_means_final
     lr_means_final: float = 1.6e-6
     lr_sh0: float = 2.5e-3
@@ -404,7 +408,7 @@ def fit_scene(sfm_dir: Path, out_dir: Path, params: FitParams, checkpoint_dir: P
     from sgpor_pipeline.gaussians.model import GaussianModel, InitParams
     from sgpor_pipeline.gaussians.ply import write_ply
     from sgpor_pipeline.gaussians.strategy import make_strategy
-    from sgpor_pipeline.gaussians.train import Trainer, TrainParams, scene_extent
+    from sgpor_pipeline.gaussians.train import Trainer, TrainParams, resolve_device, scene_extent
     from sgpor_pipeline.scene import load_cameras
 
     t0 = time.perf_counter()
@@ -416,6 +420,12 @@ def fit_scene(sfm_dir: Path, out_dir: Path, params: FitParams, checkpoint_dir: P
         raise PipelineError("fit.iterations must be at least 1")
     if params.object_masks not in ("auto", "fit", "ignore"):
         raise PipelineError(f"unknown fit.object_masks {params.object_masks!r}", fix="use auto, fit or ignore")
+    try:
+        device = resolve_device(params.device, params.backend)
+    except ValueError as e:
+        raise PipelineError(f"fit.device: {e}", fix="set fit.device=auto (the GPU when there is one) or "
+                                                   "fit.device=cpu") from None
+    log.info(f"fit: training on {device}")
     sfm_dir = Path(sfm_dir)
     ignore_masks = params.object_masks != "fit"
     views, missing = load_sfm_views(sfm_dir, params.max_size, max(params.mask_dilate, 0) if ignore_masks else None)
@@ -479,7 +489,7 @@ def fit_scene(sfm_dir: Path, out_dir: Path, params: FitParams, checkpoint_dir: P
         lambda_dssim=params.lambda_dssim, lr_means=params.lr_means, lr_means_final=params.lr_means_final,
         lr_sh0=params.lr_sh0, lr_shN_factor=params.lr_shN_factor, lr_opacities=params.lr_opacities,
         lr_scales=params.lr_scales, lr_quats=params.lr_quats, seed=params.seed, backend=params.backend,
-        checkpoint_every=params.checkpoint_every, checkpoint_seconds=params.checkpoint_seconds,
+        device=params.device, checkpoint_every=params.checkpoint_every, checkpoint_seconds=params.checkpoint_seconds,
         eval_every=params.eval_every, budget=params.budget or None,
         debug_inject_nan_at=params.debug_inject_nan_at, debug_inject_nan_times=params.debug_inject_nan_times)
     trainer = Trainer(model, strategy, train_views, test_views, tp, extent, checkpoint_dir=checkpoint_dir,
@@ -488,7 +498,7 @@ def fit_scene(sfm_dir: Path, out_dir: Path, params: FitParams, checkpoint_dir: P
     with torch.no_grad():
         mean_color = torch.stack([v.image.reshape(-1, 3).mean(0) for v in train_views]).mean(0)
     summary = trainer.train()
-    model = trainer.model
+    model = trainer.model.to("cpu")  # the later stages work on the CPU
 
     out_dir = Path(out_dir)
     write_ply(out_dir / "gaussians.ply", model)
@@ -510,6 +520,7 @@ def fit_scene(sfm_dir: Path, out_dir: Path, params: FitParams, checkpoint_dir: P
         "mean_color_baseline_psnr": baseline,
         "background": [0.0, 0.0, 0.0],
         "strategy": params.strategy,
+        "device": str(trainer.device),
         "object_masks": object_masks,
         "sh_degree": params.sh_degree,
         "points": {**report, "used": int(len(xyz))},

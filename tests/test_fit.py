@@ -27,7 +27,14 @@ from sgpor_pipeline.errors import NonFiniteError
 from sgpor_pipeline.gaussians import strategy as S
 from sgpor_pipeline.gaussians.model import GaussianModel, rgb_to_sh
 from sgpor_pipeline.gaussians.ply import property_names, read_ply, write_ply
-from sgpor_pipeline.gaussians.train import BudgetController, TrainParams, photometric_loss, ssim_map, ssim_mean
+from sgpor_pipeline.gaussians.train import (
+    BudgetController,
+    TrainParams,
+    photometric_loss,
+    resolve_device,
+    ssim_map,
+    ssim_mean,
+)
 from sgpor_pipeline.runner import run_pipeline
 from sgpor_pipeline.stages.fit import FitParams, FitStage, fit_scene, write_known_sfm
 from sgpor_pipeline.synthetic import SceneParams, generate_scene
@@ -461,6 +468,70 @@ def test_mcmc_strategy_fits(tmp_path, small_scene):
     res = fit_scene(sfm, out, quick_params(iterations=400, strategy="mcmc", budget=800, sh_degree=0), None, LOG)
     assert 500 < res["count"] <= 800 and all_finite(out / "gaussians.ply")
     assert res["heldout_psnr"] > res["mean_color_baseline_psnr"] + 1.0  # measured +1.9 dB
+
+
+# --------------------------------------------------------------------------------------------------
+# the training device
+
+
+def test_resolve_device():
+    assert resolve_device("cpu") == torch.device("cpu")
+    assert resolve_device("auto", backend="cpu") == torch.device("cpu")  # our kernel runs on the CPU only
+    if not torch.cuda.is_available():
+        assert resolve_device("auto") == torch.device("cpu")
+        with pytest.raises(ValueError, match="no CUDA device"):
+            resolve_device("cuda")
+    for bad in ("tpu", "gpu", "meta"):
+        with pytest.raises(ValueError, match="'auto', 'cpu' or 'cuda"):
+            resolve_device(bad)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the error on a machine without CUDA")
+def test_fit_on_a_missing_gpu_fails_before_any_work(tmp_path, small_scene):
+    from sgpor_pipeline.errors import PipelineError
+
+    sfm = make_sfm(tmp_path / "sfm", small_scene, n_points=300)
+    out = tmp_path / "fit"
+    out.mkdir()
+    with pytest.raises(PipelineError, match="fit.device") as e:
+        fit_scene(sfm, out, quick_params(device="cuda"), None, LOG)
+    assert "fit.device=cpu" in e.value.fix
+    assert not any(out.iterdir())
+
+
+def check_cuda_fit_matches_cpu(sfm: Path, tmp: Path, strategy: str) -> dict:
+    """The same fit on the CPU and on CUDA (gsplat when installed, else the torch reference there):
+    both learn the scene, and agree to within what their rasterizers' rounding and alpha clamps
+    (0.99 ours, 0.999 gsplat) explain; then the CUDA fit resumes from its checkpoint. Returns the
+    results (the GPU check script prints them)."""
+    res = {}
+    for dev in ("cpu", "cuda"):
+        out = tmp / f"fit_{strategy}_{dev}"
+        out.mkdir(parents=True)
+        params = quick_params(iterations=400, eval_every=200, sh_degree=1, init_points=4000, strategy=strategy,
+                              budget=6000 if strategy == "mcmc" else None, device=dev, checkpoint_every=150)
+        res[dev] = fit_scene(sfm, out, params, out / "ckpt", LOG)
+        assert all_finite(out / "gaussians.ply")
+    cpu, gpu = res["cpu"], res["cuda"]
+    assert cpu["device"] == "cpu" and gpu["device"].startswith("cuda")
+    for r in (cpu, gpu):
+        assert r["heldout_psnr"] >= r["mean_color_baseline_psnr"] + 3.0, r
+    assert abs(gpu["heldout_psnr"] - cpu["heldout_psnr"]) < 1.0, (gpu["heldout_psnr"], cpu["heldout_psnr"])
+    assert abs(gpu["count"] - cpu["count"]) <= 0.2 * cpu["count"], (gpu["count"], cpu["count"])
+    # resume on CUDA from the CPU-side checkpoint file of iteration 300 (read onto the CPU, then moved)
+    out = tmp / f"fit_{strategy}_cuda"
+    more = quick_params(iterations=450, eval_every=0, sh_degree=1, init_points=4000, strategy=strategy,
+                        budget=6000 if strategy == "mcmc" else None, device="cuda", checkpoint_every=150)
+    res["resumed"] = fit_scene(sfm, out, more, out / "ckpt", LOG)
+    assert res["resumed"]["resumed_from_iteration"] == 300 and res["resumed"]["iterations"] == 450
+    assert res["resumed"]["heldout_psnr"] > gpu["mean_color_baseline_psnr"] + 3.0
+    return res
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.parametrize("strategy", ["adc", "mcmc"])
+def test_fit_on_cuda_matches_the_cpu_fit(tmp_path, small_scene, strategy):
+    check_cuda_fit_matches_cpu(make_sfm(tmp_path / "sfm", small_scene), tmp_path, strategy)
 
 
 # --------------------------------------------------------------------------------------------------

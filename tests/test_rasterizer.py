@@ -64,8 +64,8 @@ def run(scene: dict, backend: str, seed: int = 0, **kw) -> dict:
     render, alpha, meta = rasterization(**args, backend=backend, **kw)
     meta["means2d"].retain_grad()
     g = torch.Generator().manual_seed(seed)
-    w_r = torch.randn(render.shape, generator=g, dtype=torch.float64).to(render.dtype)
-    w_a = torch.randn(alpha.shape, generator=g, dtype=torch.float64).to(alpha.dtype)
+    w_r = torch.randn(render.shape, generator=g, dtype=torch.float64).to(render)  # dtype and device
+    w_a = torch.randn(alpha.shape, generator=g, dtype=torch.float64).to(alpha)
     loss = (render * w_r).sum() + (alpha * w_a).sum()
     loss.backward()
     out = {"render": render.detach(), "alpha": alpha.detach(), "contrib": meta["contrib"],
@@ -578,7 +578,10 @@ def test_gsplat_parity():
     # gsplat clamps alpha at 0.999 (we use 0.99) and bounds footprints slightly differently
     diff = (gs["render"].cpu()[..., :3] - ref["render"][..., :3]).abs()
     assert diff.mean() < 0.02
-    torch.testing.assert_close(gs["means2d"].cpu(), ref["means2d"], rtol=1e-4, atol=1e-3)
+    # where both keep a Gaussian: gsplat writes no means2d for one it culls (seen on an H200: 2 of 1000
+    # values differ, at Gaussians one backend culls)
+    both = (gs["radii"].cpu() > 0) & (ref["radii"] > 0)
+    torch.testing.assert_close(gs["means2d"].cpu()[both], ref["means2d"][both], rtol=1e-4, atol=1e-3)
     assert ((gs["radii"].cpu() > 0) == (ref["radii"] > 0)).float().mean() > 0.95
 
 

@@ -202,6 +202,19 @@ class GaussianModel:
         for n in PARAM_NAMES:
             self.params[n] = torch.nn.Parameter(state["params"][n].detach().clone())
 
+    def to(self, device: torch.device | str) -> GaussianModel:
+        """Move the parameters to ``device`` in place (new Parameter objects where they move: optimizers
+        must be built after); returns ``self``."""
+        device = torch.device(device)
+        for n, p in self.params.items():
+            if p.device != device:
+                self.params[n] = torch.nn.Parameter(p.detach().to(device))
+        return self
+
+    @property
+    def device(self) -> torch.device:
+        return self.params["means"].device
+
     def non_finite(self) -> list[str]:
         """Names of the parameters holding NaN or inf."""
         return [n for n, p in self.params.items() if not bool(torch.isfinite(p.detach()).all())]

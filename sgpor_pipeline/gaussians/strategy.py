@@ -99,7 +99,8 @@ def split(model: GaussianModel, optimizers: dict, mask: torch.Tensor, generator:
     p = model.params
     scales = torch.exp(p["scales"].detach()[sel])
     R = quat_to_rotmat(p["quats"].detach()[sel])
-    noise = torch.randn(2, len(sel), 3, generator=generator, dtype=scales.dtype)
+    # drawn on the CPU (the trainer's generator) whatever the device: the same seed, the same samples
+    noise = torch.randn(2, len(sel), 3, generator=generator, dtype=scales.dtype).to(scales.device)
     samples = torch.einsum("nij,bnj->bni", R, scales[None] * noise)  # [2,S,3]
 
     def param_fn(name: str, x: torch.Tensor) -> torch.Tensor:
@@ -112,7 +113,7 @@ def split(model: GaussianModel, optimizers: dict, mask: torch.Tensor, generator:
         return torch.cat([x[rest], new])
 
     def state_fn(name: str, v: torch.Tensor) -> torch.Tensor:
-        return torch.cat([v[rest], torch.zeros((2 * len(sel),) + v.shape[1:], dtype=v.dtype)])
+        return torch.cat([v[rest], v.new_zeros((2 * len(sel),) + v.shape[1:])])
 
     _replace_params(model, optimizers, param_fn, state_fn)
 
@@ -188,8 +189,9 @@ class ADCStrategy(Strategy):
         self.refine_stop = int(self.p.refine_stop_frac * self.iterations)
 
     def initialize_state(self, model: GaussianModel, scene_extent: float) -> dict[str, Any]:
-        n = len(model)
-        return {"scene_extent": float(scene_extent), "grad2d": torch.zeros(n), "count": torch.zeros(n)}
+        n, dev = len(model), model.device
+        return {"scene_extent": float(scene_extent), "grad2d": torch.zeros(n, device=dev),
+                "count": torch.zeros(n, device=dev)}
 
     def is_growing(self, step: int) -> bool:
         return step < self.refine_stop
@@ -227,14 +229,15 @@ class ADCStrategy(Strategy):
         if len(cand) > room:  # the budget: keep the largest gradients
             top = torch.topk(avg[cand], room).indices if room > 0 else cand[:0]
             cand = cand[top]
-        dup = torch.zeros(len(model), dtype=torch.bool)
-        spl = torch.zeros(len(model), dtype=torch.bool)
+        dev = model.device
+        dup = torch.zeros(len(model), dtype=torch.bool, device=dev)
+        spl = torch.zeros(len(model), dtype=torch.bool, device=dev)
         dup[cand] = small[cand]
         spl[cand] = ~small[cand]
         n_dup, n_split = int(dup.sum()), int(spl.sum())
         if n_dup:
             duplicate(model, optimizers, dup)
-            spl = torch.cat([spl, torch.zeros(n_dup, dtype=torch.bool)])
+            spl = torch.cat([spl, spl.new_zeros(n_dup)])
         if n_split:
             split(model, optimizers, spl, generator)
         # prune transparent Gaussians, and oversized ones once opacity resets are active (3DGS/gsplat:
@@ -247,8 +250,8 @@ class ADCStrategy(Strategy):
         if n_prune and n_prune < len(model):
             remove(model, optimizers, prune)
         n = len(model)
-        state["grad2d"] = torch.zeros(n)
-        state["count"] = torch.zeros(n)
+        state["grad2d"] = torch.zeros(n, device=dev)
+        state["count"] = torch.zeros(n, device=dev)
         return {"cloned": n_dup, "split": n_split, "pruned": n_prune}
 
 
@@ -317,9 +320,10 @@ class MCMCStrategy(Strategy):
         ratios = ratios.clamp(1, self.binoms.shape[0])
         new_op = 1.0 - torch.pow(1.0 - opacities, 1.0 / ratios.to(opacities.dtype))
         m = int(ratios.max()) if len(ratios) else 1
-        i = torch.arange(1, m + 1).view(1, -1, 1)  # i copies; binoms row i - 1
-        k = torch.arange(m).view(1, 1, -1)
-        coef = self.binoms[:m, :m][None] * ((-1.0) ** k) / torch.sqrt(k + 1.0)  # [1,I,K]
+        dev = opacities.device
+        i = torch.arange(1, m + 1, device=dev).view(1, -1, 1)  # i copies; binoms row i - 1
+        k = torch.arange(m, device=dev).view(1, 1, -1)
+        coef = self.binoms[:m, :m].to(dev)[None] * ((-1.0) ** k) / torch.sqrt(k + 1.0)  # [1,I,K]
         valid = (k < i) & (i <= ratios.view(-1, 1, 1))  # sum over i = 1..ratio, k = 0..i-1
         terms = coef * new_op.view(-1, 1, 1) ** (k + 1)
         denom = torch.where(valid, terms, torch.zeros_like(terms)).sum(dim=(1, 2))
@@ -333,7 +337,8 @@ class MCMCStrategy(Strategy):
         append them (``dest`` None); the sources' opacity/scale are split between them and their copies."""
         op = model.opacities_activated()
         probs = op[source_pool].clamp_min(1e-12)
-        pick = torch.multinomial(probs, n, replacement=True, generator=gen)
+        # sampled on the CPU with the trainer's generator (a CUDA sampler would need its own)
+        pick = torch.multinomial(probs.cpu(), n, replacement=True, generator=gen).to(probs.device)
         src = source_pool[pick]
         ratios = torch.bincount(src, minlength=len(model))[src] + 1
         new_op, new_scales = self._relocation(op[src], model.scales_linear()[src], ratios)
@@ -356,7 +361,7 @@ class MCMCStrategy(Strategy):
             v = v.clone()
             v[touched] = 0
             if dest is None:
-                v = torch.cat([v, torch.zeros((n,) + v.shape[1:], dtype=v.dtype)])
+                v = torch.cat([v, v.new_zeros((n,) + v.shape[1:])])
             return v
 
         _replace_params(model, optimizers, param_fn, state_fn)
@@ -384,7 +389,7 @@ class MCMCStrategy(Strategy):
         n_add = max(0, target - n)
         if n_add == 0:
             return 0
-        return self._sample_and_copy(model, optimizers, n_add, gen, torch.arange(n), None)
+        return self._sample_and_copy(model, optimizers, n_add, gen, torch.arange(n, device=model.device), None)
 
     def _inject_noise(self, model: GaussianModel, scaler: float, gen: torch.Generator) -> None:
         if scaler <= 0:
@@ -395,7 +400,7 @@ class MCMCStrategy(Strategy):
         R = quat_to_rotmat(p["quats"].detach())
         M = R * scales[:, None, :]
         cov = M @ M.transpose(-1, -2)
-        noise = torch.randn(p["means"].shape, generator=gen, dtype=p["means"].dtype)
+        noise = torch.randn(p["means"].shape, generator=gen, dtype=p["means"].dtype).to(p["means"].device)
         gate = 1.0 / (1.0 + torch.exp(-100.0 * ((1.0 - op) - 0.995)))
         noise = torch.einsum("nij,nj->ni", cov, noise * gate[:, None]) * scaler
         with torch.no_grad():

@@ -29,7 +29,7 @@ import math
 import os
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -67,6 +67,8 @@ class TrainParams:
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     seed: int = 0
     backend: str = "auto"
+    # where the parameters, images and optimiser live: "cpu", "cuda[:i]", or "auto" (see resolve_device)
+    device: str = "cpu"
     checkpoint_every: int = 500  # iterations; 0 = only by time
     checkpoint_seconds: float = 30.0  # also checkpoint when this much time passed; 0 = only by count
     eval_every: int = 500  # held-out evaluation period (iterations); 0 = only at the end
@@ -108,6 +110,29 @@ class TrainView:
     @property
     def K(self) -> torch.Tensor:
         return torch.from_numpy(self.camera.K).float()[None]
+
+
+def resolve_device(device: str, backend: str = "auto") -> torch.device:
+    """The trainer's device. "auto" is CUDA when a GPU is present and the rasterizer backend runs
+    there fast (``backend`` "auto" or "gsplat" with gsplat installed), else the CPU; our ``cpu``
+    kernel and the other stages stay on the CPU either way."""
+    if device == "auto":
+        if backend in ("auto", "gsplat") and torch.cuda.is_available():
+            from . import _raster_gsplat
+
+            if _raster_gsplat.importable():
+                return torch.device("cuda")
+        return torch.device("cpu")
+    try:
+        dev = torch.device(device)
+    except RuntimeError:
+        raise ValueError(f"device must be 'auto', 'cpu' or 'cuda[:i]', got {device!r}") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device {device!r} asked for, but torch sees no CUDA device (torch "
+                         f"{torch.__version__}); use device 'auto' or 'cpu'")
+    if dev.type not in ("cpu", "cuda"):
+        raise ValueError(f"device must be 'auto', 'cpu' or 'cuda[:i]', got {device!r}")
+    return dev
 
 
 def training_size(width: int, height: int, max_size: int) -> tuple[int, int]:
@@ -171,7 +196,7 @@ def ssim_map(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     local moments are filtered together in one grouped separable convolution (about twice as fast
     on a CPU as kornia's five filter calls)."""
     b, c, h, w = x.shape
-    g = _gauss_window(x.dtype)
+    g = _gauss_window(x.dtype).to(x.device)
     stack = torch.cat([x, y, x * x, y * y, x * y], dim=1)
     n = stack.shape[1]
     stack = F.pad(stack, (5, 5, 5, 5), mode="reflect")
@@ -314,11 +339,13 @@ def render_view(model: GaussianModel, camera: Camera, sh_degree: int | None = No
     with torch.no_grad():
         act = model.activated()
         colors = act["colors"][:, :k].contiguous()
-        vm = torch.from_numpy(camera.cam_from_world).float()[None]
-        K = torch.from_numpy(camera.K).float()[None]
+        dev = model.device
+        vm = torch.from_numpy(camera.cam_from_world).float()[None].to(dev)
+        K = torch.from_numpy(camera.K).float()[None].to(dev)
         img, _, _ = rasterization(act["means"], act["quats"], act["scales"], act["opacities"], colors, vm, K,
                                   camera.width, camera.height, sh_degree=deg,
-                                  backgrounds=torch.tensor(background, dtype=torch.float32), backend=backend)
+                                  backgrounds=torch.tensor(background, dtype=torch.float32, device=dev),
+                                  backend=backend)
     return img[0]
 
 
@@ -459,10 +486,11 @@ class Trainer:
                  progress: Callable[..., Any] | None = None):
         if not train_views:
             raise ValueError("no training views")
-        self.model = model
+        self.device = resolve_device(params.device, params.backend)
+        self.model = model.to(self.device)
         self.strategy = strategy
-        self.train_views = list(train_views)
-        self.eval_views = list(eval_views)
+        self.train_views = [self._on_device(v) for v in train_views]
+        self.eval_views = [self._on_device(v) for v in eval_views]
         self.p = params
         self.extent = float(extent)
         self.checkpoint_dir = None if checkpoint_dir is None else Path(checkpoint_dir)
@@ -492,8 +520,14 @@ class Trainer:
         self._rollbacks_in_a_row = 0
         self._last_failure_step = -1
         self._window_losses: list[float] = []
-        self.bg = torch.tensor(params.background, dtype=torch.float32)
+        self.bg = torch.tensor(params.background, dtype=torch.float32, device=self.device)
         self.last_eval: dict[str, float] = {}
+
+    def _on_device(self, view: TrainView) -> TrainView:
+        if view.image.device == self.device:
+            return view
+        return replace(view, image=view.image.to(self.device),
+                                   weight=None if view.weight is None else view.weight.to(self.device))
 
     # optimisation ------------------------------------------------------------------------------
 
@@ -555,10 +589,12 @@ class Trainer:
     def load_state_dict(self, st: dict[str, Any], restore_lr_scale: bool = True) -> None:
         self.step = int(st["step"])
         self.model.load_state_dict(st["model"])
+        self.model.to(self.device)  # a checkpoint is read onto the CPU
         self.optimizers = self._build_optimizers()
         for n, o in self.optimizers.items():
-            o.load_state_dict(copy.deepcopy(st["optimizers"][n]))
-        self.sstate = {k: (v.clone() if isinstance(v, torch.Tensor) else v) for k, v in st["strategy"].items()}
+            o.load_state_dict(copy.deepcopy(st["optimizers"][n]))  # moves the moments to the parameters' device
+        self.sstate = {k: (v.to(self.device, copy=True) if isinstance(v, torch.Tensor) else v)
+                       for k, v in st["strategy"].items()}
         self.strategy.cap = int(st["strategy_cap"])
         self.budget = BudgetController(**copy.deepcopy(st["budget"]))
         self.gen.set_state(st["generator"])
@@ -650,7 +686,8 @@ class Trainer:
         try:
             render, _alpha, info = rasterization(
                 p["means"], p["quats"], torch.exp(p["scales"]), torch.sigmoid(p["opacities"]), colors,
-                view.viewmat, view.K, W, H, sh_degree=deg, backgrounds=self.bg, backend=self.p.backend)
+                view.viewmat.to(self.device), view.K.to(self.device), W, H, sh_degree=deg, backgrounds=self.bg,
+                backend=self.p.backend)
         except NonFiniteInputError as e:
             raise RollbackNeeded(f"non-finite rasterizer input ({e.message})") from None
         info["generator"] = self.gen

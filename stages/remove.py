@@ -110,7 +110,7 @@ class RemoveStage(Stage):
             (ctx.out_dir / sub).mkdir()
         renders, alphas, raw_depths = [], [], []
         for cam in ctx.progress(cameras, total=len(cameras), desc="remove: render"):
-            rgb, alpha, depth = render_background(background, cam, p.backend)
+            rgb, alpha, depth = render_background(background, cam, p.backend, p.depth)
             renders.append(rgb)
             alphas.append(alpha)
             raw_depths.append(depth)

@@ -194,6 +194,55 @@ def test_single_gaussian_closed_form():
         torch.testing.assert_close(meta["contrib"][0, 0], alpha.sum())
 
 
+def test_median_depth_is_where_the_transmittance_crosses_one_half():
+    """Two wide Gaussians on the optical axis, opacity 0.3 at z = 2 and 0.9 at z = 4: at the centre
+    the transmittance is 0.7 after the first, 0.07 after the second, so the median depth is 4 while
+    the expected depth is (0.3 * 2 + 0.63 * 4) / 0.93; where the total alpha stays below 0.5 the
+    median is 0."""
+    W, H = 16, 12
+    vm, K = look_at_camera(W, H, dtype=torch.float64)
+    kw = dict(means=torch.tensor([[0.0, 0.0, 2.0], [0.0, 0.0, 4.0]], dtype=torch.float64),
+              quats=torch.tensor([[1.0, 0.0, 0.0, 0.0]] * 2, dtype=torch.float64),
+              scales=torch.tensor([[0.5] * 3, [0.3] * 3], dtype=torch.float64),
+              opacities=torch.tensor([0.3, 0.9], dtype=torch.float64), colors=None, viewmats=vm, Ks=K,
+              width=W, height=H)
+    backends = ("torch", "cpu") if cpu_kernel_available() else ("torch",)
+    for backend in backends:
+        md, alpha, meta = rasterization(**kw, render_mode="MD", backend=backend)
+        ed, alpha_ed, _ = rasterization(**kw, render_mode="ED", backend=backend)
+        assert md.shape == (1, H, W, 1) and meta["backend"] == backend
+        torch.testing.assert_close(alpha, alpha_ed, rtol=0, atol=0)
+        c = md[0, H // 2, W // 2, 0]
+        assert float(c) == 4.0
+        assert 3.2 < float(ed[0, H // 2, W // 2, 0]) < 3.5  # (0.3 * 2 + 0.63 * 4) / 0.93 = 3.35, in front
+        low = alpha[0, ..., 0] < 0.5
+        assert low.any() and (md[0, ..., 0][low] == 0).all()
+        assert ((md[0, ..., 0][~low] == 2.0) | (md[0, ..., 0][~low] == 4.0)).all()
+
+
+@pytest.mark.skipif(not cpu_kernel_available(), reason="needs the cpu kernel")
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_median_depth_cpu_matches_torch(dtype):
+    scene = random_scene(600, 48, 40, seed=11, sigma_px=2.5, dtype=dtype, opacity_range=(0.2, 0.99))
+    scene["colors"] = None
+    mask = torch.zeros(1, 40, 48, dtype=torch.bool)
+    mask[:, 5:25, 10:40] = True
+    ref = rasterization(**scene, render_mode="MD", backend="torch", contribution_mask=mask)
+    out = rasterization(**scene, render_mode="MD", backend="cpu", contribution_mask=mask, num_threads=2)
+    md_ref, md = ref[0][0, ..., 0], out[0][0, ..., 0]
+    assert (md_ref > 0).float().mean() > 0.5  # most pixels cross 0.5
+    # the crossing Gaussian is the same one except where T lands on 0.5 within rounding
+    same = torch.isclose(md, md_ref, rtol=1e-6, atol=0)
+    assert same.float().mean() > (0.999 if dtype == torch.float64 else 0.99)
+    torch.testing.assert_close(out[1], ref[1], rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(out[2]["contrib"], ref[2]["contrib"], rtol=1e-4, atol=1e-4)
+    # a scene lies on the surfaces the median picks: every value is one of the Gaussians' depths
+    depths = ref[2]["depths"][0]
+    hit = md[md > 0]
+    assert torch.isin(hit, depths).all()
+    assert not md.requires_grad
+
+
 # ------------------------------------------------------------------------------------------------
 # gradcheck
 

@@ -148,6 +148,26 @@ def test_remove_finds_only_unseen_background_as_hole(scene_and_model):
     assert np.mean(hole_frac) < 0.6, hole_frac
 
 
+def test_background_depth_is_the_median_or_the_expected_one(scene_and_model):
+    """remove.depth="median" renders the median depth (rasterizer mode "MD") and keeps the expected
+    depth where a pixel never gets half opaque; an unknown kind is refused."""
+    from sgpor_pipeline.errors import PipelineError
+
+    scene, model, truth = scene_and_model
+    obj = subset(model, truth)  # the object alone: its silhouette's edge is thin
+    cam = scene.cameras[0]
+    rgb, alpha, expected = render_background(obj, cam)
+    rgb2, alpha2, median = render_background(obj, cam, depth="median")
+    assert np.array_equal(rgb, rgb2) and np.array_equal(alpha, alpha2)
+    thin = (alpha < 0.49) & (alpha > 0.01)
+    assert thin.any() and np.array_equal(median[thin], expected[thin])
+    opaque = alpha > 0.51
+    assert np.isfinite(median).all() and (median[opaque] > 0).all()
+    assert (median[opaque] != expected[opaque]).mean() > 0.5  # a Gaussian's depth, not the blend
+    with pytest.raises(PipelineError, match="remove.depth"):
+        render_background(obj, cam, depth="mean")
+
+
 def test_a_large_gaussian_centred_in_the_hull_is_deleted_despite_its_tails(scene_and_model):
     """A big Gaussian whose centre every view shows inside the mask, but whose tails peek out of the
     object's silhouette (so most of its seen weight is outside the masks: a background-like score),

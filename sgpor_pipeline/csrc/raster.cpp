@@ -20,6 +20,22 @@ void fwd_impl(int C, int N, int W, int H, const T* means2d, const T* conics, con
                         contrib, nthreads);
 }
 
+// The median depth (raster_fwd's MED) of Gaussians whose single feature is their depth; the
+// other outputs of the pass are scratch.
+template <typename T, int TS>
+void median_impl(int C, int N, int W, int H, const T* means2d, const T* conics, const T* depths,
+                 const T* opac, const int32_t* rect, const int64_t* tile_off, const Isect* isect,
+                 const int64_t* goff, const uint8_t* cmask, T* median, T* alpha, T* contrib,
+                 int nthreads) {
+  const int64_t pixels = std::max<int64_t>(int64_t(C) * H * W, 1);
+  std::unique_ptr<GaussPix<T, 1>[]> gp(new GaussPix<T, 1>[std::max<int64_t>(int64_t(C) * N, 1)]);
+  std::unique_ptr<T[]> out(new T[pixels]), tfinal(new T[pixels]);
+  std::unique_ptr<int32_t[]> last(new int32_t[pixels]);
+  pack_gaussians<T, 1>(C, N, means2d, conics, depths, opac, rect, gp.get(), nthreads);
+  raster_fwd<T, TS, 1, true>(C, N, W, H, gp.get(), tile_off, isect, goff, cmask, out.get(), alpha,
+                             tfinal.get(), last.get(), contrib, nthreads, median);
+}
+
 template <typename T, int TS, int CH>
 void bwd_impl(int C, int N, int W, int H, const void* packed, const int64_t* tile_off,
               const Isect* isect, const int64_t* goff, const T* tfinal,
@@ -60,7 +76,7 @@ int bwd_ch(int CH, int C, int N, int W, int H, const void* pk, const int64_t* to
 
 #define SGPOR_API extern "C" __attribute__((visibility("default")))
 
-SGPOR_API int sgpor_abi_version() { return 1; }
+SGPOR_API int sgpor_abi_version() { return 2; }
 
 SGPOR_API int sgpor_cpu_level() {
 #if defined(__x86_64__) || defined(__i386__)
@@ -152,6 +168,20 @@ SGPOR_API int sgpor_max_threads() {
       return fwd_ch<T, 16>(CH, C, N, W, H, means2d, conics, feats, opac, rect, tile_off, isect,  \
                            goff, cmask, out, alpha, tfinal, last, contrib, packed, nthreads);       \
     return -2;                                                                                      \
+  }                                                                                                 \
+  SGPOR_API int sgpor_raster_median_##SUF(                                                          \
+      int C, int N, int W, int H, int tile, const T* means2d, const T* conics, const T* depths,     \
+      const T* opac, const int32_t* rect, const int64_t* tile_off, const Isect* isect,              \
+      const int64_t* goff, const uint8_t* cmask, T* median, T* alpha, T* contrib, int nthreads) {   \
+    if (tile == 8)                                                                                  \
+      median_impl<T, 8>(C, N, W, H, means2d, conics, depths, opac, rect, tile_off, isect, goff,    \
+                        cmask, median, alpha, contrib, nthreads);                                   \
+    else if (tile == 16)                                                                            \
+      median_impl<T, 16>(C, N, W, H, means2d, conics, depths, opac, rect, tile_off, isect, goff,   \
+                         cmask, median, alpha, contrib, nthreads);                                  \
+    else                                                                                            \
+      return -2;                                                                                    \
+    return 0;                                                                                       \
   }                                                                                                 \
   SGPOR_API int sgpor_raster_bwd_##SUF(                                                             \
       int C, int N, int CH, int W, int H, int tile, const void* packed, const int64_t* tile_off,    \

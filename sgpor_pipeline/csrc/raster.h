@@ -724,11 +724,15 @@ inline T lane_sum(const T* a) {
   return b[0];
 }
 
-template <typename T, int TS, int CH>
+// MED: also write median_out [C*H*W], the last feature channel (the depth) of the Gaussian at which
+// a pixel's transmittance first falls to 0.5 or below (0 where it never does): the median depth,
+// which lies on a surface where the expected depth (sum w z / alpha) is pulled towards the camera
+// by the Gaussians spread along it. Its own instantiation: the training path pays nothing for it.
+template <typename T, int TS, int CH, bool MED = false>
 void raster_fwd(int C, int N, int W, int H, const GaussPix<T, CH>* gp, const int64_t* tile_off,
                 const Isect* isect, const int64_t* gauss_off,
                 const uint8_t* cmask, T* out, T* alpha_out, T* tfinal, int32_t* last_out,
-                T* contrib, int nthreads) {
+                T* contrib, int nthreads, T* median_out = nullptr) {
   PhaseTimer timer_("raster_fwd");
   constexpr int P = TS * TS;
   const int tw = (W + TS - 1) / TS, th = (H + TS - 1) / TS;
@@ -747,6 +751,7 @@ void raster_fwd(int C, int N, int W, int H, const GaussPix<T, CH>* gp, const int
     alignas(64) T acc[CH][P];
     alignas(64) T msk[P];  // 1 where the pixel counts for contrib
     alignas(64) int32_t last[P];  // 1 + index (in the tile list) of the last contribution
+    alignas(64) T med[MED ? P : 1];  // MED: the median depth so far
     alignas(64) T px[TS];
     alignas(64) int32_t col[TS];
     alignas(64) T thrl[TS];  // per entry: the sigma*log2(e) threshold, or -big outside [x0, x1]
@@ -764,6 +769,7 @@ void raster_fwd(int C, int N, int W, int H, const GaussPix<T, CH>* gp, const int
         Tr[p] = inside ? T(1) : T(-1);
         msk[p] = (inside && (!cmask || cmask[(int64_t(c) * H + Y0 + r) * W + X0 + j])) ? T(1) : T(0);
         last[p] = 0;
+        if constexpr (MED) med[p] = 0;
         for (int ch = 0; ch < CH; ++ch) acc[ch][p] = 0;
       }
     }
@@ -807,6 +813,7 @@ void raster_fwd(int C, int N, int W, int H, const GaussPix<T, CH>* gp, const int
           for (int ch = 0; ch < CH; ++ch) acc[ch][p] += w * f[ch];
           Tr[p] = stop ? -Tcur : tT;
           last[p] = a > T(0) ? kk : last[p];
+          if constexpr (MED) med[p] = (a > T(0)) & (Tcur > T(0.5)) & (tT <= T(0.5)) ? f[CH - 1] : med[p];
           csum[j] += w * msk[p];
         }
       }
@@ -836,6 +843,7 @@ void raster_fwd(int C, int N, int W, int H, const GaussPix<T, CH>* gp, const int
         alpha_out[pix] = T(1) - tf;
         tfinal[pix] = tf;
         last_out[pix] = last[p];
+        if constexpr (MED) median_out[pix] = med[p];
       }
   }
   if (profiling())

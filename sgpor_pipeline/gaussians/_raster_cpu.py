@@ -45,6 +45,7 @@ _SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
     "bin": (None, [_I, _I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _I]),
     "raster_fwd": (_I, [_I, _I, _I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P,
                         _P, _P, _I]),
+    "raster_median": (_I, [_I, _I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I]),
     "raster_bwd": (_I, [_I, _I, _I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P,
                         _I]),
 }
@@ -105,7 +106,7 @@ def _open(path: Path) -> ctypes.CDLL:
     # sgpor_pipeline/__init__.py sets it before torch is imported through the package.
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     lib = ctypes.CDLL(str(path))
-    if lib.sgpor_abi_version() != 1:
+    if lib.sgpor_abi_version() != 2:
         raise OSError(f"{path.name}: unexpected ABI version")
     for base, (res, args) in _SIGNATURES.items():
         for suf in ("f32", "f64"):
@@ -319,6 +320,35 @@ def _bin(cfg: _Cfg, depths: torch.Tensor, rect: torch.Tensor, ntiles: torch.Tens
     _fn("bin", depths.dtype)(C, N, cfg.W, cfg.H, cfg.tile, _ptr(depths), _ptr(rect), _ptr(ntiles),
                              _ptr(tile_off), _ptr(isect), _ptr(goff), cfg.threads)
     return tile_off, isect, goff
+
+
+def render_median(means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, eps2d,
+                  contribution_mask, *, tile_size, num_threads):
+    """The median depth (render_mode "MD", no gradient): (median [C,H,W,1], alpha [C,H,W,1], meta)."""
+    if not available():
+        raise RuntimeError(f"the cpu rasterizer kernel is not available: {load_error()}")
+    C, N = viewmats.shape[0], means.shape[0]
+    cfg = _Cfg(W=width, H=height, near=near_plane, far=far_plane, eps2d=eps2d, tile=tile_size,
+               threads=num_threads, C=C, N=N)
+    with torch.no_grad():
+        means2d, conics, depths, radii, rect, ntiles, total = _ProjectFn.apply(
+            means.detach().contiguous(), quats.detach().contiguous(), scales.detach().contiguous(),
+            opacities.detach().contiguous(), viewmats.contiguous(), Ks.contiguous(), cfg)
+        tile_off, isect, goff = _bin(cfg, depths, rect, ntiles, int(total))
+        dt = means.dtype
+        median = torch.empty(C, height, width, 1, dtype=dt)
+        alpha = torch.empty(C, height, width, 1, dtype=dt)
+        contrib = torch.empty(C, N, dtype=dt)
+        cmask = None if contribution_mask is None else contribution_mask.contiguous().view(torch.uint8)
+        opac = opacities.detach().contiguous()
+        rc = _fn("raster_median", dt)(
+            C, N, width, height, tile_size, _ptr(means2d), _ptr(conics), _ptr(depths), _ptr(opac),
+            _ptr(rect), _ptr(tile_off), _ptr(isect), _ptr(goff), _ptr(cmask), _ptr(median), _ptr(alpha),
+            _ptr(contrib), num_threads)
+    if rc != 0:
+        raise RuntimeError(f"sgpor raster kernel: unsupported configuration (code {rc})")
+    meta = {"means2d": means2d, "radii": radii, "depths": depths, "conics": conics, "contrib": contrib}
+    return median, alpha, meta
 
 
 def render(means, quats, scales, opacities, colors, sh_degree, viewmats, Ks, width, height,

@@ -107,11 +107,13 @@ def project(means: torch.Tensor, quats: torch.Tensor, scales: torch.Tensor, opac
 
 def rasterize(proj: dict[str, torch.Tensor], features: torch.Tensor, opacities: torch.Tensor,
               width: int, height: int, contribution_mask: torch.Tensor | None = None,
-              block: int | None = 16) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+              block: int | None = 16, median: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Front-to-back alpha compositing of ``features`` [C,N,CH] (no background).
 
     Returns render [C,H,W,CH], alpha [C,H,W,1] and contrib [C,N] (sum over the pixels of
     ``contribution_mask`` [C,H,W], or all pixels, of the blending weight alpha*T; no gradient).
+    ``median``: render [C,H,W,1] is instead the last feature of the Gaussian at which the
+    transmittance first falls to 0.5 or below (0 where it never does), without gradient.
     """
     C, N, CH = features.shape
     dev, dt = features.device, features.dtype
@@ -154,10 +156,15 @@ def rasterize(proj: dict[str, torch.Tensor], features: torch.Tensor, opacities: 
                 T_incl = torch.cumprod(1.0 - alpha, dim=1)
                 T_excl = torch.cat([torch.ones_like(T_incl[:, :1]), T_incl[:, :-1]], dim=1)
                 w = alpha * T_excl  # [P, n]
-                col = w @ feat[sel]  # [P, CH]
+                if median:
+                    with torch.no_grad():
+                        cross = (alpha > 0) & (T_excl > 0.5) & (T_incl <= 0.5)  # at most one per pixel
+                        col = (cross.to(dt) * feat[sel][None, :, -1]).sum(1, keepdim=True)
+                else:
+                    col = w @ feat[sel]  # [P, CH]
                 T_fin = T_incl[:, -1] if sel.numel() else torch.ones(pi.shape[0], dtype=dt, device=dev)
                 hb, wb = by1 - by0 + 1, bx1 - bx0 + 1
-                cols_r.append(col.reshape(hb, wb, CH))
+                cols_r.append(col.reshape(hb, wb, col.shape[-1]))
                 cols_a.append((1.0 - T_fin).reshape(hb, wb, 1))
                 with torch.no_grad():
                     wd = w.detach()

@@ -299,7 +299,10 @@ def rasterization(
         sh_degree: None for plain colours, else 0..3.
         backgrounds: [C,D] or [D] colour composited behind the Gaussians (colour channels only).
         render_mode: "RGB" (colours), "D" (accumulated depth sum_i w_i z_i), "ED" (expected depth,
-            D / alpha), "RGB+D", "RGB+ED" (depth as the last channel).
+            D / alpha), "RGB+D", "RGB+ED" (depth as the last channel), "MD" (median depth: the
+            depth of the Gaussian at which the transmittance first falls to 0.5 or below, 0 where
+            it never does; on a surface, where the expected depth lies in front of it; backends
+            ``cpu`` and ``torch``; no gradient).
         backend: "auto", "cpu", "torch" or "gsplat" (see the module docstring).
         tile_size: 8 or 16 pixels (``cpu``, ``gsplat``); never changes the image.
         contribution_mask: [C,H,W] bool; restricts meta["contrib"] to these pixels.
@@ -311,7 +314,7 @@ def rasterization(
     Returns:
         ``(render_colors, render_alphas, meta)``:
 
-        * render_colors [C,H,W,X]: X = D for "RGB", 1 for "D"/"ED", D+1 for "RGB+D"/"RGB+ED".
+        * render_colors [C,H,W,X]: X = D for "RGB", 1 for "D"/"ED"/"MD", D+1 for "RGB+D"/"RGB+ED".
         * render_alphas [C,H,W,1]: accumulated opacity 1 - T_final.
         * meta: ``means2d`` [C,N,2] projected centres in pixels (a non-leaf tensor of the graph:
           call ``meta["means2d"].retain_grad()`` before ``backward()`` to read its ``.grad``, as
@@ -335,6 +338,9 @@ def rasterization(
     with_depth = render_mode != "RGB"
     if D == 0:
         colors = None
+    if render_mode == "MD" and which == "gsplat":
+        raise RasterizerInputError("render_mode 'MD' (median depth) is not available in the gsplat backend",
+                                   fix="render it with backend='cpu' (CPU tensors) or 'torch'")
     if which == "gsplat":
         from . import _raster_gsplat
 
@@ -348,9 +354,14 @@ def rasterization(
             from . import _raster_cpu
 
             threads = _default_threads() if num_threads is None else max(1, int(num_threads))
-            render, alpha, meta = _raster_cpu.render(*args, tile_size=tile_size, num_threads=threads)
+            if render_mode == "MD":
+                render, alpha, meta = _raster_cpu.render_median(
+                    means, quats, scales, opacities, viewmats, Ks, width, height, float(near_plane),
+                    float(far_plane), float(eps2d), contribution_mask, tile_size=tile_size, num_threads=threads)
+            else:
+                render, alpha, meta = _raster_cpu.render(*args, tile_size=tile_size, num_threads=threads)
         else:
-            render, alpha, meta = _render_torch(*args, block=torch_block)
+            render, alpha, meta = _render_torch(*args, block=torch_block, median=render_mode == "MD")
         if backgrounds is not None:
             bg = backgrounds if backgrounds.dim() == 2 else backgrounds[None].expand(C, -1)
             bg = bg.to(render.dtype)[:, None, None, :]
@@ -364,7 +375,7 @@ def rasterization(
 
 
 def _render_torch(means, quats, scales, opacities, colors, sh_degree, viewmats, Ks, width, height,
-                  near_plane, far_plane, eps2d, with_depth, contribution_mask, block):
+                  near_plane, far_plane, eps2d, with_depth, contribution_mask, block, median=False):
     C = viewmats.shape[0]
     proj = _raster_torch.project(means, quats, scales, opacities, viewmats, Ks, width, height,
                                  near_plane, far_plane, eps2d)
@@ -380,7 +391,7 @@ def _render_torch(means, quats, scales, opacities, colors, sh_degree, viewmats, 
         feats.append(proj["depths"][..., None])
     features = torch.cat(feats, dim=-1) if len(feats) > 1 else feats[0]
     render, alpha, contrib = _raster_torch.rasterize(proj, features, opacities, width, height,
-                                                     contribution_mask, block)
+                                                     contribution_mask, block, median=median)
     meta = {"means2d": proj["means2d"], "radii": proj["radii"], "depths": proj["depths"],
             "conics": proj["conics"], "contrib": contrib}
     return render, alpha, meta

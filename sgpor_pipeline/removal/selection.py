@@ -68,6 +68,17 @@ def render_channels(model: GaussianModel, camera: Camera, colors: torch.Tensor, 
     return img[0].numpy(), alpha[0, ..., 0].numpy(), meta
 
 
+def render_median_depth(model: GaussianModel, camera: Camera, backend: str = "auto") -> np.ndarray:
+    """The median depth [H,W] (render_mode "MD": 0 where the pixel never gets half opaque)."""
+    act = model.activated()
+    vm, K = _stack_cameras([camera])
+    with torch.no_grad():
+        img, _, _ = rasterization(act["means"].detach(), act["quats"].detach(), act["scales"].detach(),
+                                  act["opacities"].detach(), None, vm, K, camera.width, camera.height,
+                                  render_mode="MD", backend=backend)
+    return img[0, ..., 0].numpy()
+
+
 def contribution_scores(model: GaussianModel, cameras: list[Camera], masks: list[np.ndarray],
                         backend: str = "auto") -> tuple[np.ndarray, np.ndarray]:
     """Per Gaussian: (weight inside the masks, total weight), summed over the given views."""

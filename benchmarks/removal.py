@@ -118,16 +118,18 @@ Protocols:
     3 % of its mask pixels are background that no other view sees (ray-cast truth), so the inpainter
     can move mask PSNR little there. The box's flat base hides about 29 %: the scene on which
     inpainting, and so SBM against its ablations, is measured where it matters. Measured (x86_64_v4,
-    fit.seed 0 / 1 / 2): ours 23.22 / 22.59 / 23.24, fsr-refit 23.78 / 23.72 / 24.41, no-sbm 23.21 /
-    22.37 / 23.28, no-rpr 23.19 / 22.59 / 23.22, delete-only 20.28 / 20.16 / 20.32. Ours loses to
-    fsr-refit (-0.95 dB on the mean): the remove stage's opacity test finds only 17.5 % of the mask as
-    holes, and the opaque, unsupervised (dark) Gaussians the fit left on the floor under the box stay
-    as "seen" background in the rest; the SBM fills are not what decides. ``remove.min_views=1`` finds
-    them (25.43 / 24.70 / 25.76) but costs the demo's sphere about 1 dB (see its comment in
-    sgpor_pipeline/removal/holes.py). With those holes (35 % of the mask) no-sbm, i.e. FSR with RPR
-    retrieving source blocks for its low-detail blocks, beats ours: 26.69 / 25.62 / 27.15 (holes
-    22.83 against ours' 21.25 dB, seed 0): SBM's fill of the floor under the box is darker than the
-    rug around it, where the smooth fill keeps the rim's colour.
+    fit.seed 0 / 1 / 2), before remove VERSION 7: ours 23.22 / 22.59 / 23.24, fsr-refit 23.78 / 23.72 /
+    24.41, no-sbm 23.21 / 22.37 / 23.28, no-rpr 23.19 / 22.59 / 23.22, delete-only 20.28 / 20.16 /
+    20.32: ours lost to fsr-refit (-0.95 dB on the mean) because the remove stage's opacity test found
+    only 17.5 % of the mask as holes, and the opaque, unsupervised (dark) Gaussians the fit left on the
+    floor under the box stayed as "seen" background. VERSION 7 (median depth, ``min_views`` 1,
+    ``view_depth_tol`` 0.02; see ``min_views``' comment in sgpor_pipeline/removal/holes.py) finds them:
+    ours 25.77 / 25.48 / 26.26 (holes 34 % of the mask, precision 0.85, recall 0.99 against the
+    truth), while the sphere keeps its score (26.51 / 26.21 / 26.06 against 26.48 / 25.84 / 25.92).
+    With the expected depth and ``min_views`` 1, no-sbm (FSR with RPR retrieving source blocks for
+    its low-detail blocks) beat ours: 26.69 / 25.62 / 27.15 against 25.43 / 24.70 / 25.76 (holes 22.83
+    against ours' 21.25 dB, seed 0): SBM's fill of the floor under the box is darker than the rug
+    around it, where the smooth fill keeps the rim's colour.
 (b) ``lund``: a synthetic object inserted into the real lund photos. First our SfM runs on the
     untouched photos at full size (pipeline until ``sfm``; with ``ingest.max_size`` 160 only 2, with
     640 only 15 of the 29 photos register); its undistorted PINHOLE images are then downscaled to 320 px (240 px

@@ -81,8 +81,9 @@ CONTEXTS = ("photos", "renders")
 
 class RemoveStage(Stage):
     name = "remove"
-    VERSION = 6  # 3: the hole-depth floor renders the object proper only (no floaters); 4: rim holes;
-    # 5: rim holes with hole_mode mask too; 6: seeds behind the completed surface (seed_depth_offset 4)
+    VERSION = 7  # 3: the hole-depth floor renders the object proper only (no floaters); 4: rim holes;
+    # 5: rim holes with hole_mode mask too; 6: seeds behind the completed surface (seed_depth_offset 4);
+    # 7: the median depth, and holes where no other view saw the background (min_views 1, tolerance 0.02)
     Params = RemoveStageParams
     inputs = ("sfm", "fit", "masks")
 

@@ -121,7 +121,7 @@ def resolve_device(device: str, backend: str = "auto") -> torch.device:
             from . import _raster_gsplat
 
             if _raster_gsplat.importable():
-                return torch.device("cuda")
+                return torch.device("cuda", torch.cuda.current_device())
         return torch.device("cpu")
     try:
         dev = torch.device(device)
@@ -132,6 +132,8 @@ def resolve_device(device: str, backend: str = "auto") -> torch.device:
                          f"{torch.__version__}); use device 'auto' or 'cpu'")
     if dev.type not in ("cpu", "cuda"):
         raise ValueError(f"device must be 'auto', 'cpu' or 'cuda[:i]', got {device!r}")
+    if dev.type == "cuda" and dev.index is None:  # as tensors report it, so devices compare equal
+        dev = torch.device("cuda", torch.cuda.current_device())
     return dev
 
 
@@ -527,7 +529,7 @@ class Trainer:
         if view.image.device == self.device:
             return view
         return replace(view, image=view.image.to(self.device),
-                                   weight=None if view.weight is None else view.weight.to(self.device))
+                       weight=None if view.weight is None else view.weight.to(self.device))
 
     # optimisation ------------------------------------------------------------------------------
 

@@ -76,8 +76,11 @@ class FitParams:
     eval_every: int = 500  # held-out evaluation period; 0 = only at the end
     backend: str = "auto"  # rasterizer backend: auto, cpu, torch, gsplat
     # Where the fit trains: "cpu", "cuda[:i]", or "auto" = CUDA when a GPU and gsplat (the [gpu] extra)
-    # are present and backend is auto or gsplat, else the CPU. Results differ from a CPU fit in float
-    # rounding only; the key leaves "auto" out, so a cached fit is reused on either machine.
+    # are present and backend is auto or gsplat, else the CPU. A GPU fit is not bitwise repeatable
+    # (gsplat sums in any order): the demo's fit on an H200 took 18-22 s (its 16 CPU cores 41 s, our
+    # 2 cores 147 s), PSNR 33.32 outside the masks (CPU 33.31); over all pixels two GPU runs gave 23.69
+    # and 25.64 (CPU 25.85-25.90): the masked pixels, which the fit never sees, vary. The key leaves
+    # "auto" out: a cached fit is reused on either machine.
     device: str = added_param("auto")
     lr_means: float = 1.6e-4  # x scene extent; decays exponentially to lr_means_final
     lr_means_final: float = 1.6e-6

@@ -125,7 +125,9 @@ Protocols:
     floor under the box stayed as "seen" background. VERSION 7 (median depth, ``min_views`` 1,
     ``view_depth_tol`` 0.02; see ``min_views``' comment in sgpor_pipeline/removal/holes.py) finds them:
     ours 25.77 / 25.48 / 26.26 (holes 34 % of the mask, precision 0.85, recall 0.99 against the
-    truth), while the sphere keeps its score (26.51 / 26.21 / 26.06 against 26.48 / 25.84 / 25.92).
+    truth), while the sphere keeps its score (26.51 / 26.21 / 26.06 against 26.48 / 25.84 / 25.92);
+    the other methods at VERSION 7, seed 0: fsr-refit 23.92, no-sbm 26.79, no-rpr 25.72, delete-only
+    20.28 (sphere: 21.37, 26.02, 26.51, 24.56): on the box, no-sbm beats ours by 1.02 dB.
     With the expected depth and ``min_views`` 1, no-sbm (FSR with RPR retrieving source blocks for
     its low-detail blocks) beat ours: 26.69 / 25.62 / 27.15 against 25.43 / 24.70 / 25.76 (holes 22.83
     against ours' 21.25 dB, seed 0): SBM's fill of the floor under the box is darker than the rug

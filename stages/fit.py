@@ -492,7 +492,7 @@ def fit_scene(sfm_dir: Path, out_dir: Path, params: FitParams, checkpoint_dir: P
         lambda_dssim=params.lambda_dssim, lr_means=params.lr_means, lr_means_final=params.lr_means_final,
         lr_sh0=params.lr_sh0, lr_shN_factor=params.lr_shN_factor, lr_opacities=params.lr_opacities,
         lr_scales=params.lr_scales, lr_quats=params.lr_quats, seed=params.seed, backend=params.backend,
-        device=params.device, checkpoint_every=params.checkpoint_every, checkpoint_seconds=params.checkpoint_seconds,
+        device=str(device), checkpoint_every=params.checkpoint_every, checkpoint_seconds=params.checkpoint_seconds,
         eval_every=params.eval_every, budget=params.budget or None,
         debug_inject_nan_at=params.debug_inject_nan_at, debug_inject_nan_times=params.debug_inject_nan_times)
     trainer = Trainer(model, strategy, train_views, test_views, tp, extent, checkpoint_dir=checkpoint_dir,

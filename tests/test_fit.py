@@ -504,13 +504,15 @@ def check_cuda_fit_matches_cpu(sfm: Path, tmp: Path, strategy: str) -> dict:
     both learn the scene, and agree to within what their rasterizers' rounding and alpha clamps
     (0.99 ours, 0.999 gsplat) explain; then the CUDA fit resumes from its checkpoint. Returns the
     results (the GPU check script prints them)."""
+    def params(**kw) -> FitParams:
+        return quick_params(sh_degree=1, init_points=4000, strategy=strategy, checkpoint_every=150,
+                            budget=6000 if strategy == "mcmc" else None, **kw)
+
     res = {}
     for dev in ("cpu", "cuda"):
         out = tmp / f"fit_{strategy}_{dev}"
         out.mkdir(parents=True)
-        params = quick_params(iterations=400, eval_every=200, sh_degree=1, init_points=4000, strategy=strategy,
-                              budget=6000 if strategy == "mcmc" else None, device=dev, checkpoint_every=150)
-        res[dev] = fit_scene(sfm, out, params, out / "ckpt", LOG)
+        res[dev] = fit_scene(sfm, out, params(iterations=400, eval_every=200, device=dev), out / "ckpt", LOG)
         assert all_finite(out / "gaussians.ply")
     cpu, gpu = res["cpu"], res["cuda"]
     assert cpu["device"] == "cpu" and gpu["device"].startswith("cuda")
@@ -520,9 +522,7 @@ def check_cuda_fit_matches_cpu(sfm: Path, tmp: Path, strategy: str) -> dict:
     assert abs(gpu["count"] - cpu["count"]) <= 0.2 * cpu["count"], (gpu["count"], cpu["count"])
     # resume on CUDA from the CPU-side checkpoint file of iteration 300 (read onto the CPU, then moved)
     out = tmp / f"fit_{strategy}_cuda"
-    more = quick_params(iterations=450, eval_every=0, sh_degree=1, init_points=4000, strategy=strategy,
-                        budget=6000 if strategy == "mcmc" else None, device="cuda", checkpoint_every=150)
-    res["resumed"] = fit_scene(sfm, out, more, out / "ckpt", LOG)
+    res["resumed"] = fit_scene(sfm, out, params(iterations=450, eval_every=0, device="cuda"), out / "ckpt", LOG)
     assert res["resumed"]["resumed_from_iteration"] == 300 and res["resumed"]["iterations"] == 450
     assert res["resumed"]["heldout_psnr"] > gpu["mean_color_baseline_psnr"] + 3.0
     return res

@@ -322,27 +322,35 @@ def _bin(cfg: _Cfg, depths: torch.Tensor, rect: torch.Tensor, ntiles: torch.Tens
     return tile_off, isect, goff
 
 
+def _project_and_bin(means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, eps2d,
+                     tile_size, num_threads):
+    """Projection (differentiable) and tile binning of contiguous inputs: (cfg, means2d, conics, depths,
+    radii, rect, bins)."""
+    if not available():
+        raise RuntimeError(f"the cpu rasterizer kernel is not available: {load_error()}")
+    cfg = _Cfg(W=width, H=height, near=near_plane, far=far_plane, eps2d=eps2d, tile=tile_size,
+               threads=num_threads, C=viewmats.shape[0], N=means.shape[0])
+    means2d, conics, depths, radii, rect, ntiles, total = _ProjectFn.apply(
+        means, quats, scales, opacities, viewmats, Ks, cfg)
+    bins = _bin(cfg, depths.detach(), rect, ntiles, int(total))
+    return cfg, means2d, conics, depths, radii, rect, bins
+
+
 def render_median(means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, eps2d,
                   contribution_mask, *, tile_size, num_threads):
     """The median depth (render_mode "MD", no gradient): (median [C,H,W,1], alpha [C,H,W,1], meta)."""
-    if not available():
-        raise RuntimeError(f"the cpu rasterizer kernel is not available: {load_error()}")
-    C, N = viewmats.shape[0], means.shape[0]
-    cfg = _Cfg(W=width, H=height, near=near_plane, far=far_plane, eps2d=eps2d, tile=tile_size,
-               threads=num_threads, C=C, N=N)
     with torch.no_grad():
-        means2d, conics, depths, radii, rect, ntiles, total = _ProjectFn.apply(
-            means.detach().contiguous(), quats.detach().contiguous(), scales.detach().contiguous(),
-            opacities.detach().contiguous(), viewmats.contiguous(), Ks.contiguous(), cfg)
-        tile_off, isect, goff = _bin(cfg, depths, rect, ntiles, int(total))
-        dt = means.dtype
+        means, quats, scales, opacities = (x.detach().contiguous() for x in (means, quats, scales, opacities))
+        cfg, means2d, conics, depths, radii, rect, (tile_off, isect, goff) = _project_and_bin(
+            means, quats, scales, opacities, viewmats.contiguous(), Ks.contiguous(), width, height, near_plane,
+            far_plane, eps2d, tile_size, num_threads)
+        C, N, dt = cfg.C, cfg.N, means.dtype
         median = torch.empty(C, height, width, 1, dtype=dt)
         alpha = torch.empty(C, height, width, 1, dtype=dt)
         contrib = torch.empty(C, N, dtype=dt)
         cmask = None if contribution_mask is None else contribution_mask.contiguous().view(torch.uint8)
-        opac = opacities.detach().contiguous()
         rc = _fn("raster_median", dt)(
-            C, N, width, height, tile_size, _ptr(means2d), _ptr(conics), _ptr(depths), _ptr(opac),
+            C, N, width, height, tile_size, _ptr(means2d), _ptr(conics), _ptr(depths), _ptr(opacities),
             _ptr(rect), _ptr(tile_off), _ptr(isect), _ptr(goff), _ptr(cmask), _ptr(median), _ptr(alpha),
             _ptr(contrib), num_threads)
     if rc != 0:
@@ -354,20 +362,13 @@ def render_median(means, quats, scales, opacities, viewmats, Ks, width, height, 
 def render(means, quats, scales, opacities, colors, sh_degree, viewmats, Ks, width, height,
            near_plane, far_plane, eps2d, with_depth, contribution_mask, *, tile_size, num_threads):
     """Render without background; returns (render [C,H,W,CH], alpha [C,H,W,1], meta)."""
-    if not available():
-        raise RuntimeError(f"the cpu rasterizer kernel is not available: {load_error()}")
-    C, N = viewmats.shape[0], means.shape[0]
-    cfg = _Cfg(W=width, H=height, near=near_plane, far=far_plane, eps2d=eps2d, tile=tile_size,
-               threads=num_threads, C=C, N=N)
+    C = viewmats.shape[0]
     means = means.contiguous()
-    quats = quats.contiguous()
-    scales = scales.contiguous()
     opacities = opacities.contiguous()
     viewmats = viewmats.contiguous()
-    Ks = Ks.contiguous()
-    means2d, conics, depths, radii, rect, ntiles, total = _ProjectFn.apply(
-        means, quats, scales, opacities, viewmats, Ks, cfg)
-    bins = _bin(cfg, depths.detach(), rect, ntiles, int(total))
+    cfg, means2d, conics, depths, radii, rect, bins = _project_and_bin(
+        means, quats.contiguous(), scales.contiguous(), opacities, viewmats, Ks.contiguous(), width, height,
+        near_plane, far_plane, eps2d, tile_size, num_threads)
 
     feats = []
     if colors is not None:

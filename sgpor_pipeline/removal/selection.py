@@ -53,30 +53,28 @@ def _stack_cameras(cameras: list[Camera]) -> tuple[torch.Tensor, torch.Tensor]:
     return vm, K
 
 
-def render_channels(model: GaussianModel, camera: Camera, colors: torch.Tensor, backend: str = "auto",
-                    contribution_mask: np.ndarray | None = None, depth: bool = False
-                    ) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Render per-Gaussian feature channels [N,D] (no SH) at one camera: (image [H,W,D(+1)], alpha [H,W], meta)."""
+def _render_one(model: GaussianModel, camera: Camera, colors: torch.Tensor | None, render_mode: str, backend: str,
+                contribution_mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
     act = model.activated()
     vm, K = _stack_cameras([camera])
     cmask = None if contribution_mask is None else torch.from_numpy(np.asarray(contribution_mask, bool))[None]
     with torch.no_grad():
         img, alpha, meta = rasterization(act["means"].detach(), act["quats"].detach(), act["scales"].detach(),
                                          act["opacities"].detach(), colors, vm, K, camera.width, camera.height,
-                                         render_mode="RGB+ED" if depth else "RGB", backend=backend,
-                                         contribution_mask=cmask)
+                                         render_mode=render_mode, backend=backend, contribution_mask=cmask)
     return img[0].numpy(), alpha[0, ..., 0].numpy(), meta
+
+
+def render_channels(model: GaussianModel, camera: Camera, colors: torch.Tensor, backend: str = "auto",
+                    contribution_mask: np.ndarray | None = None, depth: bool = False
+                    ) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Render per-Gaussian feature channels [N,D] (no SH) at one camera: (image [H,W,D(+1)], alpha [H,W], meta)."""
+    return _render_one(model, camera, colors, "RGB+ED" if depth else "RGB", backend, contribution_mask)
 
 
 def render_median_depth(model: GaussianModel, camera: Camera, backend: str = "auto") -> np.ndarray:
     """The median depth [H,W] (render_mode "MD": 0 where the pixel never gets half opaque)."""
-    act = model.activated()
-    vm, K = _stack_cameras([camera])
-    with torch.no_grad():
-        img, _, _ = rasterization(act["means"].detach(), act["quats"].detach(), act["scales"].detach(),
-                                  act["opacities"].detach(), None, vm, K, camera.width, camera.height,
-                                  render_mode="MD", backend=backend)
-    return img[0, ..., 0].numpy()
+    return _render_one(model, camera, None, "MD", backend)[0][..., 0]
 
 
 def contribution_scores(model: GaussianModel, cameras: list[Camera], masks: list[np.ndarray],

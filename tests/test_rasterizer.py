@@ -20,7 +20,9 @@ from sgpor_pipeline.gaussians._raster_scenes import look_at_camera, random_scene
 from sgpor_pipeline.gaussians.rasterizer import (
     NonFiniteInputError,
     RasterizerInputError,
+    count_non_finite,
     cpu_kernel_available,
+    first_non_finite,
     rasterization,
 )
 
@@ -531,6 +533,32 @@ def test_non_finite_inputs_raise(name, bad):
         rasterization(**args)
     assert isinstance(info.value, ValueError) and isinstance(info.value, NonFiniteError)
     assert info.value.fix
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_count_non_finite_counts_nan_and_inf(dtype, monkeypatch):
+    x = torch.randn(7, 5, 3, dtype=dtype) * 1e30  # large but finite values are not flagged
+    assert count_non_finite(x) == 0
+    x[1, 2, 0], x[3, 0, 1], x[6, 4, 2] = float("nan"), float("inf"), -float("inf")
+    assert count_non_finite(x) == 3
+    assert count_non_finite(x.transpose(0, 2)) == 3  # non-contiguous views too
+    assert count_non_finite(x[:, :, :1]) == 1
+    assert count_non_finite(x.requires_grad_()) == 3  # a leaf needing gradients
+    assert count_non_finite(torch.zeros(0, 3, dtype=dtype)) == 0
+    assert count_non_finite(torch.arange(5)) == 0  # integers cannot hold NaN
+    # the torch fallback (no kernel, or a tensor off the CPU) gives the same counts
+    monkeypatch.setattr(_raster_cpu, "count_nonfinite", lambda t: None)
+    assert count_non_finite(x) == 3 and count_non_finite(x[:, :, 2:]) == 1
+    assert count_non_finite(torch.randn(4, dtype=dtype) * 1e30) == 0
+
+
+def test_first_non_finite_names_the_first_bad_tensor():
+    good, bad = torch.ones(4, 3), torch.ones(4, 3)
+    bad[2, 1] = float("nan")
+    assert first_non_finite({"a": good, "b": None, "c": good.double()}) is None
+    assert first_non_finite({"a": good, "b": bad, "c": bad.clone()}) == "b"
+    assert first_non_finite({"a": None, "x": bad * float("inf")}) == "x"
+    assert first_non_finite({}) is None
 
 
 @pytest.mark.parametrize("change, match", [

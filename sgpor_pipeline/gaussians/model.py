@@ -217,7 +217,9 @@ class GaussianModel:
 
     def non_finite(self) -> list[str]:
         """Names of the parameters holding NaN or inf."""
-        return [n for n, p in self.params.items() if not bool(torch.isfinite(p.detach()).all())]
+        from .rasterizer import count_non_finite
+
+        return [n for n, p in self.params.items() if count_non_finite(p)]
 
     def numpy(self) -> dict[str, np.ndarray]:
         """Pre-activation parameters as float32 numpy arrays (for writing files)."""

@@ -40,7 +40,7 @@ import torch.nn.functional as F
 from ..errors import NonFiniteError
 from ..scene import Camera
 from .model import GaussianModel
-from .rasterizer import NonFiniteInputError, rasterization
+from .rasterizer import NonFiniteInputError, first_non_finite, rasterization
 from .strategy import Strategy
 
 CHECKPOINT_NAME = "fit_checkpoint.pt"
@@ -667,13 +667,6 @@ class Trainer:
         self.log.warning(f"{self.tag}: {what} at iteration {failed_at}: rolled back to iteration {self.step}, "
                          f"learning rates x{self.lr_scale:g}")
 
-    @staticmethod
-    def _first_non_finite(tensors: dict[str, torch.Tensor | None]) -> str | None:
-        for n, t in tensors.items():
-            if t is not None and not bool(torch.isfinite(t).all()):
-                return n
-        return None
-
     # one iteration -----------------------------------------------------------------------------
 
     def _iteration(self) -> float:
@@ -701,7 +694,7 @@ class Trainer:
         if not bool(torch.isfinite(loss)):
             raise RollbackNeeded("non-finite loss")
         loss.backward()
-        bad = self._first_non_finite({n: q.grad for n, q in p.items()})
+        bad = first_non_finite({n: q.grad for n, q in p.items()})
         if bad is not None:
             raise RollbackNeeded(f"non-finite gradient of '{bad}'")
         for opt in self.optimizers.values():
@@ -717,7 +710,7 @@ class Trainer:
             self.nan_injections += 1
             with torch.no_grad():
                 self.model.params["means"][0, 0] = float("nan")
-        bad = self._first_non_finite(dict(self.model.params))
+        bad = first_non_finite(dict(self.model.params))
         if bad is not None:
             raise RollbackNeeded(f"non-finite parameter '{bad}'")
         self.step = step

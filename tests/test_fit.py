@@ -27,9 +27,13 @@ from sgpor_pipeline.errors import NonFiniteError
 from sgpor_pipeline.gaussians import strategy as S
 from sgpor_pipeline.gaussians.model import GaussianModel, rgb_to_sh
 from sgpor_pipeline.gaussians.ply import property_names, read_ply, write_ply
+from sgpor_pipeline.gaussians.rasterizer import cpu_kernel_available
 from sgpor_pipeline.gaussians.train import (
     BudgetController,
     TrainParams,
+    _ssim_kernel_applies,
+    _SSIMMean,
+    _SSIMMeanKernel,
     photometric_loss,
     resolve_device,
     ssim_map,
@@ -186,6 +190,65 @@ def test_weighted_loss_ignores_zero_weight_pixels_and_has_exact_gradients():
     m = ssim_map(b[None], y.permute(2, 0, 1)[None])[0]
     ((m * wr).sum() / (wr.sum() * 3)).backward()
     assert torch.allclose(a.grad, b.grad, atol=1e-10)
+
+
+needs_kernel = pytest.mark.skipif(not cpu_kernel_available(), reason="the cpu kernel is not built")
+
+
+@needs_kernel
+@pytest.mark.parametrize("dtype, tol", [(torch.float32, 2e-6), (torch.float64, 1e-13)])
+@pytest.mark.parametrize("hw", [(6, 6), (13, 40), (48, 64)])
+@pytest.mark.parametrize("weighted", [False, True])
+def test_fused_ssim_matches_the_torch_ssim(dtype, tol, hw, weighted):
+    """The kernel's fused SSIM (csrc/ssim.h) gives the torch version's value and gradient to rounding,
+    from the smallest image reflect padding allows (6 x 6) up, plain and weighted."""
+    g = torch.Generator().manual_seed(hw[0] * 100 + hw[1])
+    x = torch.rand(3, *hw, generator=g, dtype=dtype)
+    y = (x + 0.2 * torch.randn(3, *hw, generator=g, dtype=dtype)).clamp(0, 1)
+    w = (torch.rand(*hw, generator=g) * (torch.rand(*hw, generator=g) > 0.3)).to(dtype) if weighted else None
+    xa, xb = x.clone().requires_grad_(True), x.clone().requires_grad_(True)
+    a, b = _SSIMMean.apply(xa, y, w), _SSIMMeanKernel.apply(xb, y, w)
+    assert a.dtype == b.dtype == dtype and b.shape == ()
+    assert abs(float(a.detach()) - float(b.detach())) < tol
+    a.backward()
+    b.backward()
+    assert xb.grad.shape == x.shape and xb.grad.dtype == dtype
+    assert float((xa.grad - xb.grad).abs().max()) <= tol * float(xa.grad.abs().max()) * 10
+
+
+@needs_kernel
+@pytest.mark.parametrize("weighted", [False, True])
+def test_fused_ssim_gradcheck(weighted):
+    g = torch.Generator().manual_seed(3)
+    x = torch.rand(2, 7, 9, generator=g, dtype=torch.float64, requires_grad=True)
+    y = torch.rand(2, 7, 9, generator=g, dtype=torch.float64)
+    w = torch.rand(7, 9, generator=g, dtype=torch.float64) if weighted else None
+    assert torch.autograd.gradcheck(lambda t: _SSIMMeanKernel.apply(t, y, w), (x,), eps=1e-6, atol=1e-8)
+
+
+@needs_kernel
+def test_fused_ssim_does_not_depend_on_the_thread_count(monkeypatch):
+    g = torch.Generator().manual_seed(4)
+    x = torch.rand(3, 37, 50, generator=g, requires_grad=True)
+    y = torch.rand(3, 37, 50, generator=g)
+    w = torch.rand(37, 50, generator=g)
+    results = []
+    for threads in ("1", "3"):
+        monkeypatch.setenv("SGPOR_NUM_THREADS", threads)
+        x.grad = None
+        v = _SSIMMeanKernel.apply(x, y, w)
+        v.backward()
+        results.append((float(v.detach()), x.grad.clone()))
+    assert results[0][0] == results[1][0] and torch.equal(results[0][1], results[1][1])
+
+
+def test_ssim_mean_takes_the_kernel_only_where_it_applies():
+    x32, x64 = torch.rand(3, 8, 8), torch.rand(3, 8, 8, dtype=torch.float64)
+    assert _ssim_kernel_applies(x32, x32) == cpu_kernel_available()
+    assert not _ssim_kernel_applies(x32, x64)  # mixed dtypes: the torch version
+    assert not _ssim_kernel_applies(x32.half(), x32.half())
+    # both paths give the loss the trainer uses, the kernel's where it applies
+    assert abs(float(ssim_mean(x32, x32)) - 1.0) < 1e-5
 
 
 # --------------------------------------------------------------------------------------------------

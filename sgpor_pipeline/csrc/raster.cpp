@@ -3,6 +3,7 @@
 // Every function exists for float ("_f32") and double ("_f64"); arrays are contiguous, row-major,
 // with the shapes given in raster.h. Scalars that are floating point are passed as double.
 #include "raster.h"
+#include "ssim.h"
 
 using namespace sgpor;
 
@@ -76,7 +77,7 @@ int bwd_ch(int CH, int C, int N, int W, int H, const void* pk, const int64_t* to
 
 #define SGPOR_API extern "C" __attribute__((visibility("default")))
 
-SGPOR_API int sgpor_abi_version() { return 2; }
+SGPOR_API int sgpor_abi_version() { return 3; }  // 3: sgpor_ssim_fwd / _bwd
 
 SGPOR_API int sgpor_cpu_level() {
 #if defined(__x86_64__) || defined(__i386__)
@@ -195,6 +196,14 @@ SGPOR_API int sgpor_max_threads() {
       return bwd_ch<T, 16>(CH, C, N, W, H, packed, tile_off, isect, goff, tfinal, last, g_out,   \
                            g_alpha, g_means2d, g_conics, g_feats, g_opac, nthreads);                \
     return -2;                                                                                      \
+  }                                                                                                 \
+  SGPOR_API double sgpor_ssim_fwd_##SUF(int C, int H, int W, const T* x, const T* y,               \
+                                        const T* wmap, T* mom, int nthreads) {                     \
+    return ssim::forward<T>(C, H, W, x, y, wmap, mom, nthreads);                                    \
+  }                                                                                                 \
+  SGPOR_API void sgpor_ssim_bwd_##SUF(int C, int H, int W, const T* x, const T* y, const T* mom,   \
+                                      const T* wmap, double scale, T* dx, int nthreads) {          \
+    ssim::backward<T>(C, H, W, x, y, mom, wmap, scale, dx, nthreads);                               \
   }                                                                                                 \
   SGPOR_API int64_t sgpor_packed_bytes_##SUF(int CH) {                                              \
     switch (CH) {                                                                                   \

@@ -48,6 +48,8 @@ _SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
     "raster_median": (_I, [_I, _I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I]),
     "raster_bwd": (_I, [_I, _I, _I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P,
                         _I]),
+    "ssim_fwd": (_D, [_I, _I, _I, _P, _P, _P, _P, _I]),
+    "ssim_bwd": (None, [_I, _I, _I, _P, _P, _P, _P, _D, _P, _I]),
 }
 _PREFERENCE = ("native", "x86_64_v4", "x86_64_v3", "x86_64_v2", "generic")
 _LEVEL_OF = {"x86_64_v4": 4, "x86_64_v3": 3, "x86_64_v2": 2}
@@ -106,7 +108,7 @@ def _open(path: Path) -> ctypes.CDLL:
     # sgpor_pipeline/__init__.py sets it before torch is imported through the package.
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     lib = ctypes.CDLL(str(path))
-    if lib.sgpor_abi_version() != 2:
+    if lib.sgpor_abi_version() != 3:
         raise OSError(f"{path.name}: unexpected ABI version")
     for base, (res, args) in _SIGNATURES.items():
         for suf in ("f32", "f64"):
@@ -180,6 +182,27 @@ def count_nonfinite(x: torch.Tensor) -> int | None:
         return None
     x = x.contiguous()
     return int(_fn("count_nonfinite", x.dtype)(x.data_ptr(), x.numel()))
+
+
+def ssim_forward(x: torch.Tensor, y: torch.Tensor, wmap: torch.Tensor | None, threads: int
+                 ) -> tuple[float, torch.Tensor]:
+    """The kernel's fused SSIM (csrc/ssim.h) of contiguous [C,H,W] CPU images of one dtype (H, W > 5):
+    (the sum of the SSIM map, times ``wmap`` [H,W] per pixel when given; the moments [5C,H,W] the
+    backward needs)."""
+    C, H, W = x.shape
+    mom = x.new_empty(5 * C, H, W)
+    total = _fn("ssim_fwd", x.dtype)(C, H, W, x.data_ptr(), y.data_ptr(), _ptr(wmap), mom.data_ptr(), threads)
+    return float(total), mom
+
+
+def ssim_backward(x: torch.Tensor, y: torch.Tensor, mom: torch.Tensor, wmap: torch.Tensor | None, scale: float,
+                  threads: int) -> torch.Tensor:
+    """The gradient of :func:`ssim_forward`'s sum with respect to ``x``, times ``scale``."""
+    C, H, W = x.shape
+    dx = torch.empty_like(x)
+    _fn("ssim_bwd", x.dtype)(C, H, W, x.data_ptr(), y.data_ptr(), mom.data_ptr(), _ptr(wmap), float(scale),
+                             dx.data_ptr(), threads)
+    return dx
 
 
 def _ptr(t: torch.Tensor | None) -> int | None:

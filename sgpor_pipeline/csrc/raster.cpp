@@ -102,17 +102,20 @@ SGPOR_API void sgpor_last_stats(int64_t* out) {
 }
 
 // Number of NaN/inf values (exponent bits all ones), by integer bit tests: the kernel is built
-// with -ffinite-math-only, under which std::isfinite may be folded to true. Serial on purpose
-// (a few microseconds per 100k values; no parallel region).
+// with -ffinite-math-only, under which std::isfinite may be folded to true. Serial below a million
+// values (a few microseconds per 100k; no parallel region), threaded above: the trainer scans every
+// parameter and gradient each iteration (SH coefficients: 48 values per Gaussian). Integer counts:
+// the result does not depend on the thread count.
+constexpr int64_t kParallelScan = int64_t(1) << 20;
 SGPOR_API int64_t sgpor_count_nonfinite_f32(const uint32_t* x, int64_t n) {
   int64_t bad = 0;
-#pragma omp simd reduction(+ : bad)
+#pragma omp parallel for simd reduction(+ : bad) schedule(static) if (n >= kParallelScan)
   for (int64_t i = 0; i < n; ++i) bad += (x[i] & 0x7f800000u) == 0x7f800000u;
   return bad;
 }
 SGPOR_API int64_t sgpor_count_nonfinite_f64(const uint64_t* x, int64_t n) {
   int64_t bad = 0;
-#pragma omp simd reduction(+ : bad)
+#pragma omp parallel for simd reduction(+ : bad) schedule(static) if (n >= kParallelScan)
   for (int64_t i = 0; i < n; ++i) bad += (x[i] & 0x7ff0000000000000ull) == 0x7ff0000000000000ull;
   return bad;
 }

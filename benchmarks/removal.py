@@ -128,6 +128,10 @@ Protocols:
     truth), while the sphere keeps its score (26.51 / 26.21 / 26.06 against 26.48 / 25.84 / 25.92);
     the other methods at VERSION 7, seed 0: fsr-refit 23.92, no-sbm 26.79, no-rpr 25.72, delete-only
     20.28 (sphere: 21.37, 26.02, 26.51, 24.56): on the box, no-sbm beats ours by 1.02 dB.
+    Since session 21 the training loss' SSIM is the kernel's fused one (rounded differently from
+    torch's, so every fit moves as with another seed): sphere ours 26.30 / 26.49 / 26.70 (mean 26.49,
+    was 26.26), seed 0 delete-only 24.24, no-sbm 25.76 (ours +0.53, was +0.49); demo_seconds 363 ->
+    250 (fit 253 -> 154 s, finetune 90 -> 77 s).
     With the expected depth and ``min_views`` 1, no-sbm (FSR with RPR retrieving source blocks for
     its low-detail blocks) beat ours: 26.69 / 25.62 / 27.15 against 25.43 / 24.70 / 25.76 (holes 22.83
     against ours' 21.25 dB, seed 0): SBM's fill of the floor under the box is darker than the rug

@@ -36,6 +36,23 @@ void window(T g[kTaps]) {
 
 inline int reflect(int i, int n) { return i < 0 ? -i : (i >= n ? 2 * (n - 1) - i : i); }
 
+// The SSIM map's factors at one pixel, s = A B / (C D + eps), from the five moments of the
+// forward's output (moment k of the pixel at mom[k * cplane + i]).
+template <typename T>
+struct Terms {
+  T mu1, mu2, A, B, C, D, den, s;
+  Terms(const T* mom, int64_t cplane, int64_t i) {
+    mu1 = mom[i];
+    mu2 = mom[cplane + i];
+    A = T(2) * mu1 * mu2 + T(kC1);
+    B = T(2) * (mom[4 * cplane + i] - mu1 * mu2) + T(kC2);
+    C = mu1 * mu1 + mu2 * mu2 + T(kC1);
+    D = (mom[2 * cplane + i] - mu1 * mu1) + (mom[3 * cplane + i] - mu2 * mu2) + T(kC2);
+    den = C * D + T(kEps);
+    s = A * B / den;
+  }
+};
+
 // dst = the separable blur of src (H x W), reflect-padded; row: scratch of W + 2 kPad, tmp: H x W.
 template <typename T>
 void blur_plane(const T* src, T* dst, int H, int W, const T* g, T* row, T* tmp) {
@@ -131,21 +148,14 @@ double forward(int C, int H, int W, const T* x, const T* y, const T* wmap, T* mo
     }
   }
   std::vector<double> rows(int64_t(C) * H, 0.0);
+  const int64_t cplane = C * plane;
 #pragma omp parallel for schedule(static) num_threads(nthreads)
   for (int cr = 0; cr < C * H; ++cr) {
-    const int c = cr / H, r = cr % H;
-    const int64_t o = c * plane + int64_t(r) * W;
-    const T *m1 = mom + o, *m2 = mom + C * plane + o, *e11 = mom + 2 * C * plane + o,
-            *e22 = mom + 3 * C * plane + o, *e12 = mom + 4 * C * plane + o;
-    const T* wr = wmap ? wmap + int64_t(r) * W : nullptr;
+    const int64_t o = int64_t(cr) * W;  // channel cr / H, row cr % H
+    const T* wr = wmap ? wmap + int64_t(cr % H) * W : nullptr;
     double acc = 0.0;
     for (int j = 0; j < W; ++j) {
-      const T mu1 = m1[j], mu2 = m2[j];
-      const T A = T(2) * mu1 * mu2 + T(kC1);
-      const T B = T(2) * (e12[j] - mu1 * mu2) + T(kC2);
-      const T Cc = mu1 * mu1 + mu2 * mu2 + T(kC1);
-      const T D = (e11[j] - mu1 * mu1) + (e22[j] - mu2 * mu2) + T(kC2);
-      const T s = A * B / (Cc * D + T(kEps));
+      const T s = Terms<T>(mom, cplane, o + j).s;
       acc += wr ? double(s) * double(wr[j]) : double(s);
     }
     rows[cr] = acc;
@@ -165,25 +175,17 @@ void backward(int C, int H, int W, const T* x, const T* y, const T* mom, const T
   const int64_t plane = int64_t(H) * W;
   std::vector<T> maps(3 * C * plane), adj(3 * C * plane);
   const T sc = T(scale);
+  const int64_t cplane = C * plane;
 #pragma omp parallel for schedule(static) num_threads(nthreads)
   for (int cr = 0; cr < C * H; ++cr) {
-    const int c = cr / H, r = cr % H;
-    const int64_t o = c * plane + int64_t(r) * W;
-    const T *m1 = mom + o, *m2 = mom + C * plane + o, *e11 = mom + 2 * C * plane + o,
-            *e22 = mom + 3 * C * plane + o, *e12 = mom + 4 * C * plane + o;
-    const T* wr = wmap ? wmap + int64_t(r) * W : nullptr;
-    T *g1 = maps.data() + o, *g11 = maps.data() + C * plane + o, *g12 = maps.data() + 2 * C * plane + o;
+    const int64_t o = int64_t(cr) * W;  // channel cr / H, row cr % H
+    const T* wr = wmap ? wmap + int64_t(cr % H) * W : nullptr;
+    T *g1 = maps.data() + o, *g11 = maps.data() + cplane + o, *g12 = maps.data() + 2 * cplane + o;
     for (int j = 0; j < W; ++j) {
-      const T mu1 = m1[j], mu2 = m2[j];
-      const T A = T(2) * mu1 * mu2 + T(kC1);
-      const T B = T(2) * (e12[j] - mu1 * mu2) + T(kC2);
-      const T Cc = mu1 * mu1 + mu2 * mu2 + T(kC1);
-      const T D = (e11[j] - mu1 * mu1) + (e22[j] - mu2 * mu2) + T(kC2);
-      const T den = Cc * D + T(kEps);
-      const T s = A * B / den;
-      const T dA = B / den, dB = A / den, dC = -s * D / den, dD = -s * Cc / den;
+      const Terms<T> t(mom, cplane, o + j);
+      const T dA = t.B / t.den, dB = t.A / t.den, dC = -t.s * t.D / t.den, dD = -t.s * t.C / t.den;
       const T w = wr ? sc * wr[j] : sc;
-      g1[j] = ((T(2) * mu2) * (dA - dB) + (T(2) * mu1) * (dC - dD)) * w;
+      g1[j] = ((T(2) * t.mu2) * (dA - dB) + (T(2) * t.mu1) * (dC - dD)) * w;
       g11[j] = dD * w;
       g12[j] = T(2) * dB * w;
     }
@@ -199,7 +201,7 @@ void backward(int C, int H, int W, const T* x, const T* y, const T* mom, const T
 #pragma omp parallel for schedule(static) num_threads(nthreads)
   for (int cr = 0; cr < C * H; ++cr) {
     const int64_t o = int64_t(cr) * W;
-    const T *gm = adj.data() + o, *g11 = adj.data() + C * plane + o, *g12 = adj.data() + 2 * C * plane + o;
+    const T *gm = adj.data() + o, *g11 = adj.data() + cplane + o, *g12 = adj.data() + 2 * cplane + o;
     for (int j = 0; j < W; ++j) dx[o + j] = gm[j] + T(2) * x[o + j] * g11[j] + y[o + j] * g12[j];
   }
 }

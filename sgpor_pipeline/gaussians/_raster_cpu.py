@@ -189,6 +189,8 @@ def ssim_forward(x: torch.Tensor, y: torch.Tensor, wmap: torch.Tensor | None, th
     """The kernel's fused SSIM (csrc/ssim.h) of contiguous [C,H,W] CPU images of one dtype (H, W > 5):
     (the sum of the SSIM map, times ``wmap`` [H,W] per pixel when given; the moments [5C,H,W] the
     backward needs)."""
+    if not available():
+        raise RuntimeError(f"the cpu kernel is not loaded: {load_error()}")
     C, H, W = x.shape
     mom = x.new_empty(5 * C, H, W)
     total = _fn("ssim_fwd", x.dtype)(C, H, W, x.data_ptr(), y.data_ptr(), _ptr(wmap), mom.data_ptr(), threads)

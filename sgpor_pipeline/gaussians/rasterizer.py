@@ -126,7 +126,7 @@ def _check_tensor(name: str, x: Any, shape: tuple, ndim: int | tuple[int, ...] |
 def count_non_finite(x: torch.Tensor) -> int:
     """Number of NaN/inf values of a floating-point tensor (0 for other dtypes).
 
-    CPU float32/float64: the kernel's serial bit scan (``torch.isfinite`` with ``.all()`` is about 50x
+    CPU float32/float64: the kernel's bit scan (``torch.isfinite`` with ``.all()`` is about 50x
     slower on the CPU wheel here: it was a fifth of a fit's time, see the trainer's NaN guard);
     elsewhere one torch reduction."""
     if not x.is_floating_point() or x.numel() == 0:
@@ -134,7 +134,7 @@ def count_non_finite(x: torch.Tensor) -> int:
     from . import _raster_cpu
 
     x = x.detach()
-    bad = _raster_cpu.count_nonfinite(x)  # CPU: a serial scan in the kernel, no torch threads
+    bad = _raster_cpu.count_nonfinite(x)  # CPU: the kernel's scan, no torch op
     if bad is None:
         lo, hi = torch.aminmax(x)  # NaN propagates; one reduction instead of two
         bad = 0 if bool(torch.isfinite(lo) & torch.isfinite(hi)) else int((~torch.isfinite(x)).sum())

@@ -251,6 +251,11 @@ def _blur_adjoint(gz: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
     return out
 
 
+def _ssim_weight_map(weight: torch.Tensor, channels: int, dtype: torch.dtype) -> torch.Tensor:
+    """Per-pixel factors [H,W] that turn the sum of an SSIM map over ``channels`` into its weighted mean."""
+    return (weight / (weight.sum().clamp_min(1e-12) * channels)).to(dtype)
+
+
 class _SSIMMean(torch.autograd.Function):
     """Mean SSIM of two [C,H,W] images (the definition of ``kornia.metrics.ssim(x, y, 11)``) with an
     analytic backward to ``x`` only (``y`` is the target): about 5x faster than autograd through
@@ -278,7 +283,7 @@ class _SSIMMean(torch.autograd.Function):
             ctx.count = s.numel()
             return s.mean()
         # weighted mean over pixels (and channels): weight [H,W] >= 0
-        wmap = (weight / (weight.sum().clamp_min(1e-12) * c))[None].to(s.dtype)
+        wmap = _ssim_weight_map(weight, c, s.dtype)[None]
         ctx.save_for_backward(x, y, mu1, mu2, A, B, C, D, den, s, wmap)
         return (s * wmap).sum()
 
@@ -305,7 +310,7 @@ class _SSIMMeanKernel(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x: torch.Tensor, y: torch.Tensor,  # type: ignore[override]
                 weight: torch.Tensor | None = None) -> torch.Tensor:
-        wmap = None if weight is None else (weight / (weight.sum().clamp_min(1e-12) * x.shape[0])).to(x.dtype)
+        wmap = None if weight is None else _ssim_weight_map(weight, x.shape[0], x.dtype)
         threads = _default_threads()
         total, mom = _raster_cpu.ssim_forward(x, y, wmap, threads)
         ctx.save_for_backward(x, y, mom, *([] if wmap is None else [wmap]))

@@ -419,6 +419,29 @@ def test_nan_guard_rolls_back_and_lowers_the_lr(tmp_path, small_scene, caplog):
     assert not (out2 / "gaussians.ply").exists()
 
 
+def test_a_non_finite_loss_rolls_back(tmp_path, small_scene, monkeypatch, caplog):
+    # The loss is checked together with the gradients (one GPU synchronisation): a NaN loss at one
+    # iteration still rolls back, named as the loss (not as the gradients it poisoned).
+    from sgpor_pipeline.gaussians import train as T
+
+    sfm = make_sfm(tmp_path / "sfm", small_scene, n_points=500)
+    out = tmp_path / "fit"
+    out.mkdir()
+    real, calls = T.photometric_loss, []
+
+    def nan_once(*args, **kwargs):
+        calls.append(1)
+        loss = real(*args, **kwargs)
+        return loss * float("nan") if len(calls) == 60 else loss
+
+    monkeypatch.setattr(T, "photometric_loss", nan_once)
+    with caplog.at_level(logging.WARNING, logger="sgpor_pipeline.fit"):
+        res = fit_scene(sfm, out, quick_params(iterations=100), None, LOG)
+    assert [(rb["iteration"], rb["what"]) for rb in res["rollbacks"]] == [(60, "non-finite loss")]
+    assert any("non-finite loss at iteration 60" in r.getMessage() for r in caplog.records)
+    assert res["iterations"] == 100 and all_finite(out / "gaussians.ply")
+
+
 def test_hard_cases_stay_finite(tmp_path, small_scene):
     # (a) only 20 SfM points
     sfm = make_sfm(tmp_path / "sfm20", small_scene, n_points=20)

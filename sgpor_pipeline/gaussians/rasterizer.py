@@ -241,10 +241,11 @@ def _validate(means, quats, scales, opacities, colors, viewmats, Ks, width, heig
         _check_tensor("contribution_mask", contribution_mask, (C, height, width), 3)
         if contribution_mask.dtype != torch.bool or contribution_mask.device != dev:
             raise RasterizerInputError("contribution_mask must be a bool tensor on the device of means")
-    for name, x in (("means", means), ("quats", quats), ("scales", scales), ("opacities", opacities),
-                    ("colors", colors), ("viewmats", viewmats), ("Ks", Ks),
-                    ("backgrounds", backgrounds)):
-        _check_finite(name, x)
+    inputs = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "colors": colors,
+              "viewmats": viewmats, "Ks": Ks, "backgrounds": backgrounds}
+    bad = first_non_finite(inputs)  # on a GPU one synchronisation for all eight
+    if bad is not None:
+        _check_finite(bad, inputs[bad])
     return N, C, D, backgrounds
 
 

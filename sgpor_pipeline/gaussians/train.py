@@ -529,6 +529,9 @@ class Trainer:
         self.model = model.to(self.device)
         self.strategy = strategy
         self.train_views = [self._on_device(v) for v in train_views]
+        # each view's camera as [1,4,4] and [1,3,3] tensors on the device, made once: a copy from
+        # the host each iteration synchronises a GPU twice
+        self._cameras = [(v.viewmat.to(self.device), v.K.to(self.device)) for v in self.train_views]
         self.eval_views = [self._on_device(v) for v in eval_views]
         self.p = params
         self.extent = float(extent)
@@ -596,10 +599,11 @@ class Trainer:
             return min(self.p.sh_degree, self.model.max_sh_degree)
         return min(self.p.sh_degree, self.model.max_sh_degree, step // self.p.sh_degree_every)
 
-    def _next_view(self) -> TrainView:
+    def _next_view(self) -> int:
+        """The index of the next training view (a fresh random order each epoch)."""
         if not self.perm:
             self.perm = torch.randperm(len(self.train_views), generator=self.gen).tolist()
-        return self.train_views[self.perm.pop()]
+        return self.perm.pop()
 
     # state -------------------------------------------------------------------------------------
 
@@ -711,14 +715,15 @@ class Trainer:
         means_lr = self._set_lrs(step)
         deg = self.active_sh_degree(step)
         k = (deg + 1) ** 2
-        view = self._next_view()
+        i = self._next_view()
+        view, (viewmat, K) = self.train_views[i], self._cameras[i]
         H, W = view.image.shape[:2]
         p = self.model.params
         colors = torch.cat([p["sh0"], p["shN"][:, : k - 1]], dim=1) if k > 1 else p["sh0"]
         try:
             render, _alpha, info = rasterization(
                 p["means"], p["quats"], torch.exp(p["scales"]), torch.sigmoid(p["opacities"]), colors,
-                view.viewmat.to(self.device), view.K.to(self.device), W, H, sh_degree=deg, backgrounds=self.bg,
+                viewmat, K, W, H, sh_degree=deg, backgrounds=self.bg,
                 backend=self.p.backend)
         except NonFiniteInputError as e:
             raise RollbackNeeded(f"non-finite rasterizer input ({e.message})") from None
@@ -728,10 +733,12 @@ class Trainer:
         extra = self.strategy.extra_loss(self.model, step)
         if extra is not None:
             loss = loss + extra
-        if not bool(torch.isfinite(loss)):
-            raise RollbackNeeded("non-finite loss")
         loss.backward()
-        bad = first_non_finite({n: q.grad for n, q in p.items()})
+        # the loss and the gradients in one check (one GPU synchronisation); a non-finite loss
+        # only costs its backward before the rollback
+        bad = first_non_finite({"loss": loss, **{n: q.grad for n, q in p.items()}})
+        if bad == "loss":
+            raise RollbackNeeded("non-finite loss")
         if bad is not None:
             raise RollbackNeeded(f"non-finite gradient of '{bad}'")
         for opt in self.optimizers.values():

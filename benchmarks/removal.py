@@ -18,7 +18,11 @@ rest (14.94 vs 15.19: the sparse capture's fit is poor there and fsr-refit repai
 numbers move with the fit's seed more than the methods differ; the differences are steadier. Mask PSNR
 with ``fit.seed`` 0 / 1 / 2 (each method on the same fit): ours 15.04 / 14.85 / 14.41, fsr-refit
 15.08 / 15.16 / 14.85, no-sbm 14.76 / 14.73 / 14.12; feat ours 0.177 / 0.184 / 0.180, fsr-refit
-0.184 / 0.208 / 0.209.
+0.184 / 0.208 / 0.209. Session 22 (x86_64_v4, the fits of that session's kernel), seeds 0 / 1 / 2:
+ours 14.75 / 15.79 / 15.57 (mean 15.37), delete-only 14.64 / 15.07 / 14.90, fsr-refit 15.08 / 14.83 /
+15.21, no-sbm 14.61 / 15.32 / 15.25; ours minus each on the mean +0.50 / +0.33 / +0.31 dB (fsr-refit
+-0.34 .. +0.96 by seed). Per view (seed 0) ours leads fsr-refit in views 1-9 and 22-28 and trails it
+by 1-3.7 dB in views 10-21 (not investigated further).
 
 The numbers quoted here were measured in earlier sessions; the rasterizer kernel build (x86-64 level,
 printed in the header and stored as ``kernel``) changes every fit, so a machine of another level gets
@@ -131,7 +135,10 @@ Protocols:
     Since session 21 the training loss' SSIM is the kernel's fused one (rounded differently from
     torch's, so every fit moves as with another seed): sphere ours 26.30 / 26.49 / 26.70 (mean 26.49,
     was 26.26), seed 0 delete-only 24.24, no-sbm 25.76 (ours +0.53, was +0.49); demo_seconds 363 ->
-    250 (fit 253 -> 154 s, finetune 90 -> 77 s).
+    250 (fit 253 -> 154 s, finetune 90 -> 77 s). Session 22's kernel (no subnormal floats; renders
+    differ by <= 1 ulp, so again as with another seed), seed 0: ours 26.50, delete-only 24.54,
+    fsr-refit 21.29, no-sbm 25.95 (ours +0.55), no-rpr 26.50; demo_seconds 227 (fit 148 s, finetune
+    57 s).
     With the expected depth and ``min_views`` 1, no-sbm (FSR with RPR retrieving source blocks for
     its low-detail blocks) beat ours: 26.69 / 25.62 / 27.15 against 25.43 / 24.70 / 25.76 (holes 22.83
     against ours' 21.25 dB, seed 0): SBM's fill of the floor under the box is darker than the rug

@@ -734,16 +734,35 @@ inline T opaque(T x, uint64_t zero) {
 }
 
 // The sum of a row's TS lanes as a fixed halving tree (lane j + lane j + w for w = TS/2, ..., 1).
-// Every step is element-wise, so it vectorises at any width with the same result; an `omp simd
-// reduction` would sum in an order set by the vector width (8 lanes for AVX2, 16 for AVX-512),
-// and the x86-64 builds of the kernel would then disagree in the last bits.
+// Every step is element-wise, so any vector width gives the same result; an `omp simd reduction`
+// would sum in an order set by the vector width (8 lanes for AVX2, 16 for AVX-512), and the x86-64
+// builds of the kernel would then disagree in the last bits. The halves are GCC vector values, so
+// the tree stays in registers: written as loops over a stack array, each level's narrower loads of
+// the previous level's wider stores missed store-to-load forwarding (measured: the backward's nine
+// sums per intersection took ~110 ns, more than its rows).
+template <typename T, int W>
+struct HalvingTree {
+  typedef T V __attribute__((vector_size(W * sizeof(T))));
+  typedef T H __attribute__((vector_size(W / 2 * sizeof(T))));
+  static T sum(const V& v) {
+    H lo, hi;
+    std::memcpy(&lo, &v, sizeof(H));
+    std::memcpy(&hi, reinterpret_cast<const char*>(&v) + sizeof(H), sizeof(H));
+    return HalvingTree<T, W / 2>::sum(lo + hi);
+  }
+};
+template <typename T>
+struct HalvingTree<T, 2> {
+  typedef T V __attribute__((vector_size(2 * sizeof(T))));
+  static T sum(const V& v) { return v[0] + v[1]; }
+};
+
 template <typename T, int TS>
 inline T lane_sum(const T* a) {
-  alignas(64) T b[TS];
-  for (int j = 0; j < TS; ++j) b[j] = a[j];
-  for (int w = TS / 2; w >= 1; w /= 2)
-    for (int j = 0; j < w; ++j) b[j] = b[j] + b[j + w];
-  return b[0];
+  static_assert(TS >= 2 && (TS & (TS - 1)) == 0, "TS must be a power of two");
+  typename HalvingTree<T, TS>::V v;
+  std::memcpy(&v, a, sizeof(v));
+  return HalvingTree<T, TS>::sum(v);
 }
 
 // MED: also write median_out [C*H*W], the last feature channel (the depth) of the Gaussian at which
@@ -942,6 +961,8 @@ void raster_bwd(int C, int N, int W, int H, const GaussPix<T, CH>* gp, const int
       kmax = std::max(kmax, m);
     }
     const int64_t s0 = tile_off[ct], s1 = tile_off[ct + 1];
+    volatile uint64_t zero_ = 0;  // see opaque()
+    const uint64_t zero = zero_;
     for (int64_t s = s0 + kmax; s < s1; ++s) {
       T* rr = &rec[int64_t(isect[s].gen) * R];
       for (int i = 0; i < R; ++i) rr[i] = 0;
@@ -1001,12 +1022,14 @@ void raster_bwd(int C, int N, int W, int H, const GaussPix<T, CH>* gp, const int
           acc[4][j] += t1 * dy;
         }
       }
+      // opaque(): these products must not fuse into lane_sum's first additions (an FMA there
+      // would round differently from one vector width to another: v3 and v4 must agree)
 #pragma omp simd
       for (int j = 0; j < TS; ++j) {
         const T dx = px[j] - u;
-        acc[2][j] = acc[0][j] * dx * dx;
-        acc[3][j] = acc[1][j] * dx;
-        acc[0][j] = acc[0][j] * dx;
+        acc[2][j] = opaque(acc[0][j] * dx * dx, zero);
+        acc[3][j] = opaque(acc[1][j] * dx, zero);
+        acc[0][j] = opaque(acc[0][j] * dx, zero);
       }
       T sum[NA];
       for (int i = 0; i < NA; ++i) sum[i] = lane_sum<T, TS>(acc[i]);

@@ -719,8 +719,14 @@ void pack_gaussians(int C, int N, const T* means2d, const T* conics, const T* fe
 // forward, -25 % backward time at 50k Gaussians, 256x192).
 constexpr int kPrefetch = 4;
 
-// x, with its bits XORed with `zero` (always 0, read at run time): the compiler then no longer
-// sees that a weight built from selects is 0 on inactive lanes. Without it gcc turns
+// 0, read at run time (a volatile load), so the compiler cannot fold it: the `zero` of opaque().
+inline uint64_t runtime_zero() {
+  volatile uint64_t z = 0;
+  return z;
+}
+
+// x, with its bits XORed with `zero` (runtime_zero()): the compiler then no longer sees that a
+// weight built from selects is 0 on inactive lanes, nor what the value was made of. Without it gcc turns
 // `acc += w * f` into masked stores behind a branch on "any lane active", a branch that
 // mispredicts row after row (measured: forward -20 % with the plain update, demo fit's model).
 template <typename T>
@@ -816,8 +822,7 @@ void raster_fwd(int C, int N, int W, int H, const GaussPix<T, CH>* gp, const int
     }
     const int64_t s0 = tile_off[ct], s1 = tile_off[ct + 1];
     int64_t s = s0;
-    volatile uint64_t zero_ = 0;  // see opaque()
-    const uint64_t zero = zero_;
+    const uint64_t zero = runtime_zero();  // see opaque()
     for (; s < s1; ++s) {
       // the Gaussian records are read in depth order, i.e. at random: fetch a few entries ahead
       if (s + kPrefetch < s1) {
@@ -961,8 +966,7 @@ void raster_bwd(int C, int N, int W, int H, const GaussPix<T, CH>* gp, const int
       kmax = std::max(kmax, m);
     }
     const int64_t s0 = tile_off[ct], s1 = tile_off[ct + 1];
-    volatile uint64_t zero_ = 0;  // see opaque()
-    const uint64_t zero = zero_;
+    const uint64_t zero = runtime_zero();  // see opaque()
     for (int64_t s = s0 + kmax; s < s1; ++s) {
       T* rr = &rec[int64_t(isect[s].gen) * R];
       for (int i = 0; i < R; ++i) rr[i] = 0;

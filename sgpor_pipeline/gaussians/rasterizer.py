@@ -153,17 +153,6 @@ def first_non_finite(tensors: dict[str, torch.Tensor | None]) -> str | None:
     return next((n for n, t in items if count_non_finite(t)), None)
 
 
-def _check_finite(name: str, x: torch.Tensor | None) -> None:
-    if x is None:
-        return
-    bad = count_non_finite(x)
-    if bad:
-        raise NonFiniteInputError(
-            f"rasterization(): {name} holds {bad} NaN/inf value(s)",
-            fix=f"find where {name} became non-finite (a diverging optimisation: lower the "
-                "learning rate, or check the data the Gaussians were initialised from)")
-
-
 def _validate(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane,
               far_plane, sh_degree, backgrounds, render_mode, tile_size, contribution_mask):
     """Checks every argument; returns (N, C, D) with D the number of colour channels (0 for D/ED)."""
@@ -245,7 +234,10 @@ def _validate(means, quats, scales, opacities, colors, viewmats, Ks, width, heig
               "viewmats": viewmats, "Ks": Ks, "backgrounds": backgrounds}
     bad = first_non_finite(inputs)  # on a GPU one synchronisation for all eight
     if bad is not None:
-        _check_finite(bad, inputs[bad])
+        raise NonFiniteInputError(
+            f"rasterization(): {bad} holds {count_non_finite(inputs[bad])} NaN/inf value(s)",
+            fix=f"find where {bad} became non-finite (a diverging optimisation: lower the "
+                "learning rate, or check the data the Gaussians were initialised from)")
     return N, C, D, backgrounds
 
 

@@ -42,6 +42,7 @@ from sgpor_pipeline.gaussians.ply import read_ply, write_ply
 from sgpor_pipeline.imageio import read_image, read_mask, write_mask01, write_png
 from sgpor_pipeline.removal.holes import (
     RemoveParams,
+    clamp_dc_colours,
     complete_depth,
     complete_depths_jointly,
     concat_models,
@@ -81,9 +82,10 @@ CONTEXTS = ("photos", "renders")
 
 class RemoveStage(Stage):
     name = "remove"
-    VERSION = 7  # 3: the hole-depth floor renders the object proper only (no floaters); 4: rim holes;
+    VERSION = 8  # 3: the hole-depth floor renders the object proper only (no floaters); 4: rim holes;
     # 5: rim holes with hole_mode mask too; 6: seeds behind the completed surface (seed_depth_offset 4);
-    # 7: the median depth, and holes where no other view saw the background (min_views 1, tolerance 0.02)
+    # 7: the median depth, and holes where no other view saw the background (min_views 1, tolerance 0.02);
+    # 8: DC colours clamped behind the masks (clamp_share)
     Params = RemoveStageParams
     inputs = ("sfm", "fit", "masks")
 
@@ -103,8 +105,10 @@ class RemoveStage(Stage):
             # no object was fitted: a Gaussian mostly inside the masks is background other views saw
             # behind the object (the floaters no view shows outside the masks are still deleted)
             select = dataclasses.replace(p, score_threshold=float("inf"))
-        delete, stats, surface = objects_to_delete(model, cameras, masks, object_ids, select)
+        delete, stats, surface, share = objects_to_delete(model, cameras, masks, object_ids, select)
         background = subset(model, ~delete)
+        if p.clamp_share > 0:  # (the renders below use clamped DC colours anyway: unchanged)
+            stats["dc_clamped"] = clamp_dc_colours(background, share[~delete] >= p.clamp_share)
         write_ply(ctx.out_dir / "object.ply", subset(model, delete))
         save_cameras(ctx.out_dir / "cameras.json", cameras)
         for sub in ("renders", "holes", "masks", "depth", "context"):

@@ -12,6 +12,7 @@ import torch
 from sgpor_pipeline.gaussians.model import GaussianModel, rgb_to_sh
 from sgpor_pipeline.removal.holes import (
     RemoveParams,
+    clamp_dc_colours,
     complete_depth,
     concat_models,
     context_image,
@@ -124,7 +125,7 @@ def test_a_generous_mask_is_tightened_and_does_not_select_the_floor(scene_and_mo
 def test_remove_finds_only_unseen_background_as_hole(scene_and_model):
     scene, model, truth = scene_and_model
     params = RemoveParams()
-    delete, stats, surface = objects_to_delete(model, scene.cameras, list(scene.masks), np.flatnonzero(truth), params)
+    delete, stats, surface, _ = objects_to_delete(model, scene.cameras, list(scene.masks), np.flatnonzero(truth), params)
     assert delete[truth].all() and surface[truth].all() and not (surface & ~delete).any()
     assert surface.sum() == stats["from_masks_stage"] + stats["by_score"]
     assert (delete & ~truth).sum() < 0.02 * (~truth).sum()
@@ -187,12 +188,35 @@ def test_a_large_gaussian_centred_in_the_hull_is_deleted_despite_its_tails(scene
     inside, total = contribution_scores(both, scene.cameras, masks)
     assert total[-1] >= RemoveParams().min_weight and inside[-1] / total[-1] < 0.5  # looks like background
     ids = np.flatnonzero(truth)
-    kept, _, _ = objects_to_delete(both, scene.cameras, masks, ids, RemoveParams(hull_centre_views=0))
+    kept, _, _, _ = objects_to_delete(both, scene.cameras, masks, ids, RemoveParams(hull_centre_views=0))
     assert not kept[-1]  # the score alone spares it
-    delete, stats, _ = objects_to_delete(both, scene.cameras, masks, ids, RemoveParams())
+    delete, stats, _, _ = objects_to_delete(both, scene.cameras, masks, ids, RemoveParams())
     assert delete[-1] and stats["hull_centres"] >= 1
     # (the background's own Gaussians centred in every mask are the floor under the object, unseen)
     assert (delete[:-1] & ~truth).sum() < 0.02 * (~truth).sum()
+
+
+def test_over_bright_colours_seen_through_the_masks_are_clamped(scene_and_model):
+    """The DC colours above 1 of Gaussians that show through the object masks are clamped to [0, 1];
+    the rest of the scene keeps its colours, and the stage's DC renders do not change."""
+    scene, model, truth = scene_and_model
+    masks = list(scene.masks)
+    delete, _, _, share = objects_to_delete(model, scene.cameras, masks, np.flatnonzero(truth), RemoveParams())
+    assert share.shape == (len(model),) and np.isfinite(share).all() and ((share >= 0) & (share <= 1)).all()
+    background = subset(model, ~delete)
+    share_bg = share[~delete]
+    behind, elsewhere = share_bg >= 0.5, share_bg == 0
+    assert behind.sum() > 20 and elsewhere.sum() > 20
+    with torch.no_grad():
+        background.params["sh0"][:, 0, :] = rgb_to_sh(torch.tensor([1.4, 0.5, -0.2]))
+    before = background.params["sh0"].clone()
+    dc_before = render_background(background, scene.cameras[0])[0]
+    changed = clamp_dc_colours(background, share_bg >= RemoveParams().clamp_share)
+    assert changed == int((share_bg >= RemoveParams().clamp_share).sum())
+    rgb = background.params["sh0"][:, 0, :] * 0.28209479177387814 + 0.5
+    assert torch.allclose(rgb[torch.from_numpy(behind)], torch.tensor([1.0, 0.5, 0.0]), atol=1e-6)
+    assert torch.equal(background.params["sh0"][torch.from_numpy(elsewhere)], before[torch.from_numpy(elsewhere)])
+    np.testing.assert_allclose(render_background(background, scene.cameras[0])[0], dc_before, atol=1e-6)
 
 
 def test_hole_modes():
@@ -389,7 +413,7 @@ def test_seeds_sit_behind_the_completed_surface_by_the_depth_offset(scene_and_mo
 def _remove(model, cameras, masks, object_ids, params=None):
     """What the remove stage does per run: delete, find holes, complete depth, seed the holes."""
     params = params or RemoveParams()
-    delete, _, _ = objects_to_delete(model, cameras, masks, object_ids, params)
+    delete, _, _, _ = objects_to_delete(model, cameras, masks, object_ids, params)
     background = subset(model, ~delete)
     holes, depths, colours = [], [], []
     for cam, mask in zip(cameras, masks):

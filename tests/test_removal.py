@@ -125,7 +125,8 @@ def test_a_generous_mask_is_tightened_and_does_not_select_the_floor(scene_and_mo
 def test_remove_finds_only_unseen_background_as_hole(scene_and_model):
     scene, model, truth = scene_and_model
     params = RemoveParams()
-    delete, stats, surface, _ = objects_to_delete(model, scene.cameras, list(scene.masks), np.flatnonzero(truth), params)
+    delete, stats, surface, _ = objects_to_delete(model, scene.cameras, list(scene.masks), np.flatnonzero(truth),
+                                                  params)
     assert delete[truth].all() and surface[truth].all() and not (surface & ~delete).any()
     assert surface.sum() == stats["from_masks_stage"] + stats["by_score"]
     assert (delete & ~truth).sum() < 0.02 * (~truth).sum()

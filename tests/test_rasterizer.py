@@ -592,6 +592,59 @@ def test_invalid_inputs_raise(change, match):
     assert isinstance(info.value, ValueError)
 
 
+@requires_kernel
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("sh_degree", [0, 2, 3])
+def test_sh_as_dc_and_rest_pair_matches_one_tensor(dtype, sh_degree):
+    """``colors=(sh0, shN)`` (a model's two parameters, read in place by the cpu kernel) renders and
+    differentiates bitwise like the one [N,16,3] tensor, two cameras, on the cpu and torch backends;
+    the coefficients above the degree get zero gradients."""
+    scene = random_scene(200, 40, 30, seed=5, dtype=dtype, sigma_px=2.0, sh_degree=3)
+    vm2 = torch.eye(4, dtype=dtype)
+    vm2[:3, 3] = torch.tensor([0.3, -0.1, 0.4], dtype=dtype)
+    scene["viewmats"] = torch.cat([scene["viewmats"], vm2[None]])
+    scene["Ks"] = scene["Ks"].expand(2, -1, -1).contiguous()
+    sh = scene.pop("colors")
+    scene.pop("sh_degree")
+    nb = (sh_degree + 1) ** 2
+
+    def render_and_grads(colors_of, backend):
+        means = scene["means"].detach().clone().requires_grad_(True)
+        leaves = [sh.detach().clone().requires_grad_(True)] if colors_of == "one" else \
+            [sh[:, :1].detach().clone().requires_grad_(True), sh[:, 1:].detach().clone().requires_grad_(True)]
+        colors = leaves[0] if colors_of == "one" else tuple(leaves)
+        render, alpha, _ = rasterization(**{**scene, "means": means}, colors=colors, sh_degree=sh_degree,
+                                         backend=backend)
+        w = torch.randn(render.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+        ((render * w.to(dtype)).sum() + alpha.sum()).backward()
+        g_sh = leaves[0].grad if colors_of == "one" else torch.cat([leaves[0].grad, leaves[1].grad], 1)
+        return render.detach(), alpha.detach(), means.grad, g_sh
+
+    for backend in ("cpu", "torch"):
+        one = render_and_grads("one", backend)
+        pair = render_and_grads("pair", backend)
+        for a, b in zip(one, pair):
+            assert torch.equal(a, b), backend
+        assert one[3].shape == sh.shape and (one[3][:, nb:] == 0).all() and one[3][:, :nb].abs().sum() > 0
+        assert one[0].abs().sum() > 0
+
+
+def test_sh_pair_is_checked():
+    args = _valid_args()
+    sh0, shN = torch.zeros(10, 1, 3), torch.zeros(10, 3, 3)
+    rasterization(**{**args, "colors": (sh0, shN)}, sh_degree=1)
+    with pytest.raises(RasterizerInputError, match="SH"):
+        rasterization(**{**args, "colors": (sh0, shN)}, sh_degree=2)
+    with pytest.raises(RasterizerInputError, match=r"colors\[0\] \(sh0\)"):
+        rasterization(**{**args, "colors": (torch.zeros(10, 2, 3), shN)}, sh_degree=1)
+    with pytest.raises(RasterizerInputError, match="must be a torch.Tensor"):
+        rasterization(**{**args, "colors": (sh0, shN)})  # a pair only holds SH coefficients
+    bad = shN.clone()
+    bad[3, 1, 2] = float("nan")
+    with pytest.raises(NonFiniteInputError, match=r"colors\[1\] \(shN\) holds 1 NaN"):
+        rasterization(**{**args, "colors": (sh0, bad)}, sh_degree=1)
+
+
 def test_sh_needs_enough_coefficients():
     args = _valid_args()
     args["colors"] = torch.zeros(10, 4, 3)

@@ -77,7 +77,7 @@ int bwd_ch(int CH, int C, int N, int W, int H, const void* pk, const int64_t* to
 
 #define SGPOR_API extern "C" __attribute__((visibility("default")))
 
-SGPOR_API int sgpor_abi_version() { return 3; }  // 3: sgpor_ssim_fwd / _bwd
+SGPOR_API int sgpor_abi_version() { return 4; }  // 3: sgpor_ssim_fwd / _bwd; 4: SH in two row arrays
 
 SGPOR_API int sgpor_cpu_level() {
 #if defined(__x86_64__) || defined(__i386__)
@@ -145,14 +145,18 @@ SGPOR_API int sgpor_max_threads() {
     project_bwd<T>(C, N, means, quats, scales, viewmats, Ks, W, H, T(near), T(far), T(eps2d),      \
                    radii, g_means2d, g_conics, g_depths, g_means, g_quats, g_scales, nthreads);     \
   }                                                                                                 \
-  SGPOR_API void sgpor_sh_fwd_##SUF(int C, int N, int K, int deg, const T* means, const T* sh,     \
+  SGPOR_API void sgpor_sh_fwd_##SUF(int C, int N, int KN, int deg, const T* means, const T* sh0,    \
+                                    int64_t stride0, const T* shN, int64_t strideN,              \
                                     const T* viewmats, T* rgb, int nthreads) {                      \
-    sh_fwd<T>(C, N, K, deg, means, sh, viewmats, rgb, nthreads);                                    \
+    sh_fwd<T>(C, N, deg, means, ShRows<T>{sh0, stride0, shN, strideN, KN}, viewmats, rgb,          \
+              nthreads);                                                                            \
   }                                                                                                 \
-  SGPOR_API void sgpor_sh_bwd_##SUF(int C, int N, int K, int deg, const T* means, const T* sh,     \
-                                    const T* viewmats, const T* g_rgb, T* g_means, T* g_sh,         \
-                                    int nthreads) {                                                 \
-    sh_bwd<T>(C, N, K, deg, means, sh, viewmats, g_rgb, g_means, g_sh, nthreads);                   \
+  SGPOR_API void sgpor_sh_bwd_##SUF(int C, int N, int KN, int deg, const T* means, const T* sh0,    \
+                                    int64_t stride0, const T* shN, int64_t strideN,              \
+                                    const T* viewmats, const T* g_rgb, T* g_means, T* g_sh0,       \
+                                    int64_t gstride0, T* g_shN, int64_t gstrideN, int nthreads) {   \
+    sh_bwd<T>(C, N, deg, means, ShRows<T>{sh0, stride0, shN, strideN, KN}, viewmats, g_rgb,        \
+              g_means, g_sh0, gstride0, g_shN, gstrideN, nthreads);                                 \
   }                                                                                                 \
   SGPOR_API void sgpor_bin_##SUF(int C, int N, int W, int H, int tile, const T* depths,            \
                                  const int32_t* rect, const int32_t* ntiles, int64_t* tile_off,     \

@@ -466,8 +466,23 @@ inline void campos_of(const T* viewmat, T* cp) {  // -R^T t
     cp[j] = -(viewmat[j] * viewmat[3] + viewmat[4 + j] * viewmat[7] + viewmat[8 + j] * viewmat[11]);
 }
 
+// The SH coefficients of Gaussian n come in two row arrays: the DC term at sh0 + n * stride0 and
+// the KN others at shN + n * strideN (3 values each, channel fastest). One [N,K,3] tensor is
+// sh0 = sh, shN = sh + 3, both strides 3K; the model's two parameters are passed without a copy.
+template <typename T>
+struct ShRows {
+  const T* sh0;
+  int64_t stride0;
+  const T* shN;
+  int64_t strideN;
+  int KN;
+  const T* coef(int64_t n, int k) const {  // (k is a constant in the unrolled loops: no branch)
+    return k == 0 ? sh0 + n * stride0 : shN + n * strideN + 3 * (k - 1);
+  }
+};
+
 template <int DEG, typename T>
-void sh_fwd_deg(int C, int N, int K, const T* means, const T* sh, const T* viewmats, T* rgb,
+void sh_fwd_deg(int C, int N, const T* means, const ShRows<T>& sh, const T* viewmats, T* rgb,
                 int nthreads) {
   constexpr int NB = (DEG + 1) * (DEG + 1);
   for (int c = 0; c < C; ++c) {
@@ -480,26 +495,30 @@ void sh_fwd_deg(int C, int N, int K, const T* means, const T* sh, const T* viewm
       const T idn = T(1) / std::max(std::sqrt(dx * dx + dy * dy + dz * dz), T(kDirEps));
       T b[16];
       sh_basis<DEG>(dx * idn, dy * idn, dz * idn, b);
-      const T* s = sh + n * K * 3;
       for (int ch = 0; ch < 3; ++ch) {
         T acc = 0;
-        for (int k = 0; k < NB; ++k) acc += b[k] * s[3 * k + ch];
+        for (int k = 0; k < NB; ++k) acc += b[k] * sh.coef(n, k)[ch];
         rgb[(int64_t(c) * N + n) * 3 + ch] = std::max(acc + T(0.5), T(0));
       }
     }
   }
 }
 
-// g_means is accumulated into (+=), g_sh overwritten (coefficients above the degree get 0).
-// Cameras are summed in camera order (outer loop), Gaussians in parallel: deterministic.
+// g_means is accumulated into (+=), the coefficient gradients (rows as ShRows, g_sh0 / g_shN)
+// overwritten (coefficients above the degree get 0). Cameras are summed in camera order (outer
+// loop), Gaussians in parallel: deterministic.
 template <int DEG, typename T>
-void sh_bwd_deg(int C, int N, int K, const T* means, const T* sh, const T* viewmats,
-                const T* g_rgb, T* g_means, T* g_sh, int nthreads) {
+void sh_bwd_deg(int C, int N, const T* means, const ShRows<T>& sh, const T* viewmats, const T* g_rgb,
+                T* g_means, T* g_sh0, int64_t gstride0, T* g_shN, int64_t gstrideN, int nthreads) {
   constexpr int NB = (DEG + 1) * (DEG + 1);
-  if (K > NB) {
-#pragma omp parallel for num_threads(par_threads(nthreads, 0.002 * double(N) * K)) schedule(static)
+  const int KN = sh.KN;
+  const auto gcoef = [&](int64_t n, int k) -> T* {
+    return k == 0 ? g_sh0 + n * gstride0 : g_shN + n * gstrideN + 3 * (k - 1);
+  };
+  if (KN + 1 > NB) {
+#pragma omp parallel for num_threads(par_threads(nthreads, 0.002 * double(N) * (KN + 1))) schedule(static)
     for (int64_t n = 0; n < N; ++n)
-      for (int i = NB * 3; i < K * 3; ++i) g_sh[n * K * 3 + i] = 0;
+      for (int i = (NB - 1) * 3; i < KN * 3; ++i) g_shN[n * gstrideN + i] = 0;
   }
   for (int c = 0; c < C; ++c) {
     T cp[3];
@@ -509,13 +528,12 @@ void sh_bwd_deg(int C, int N, int K, const T* means, const T* sh, const T* viewm
     const T* gr = g_rgb + int64_t(c) * N * 3;
 #pragma omp parallel for num_threads(par_threads(nthreads, 0.05 * N)) schedule(static)
     for (int64_t n = 0; n < N; ++n) {
-      const T* s = sh + n * K * 3;
-      T* gs = g_sh + n * K * 3;
       // Most Gaussians get no colour gradient from a view (hidden behind others or off screen: 58 %
       // on the demo fit's views); theirs is exactly zero, so they are skipped.
       if (gr[3 * n] == T(0) && gr[3 * n + 1] == T(0) && gr[3 * n + 2] == T(0)) {
         if (first)
-          for (int i = 0; i < NB * 3; ++i) gs[i] = T(0);
+          for (int k = 0; k < NB; ++k)
+            for (int ch = 0; ch < 3; ++ch) gcoef(n, k)[ch] = T(0);
         continue;
       }
       const T dx = means[3 * n] - cx, dy = means[3 * n + 1] - cy, dz = means[3 * n + 2] - cz;
@@ -527,13 +545,18 @@ void sh_bwd_deg(int C, int N, int K, const T* means, const T* sh, const T* viewm
       T g[3];
       for (int ch = 0; ch < 3; ++ch) {
         T acc = 0;
-        for (int k = 0; k < NB; ++k) acc += b[k] * s[3 * k + ch];
+        for (int k = 0; k < NB; ++k) acc += b[k] * sh.coef(n, k)[ch];
         g[ch] = (acc + T(0.5) >= T(0)) ? gr[3 * n + ch] : T(0);
       }
-      for (int k = 0; k < NB; ++k)
-        for (int ch = 0; ch < 3; ++ch) gs[3 * k + ch] = (first ? T(0) : gs[3 * k + ch]) + b[k] * g[ch];
+      for (int k = 0; k < NB; ++k) {
+        T* gs = gcoef(n, k);
+        for (int ch = 0; ch < 3; ++ch) gs[ch] = (first ? T(0) : gs[ch]) + b[k] * g[ch];
+      }
       T v[16];
-      for (int k = 0; k < NB; ++k) v[k] = s[3 * k] * g[0] + s[3 * k + 1] * g[1] + s[3 * k + 2] * g[2];
+      for (int k = 0; k < NB; ++k) {
+        const T* s = sh.coef(n, k);
+        v[k] = s[0] * g[0] + s[1] * g[1] + s[2] * g[2];
+      }
       T gdir[3] = {0, 0, 0};
       sh_basis_vjp<DEG>(x, y, z, v, gdir);
       // dir = d / max(|d|, eps): the projection only when |d| >= eps (clamp_min passes no gradient)
@@ -546,26 +569,30 @@ void sh_bwd_deg(int C, int N, int K, const T* means, const T* sh, const T* viewm
 }
 
 template <typename T>
-void sh_fwd(int C, int N, int K, int deg, const T* means, const T* sh, const T* viewmats, T* rgb,
+void sh_fwd(int C, int N, int deg, const T* means, const ShRows<T>& sh, const T* viewmats, T* rgb,
             int nthreads) {
   PhaseTimer timer_("sh_fwd");
   switch (deg) {
-    case 0: sh_fwd_deg<0>(C, N, K, means, sh, viewmats, rgb, nthreads); break;
-    case 1: sh_fwd_deg<1>(C, N, K, means, sh, viewmats, rgb, nthreads); break;
-    case 2: sh_fwd_deg<2>(C, N, K, means, sh, viewmats, rgb, nthreads); break;
-    default: sh_fwd_deg<3>(C, N, K, means, sh, viewmats, rgb, nthreads); break;
+    case 0: sh_fwd_deg<0>(C, N, means, sh, viewmats, rgb, nthreads); break;
+    case 1: sh_fwd_deg<1>(C, N, means, sh, viewmats, rgb, nthreads); break;
+    case 2: sh_fwd_deg<2>(C, N, means, sh, viewmats, rgb, nthreads); break;
+    default: sh_fwd_deg<3>(C, N, means, sh, viewmats, rgb, nthreads); break;
   }
 }
 
 template <typename T>
-void sh_bwd(int C, int N, int K, int deg, const T* means, const T* sh, const T* viewmats,
-            const T* g_rgb, T* g_means, T* g_sh, int nthreads) {
+void sh_bwd(int C, int N, int deg, const T* means, const ShRows<T>& sh, const T* viewmats,
+            const T* g_rgb, T* g_means, T* g_sh0, int64_t gstride0, T* g_shN, int64_t gstrideN,
+            int nthreads) {
   PhaseTimer timer_("sh_bwd");
   switch (deg) {
-    case 0: sh_bwd_deg<0>(C, N, K, means, sh, viewmats, g_rgb, g_means, g_sh, nthreads); break;
-    case 1: sh_bwd_deg<1>(C, N, K, means, sh, viewmats, g_rgb, g_means, g_sh, nthreads); break;
-    case 2: sh_bwd_deg<2>(C, N, K, means, sh, viewmats, g_rgb, g_means, g_sh, nthreads); break;
-    default: sh_bwd_deg<3>(C, N, K, means, sh, viewmats, g_rgb, g_means, g_sh, nthreads); break;
+#define SGPOR_SH_BWD(D) \
+  sh_bwd_deg<D>(C, N, means, sh, viewmats, g_rgb, g_means, g_sh0, gstride0, g_shN, gstrideN, nthreads)
+    case 0: SGPOR_SH_BWD(0); break;
+    case 1: SGPOR_SH_BWD(1); break;
+    case 2: SGPOR_SH_BWD(2); break;
+    default: SGPOR_SH_BWD(3); break;
+#undef SGPOR_SH_BWD
   }
 }
 

@@ -40,8 +40,8 @@ _SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
                            _P, _P, _I]),
     "project_bwd": (None, [_I, _I, _P, _P, _P, _P, _P, _I, _I, _D, _D, _D, _P, _P, _P, _P, _P, _P,
                            _P, _I]),
-    "sh_fwd": (None, [_I, _I, _I, _I, _P, _P, _P, _P, _I]),
-    "sh_bwd": (None, [_I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _I]),
+    "sh_fwd": (None, [_I, _I, _I, _I, _P, _P, _I64, _P, _I64, _P, _P, _I]),
+    "sh_bwd": (None, [_I, _I, _I, _I, _P, _P, _I64, _P, _I64, _P, _P, _P, _P, _I64, _P, _I64, _I]),
     "bin": (None, [_I, _I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _I]),
     "raster_fwd": (_I, [_I, _I, _I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P,
                         _P, _P, _I]),
@@ -108,7 +108,7 @@ def _open(path: Path) -> ctypes.CDLL:
     # sgpor_pipeline/__init__.py sets it before torch is imported through the package.
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     lib = ctypes.CDLL(str(path))
-    if lib.sgpor_abi_version() != 3:
+    if lib.sgpor_abi_version() != 4:
         raise OSError(f"{path.name}: unexpected ABI version")
     for base, (res, args) in _SIGNATURES.items():
         for suf in ("f32", "f64"):
@@ -259,28 +259,44 @@ class _ProjectFn(torch.autograd.Function):
         return g_means, g_quats, g_scales, None, None, None, None
 
 
+def _sh_rows(t: torch.Tensor) -> tuple[torch.Tensor, int]:
+    """``t`` [N,k,3] as the kernel reads it (3 values per coefficient, in order) and its row stride."""
+    if t.shape[1] > 0 and (t.stride(2) != 1 or (t.shape[1] > 1 and t.stride(1) != 3)):
+        t = t.contiguous()
+    return t, (t.stride(0) if t.shape[0] > 1 else 3 * t.shape[1])
+
+
 class _SHFn(torch.autograd.Function):
+    """Colours [C,N,3] from the SH coefficients in two parts: the DC term sh0 [N,1,3] and the rest
+    shN [N,KN,3] (the model's two parameters, read in place; one [N,K,3] tensor is passed as its
+    two slices)."""
+
     @staticmethod
-    def forward(ctx, means, sh, viewmats, degree, threads):
-        C, N, K = viewmats.shape[0], means.shape[0], sh.shape[1]
+    def forward(ctx, means, sh0, shN, viewmats, degree, threads):
+        C, N, KN = viewmats.shape[0], means.shape[0], shN.shape[1]
+        s0, st0 = _sh_rows(sh0)
+        sN, stN = _sh_rows(shN)
         rgb = torch.empty(C, N, 3, dtype=means.dtype)
-        _fn("sh_fwd", means.dtype)(C, N, K, degree, _ptr(means), _ptr(sh), _ptr(viewmats), _ptr(rgb),
-                                   threads)
-        ctx.save_for_backward(means, sh, viewmats)
+        _fn("sh_fwd", means.dtype)(C, N, KN, degree, _ptr(means), _ptr(s0), st0, _ptr(sN), stN, _ptr(viewmats),
+                                   _ptr(rgb), threads)
+        ctx.save_for_backward(means, s0, sN, viewmats)
         ctx.degree, ctx.threads = degree, threads
         return rgb
 
     @staticmethod
     @once_differentiable
     def backward(ctx, g_rgb):
-        means, sh, viewmats = ctx.saved_tensors
-        C, N, K = viewmats.shape[0], means.shape[0], sh.shape[1]
+        means, s0, sN, viewmats = ctx.saved_tensors
+        C, N, KN = viewmats.shape[0], means.shape[0], sN.shape[1]
         g_means = torch.zeros_like(means)
-        g_sh = torch.empty_like(sh)
+        g_sh0 = torch.empty(N, 1, 3, dtype=means.dtype)
+        g_shN = torch.empty(N, KN, 3, dtype=means.dtype)
         g_rgb = g_rgb.contiguous()  # keep a reference: the kernel reads its memory
-        _fn("sh_bwd", means.dtype)(C, N, K, ctx.degree, _ptr(means), _ptr(sh), _ptr(viewmats),
-                                   _ptr(g_rgb), _ptr(g_means), _ptr(g_sh), ctx.threads)
-        return g_means, g_sh, None, None, None
+        st0, stN = _sh_rows(s0)[1], _sh_rows(sN)[1]
+        _fn("sh_bwd", means.dtype)(C, N, KN, ctx.degree, _ptr(means), _ptr(s0), st0, _ptr(sN), stN,
+                                   _ptr(viewmats), _ptr(g_rgb), _ptr(g_means), _ptr(g_sh0), 3, _ptr(g_shN),
+                                   3 * KN, ctx.threads)
+        return g_means, g_sh0, g_shN, None, None, None
 
 
 class _RasterFn(torch.autograd.Function):
@@ -398,7 +414,8 @@ def render(means, quats, scales, opacities, colors, sh_degree, viewmats, Ks, wid
     feats = []
     if colors is not None:
         if sh_degree is not None:
-            feats.append(_SHFn.apply(means, colors.contiguous(), viewmats, sh_degree, num_threads))
+            sh0, shN = colors if isinstance(colors, tuple) else (colors[:, :1], colors[:, 1:])
+            feats.append(_SHFn.apply(means, sh0, shN, viewmats, sh_degree, num_threads))
         elif colors.dim() == 2:
             feats.append(colors[None].expand(C, -1, -1))
         else:

@@ -192,9 +192,17 @@ def _validate(means, quats, scales, opacities, colors, viewmats, Ks, width, heig
     if sh_degree is not None:
         if isinstance(sh_degree, bool) or not isinstance(sh_degree, int) or not 0 <= sh_degree <= 3:
             raise RasterizerInputError(f"sh_degree must be None or an int in 0..3, got {sh_degree!r}")
-        _check_tensor("colors", colors, (N, None, 3), 3)
-        if colors.shape[1] < (sh_degree + 1) ** 2:
-            raise RasterizerInputError(f"colors has {colors.shape[1]} SH coefficients, sh_degree "
+        if isinstance(colors, tuple):  # (sh0 [N,1,3], shN [N,K-1,3])
+            if len(colors) != 2:
+                raise RasterizerInputError(f"SH colors as a tuple must be (sh0, shN), got {len(colors)} items")
+            _check_tensor("colors[0] (sh0)", colors[0], (N, 1, 3), 3)
+            _check_tensor("colors[1] (shN)", colors[1], (N, None, 3), 3)
+            K = 1 + colors[1].shape[1]
+        else:
+            _check_tensor("colors", colors, (N, None, 3), 3)
+            K = colors.shape[1]
+        if K < (sh_degree + 1) ** 2:
+            raise RasterizerInputError(f"colors has {K} SH coefficients, sh_degree "
                                        f"{sh_degree} needs {(sh_degree + 1) ** 2}")
         D = 3
     elif colors is not None:
@@ -210,9 +218,9 @@ def _validate(means, quats, scales, opacities, colors, viewmats, Ks, width, heig
             raise RasterizerInputError("colors has zero channels")
     elif want_color:
         raise RasterizerInputError(f"render_mode {render_mode!r} needs colors")
-    if colors is not None:
-        if colors.device != dev or colors.dtype != dt:
-            raise RasterizerInputError(f"colors must be {dt} on {dev}, got {colors.dtype} on {colors.device}")
+    for c in (colors if isinstance(colors, tuple) else (colors,)):
+        if c is not None and (c.device != dev or c.dtype != dt):
+            raise RasterizerInputError(f"colors must be {dt} on {dev}, got {c.dtype} on {c.device}")
     if not want_color:
         D = 0
     if backgrounds is not None:
@@ -230,9 +238,11 @@ def _validate(means, quats, scales, opacities, colors, viewmats, Ks, width, heig
         _check_tensor("contribution_mask", contribution_mask, (C, height, width), 3)
         if contribution_mask.dtype != torch.bool or contribution_mask.device != dev:
             raise RasterizerInputError("contribution_mask must be a bool tensor on the device of means")
-    inputs = {"means": means, "quats": quats, "scales": scales, "opacities": opacities, "colors": colors,
-              "viewmats": viewmats, "Ks": Ks, "backgrounds": backgrounds}
-    bad = first_non_finite(inputs)  # on a GPU one synchronisation for all eight
+    inputs = {"means": means, "quats": quats, "scales": scales, "opacities": opacities}
+    inputs.update({"colors[0] (sh0)": colors[0], "colors[1] (shN)": colors[1]} if isinstance(colors, tuple)
+                  else {"colors": colors})
+    inputs.update({"viewmats": viewmats, "Ks": Ks, "backgrounds": backgrounds})
+    bad = first_non_finite(inputs)  # on a GPU one synchronisation for all
     if bad is not None:
         raise NonFiniteInputError(
             f"rasterization(): {bad} holds {count_non_finite(inputs[bad])} NaN/inf value(s)",
@@ -278,7 +288,7 @@ def rasterization(
     quats: torch.Tensor,
     scales: torch.Tensor,
     opacities: torch.Tensor,
-    colors: torch.Tensor | None,
+    colors: torch.Tensor | tuple[torch.Tensor, torch.Tensor] | None,
     viewmats: torch.Tensor,
     Ks: torch.Tensor,
     width: int,
@@ -309,7 +319,10 @@ def rasterization(
         opacities: [N] in [0, 1].
         colors: [N,D] or [C,N,D] colours/features (D channels; D <= 4 per kernel pass on ``cpu``,
             more channels are rendered in several passes), or [N,K,3] SH coefficients when
-            ``sh_degree`` is set (K >= (sh_degree+1)^2). May be None for ``render_mode`` "D"/"ED".
+            ``sh_degree`` is set (K >= (sh_degree+1)^2), or those as the pair ``(sh0 [N,1,3],
+            shN [N,K-1,3])``: the DC term and the rest, as a model stores them (the ``cpu`` kernel
+            reads them in place and returns their gradients without a copy; other backends
+            concatenate). May be None for ``render_mode`` "D"/"ED".
         viewmats: [C,4,4] cam_from_world, OpenCV axes. No gradient.
         Ks: [C,3,3] pinhole intrinsics (skew ignored). No gradient.
         width, height: image size in pixels.
@@ -356,6 +369,8 @@ def rasterization(
     with_depth = render_mode != "RGB"
     if D == 0:
         colors = None
+    elif isinstance(colors, tuple) and which != "cpu":  # (the cpu kernel reads the two parts in place)
+        colors = torch.cat(colors, dim=1)
     if render_mode == "MD" and which == "gsplat":
         raise RasterizerInputError("render_mode 'MD' (median depth) is not available in the gsplat backend",
                                    fix="render it with backend='cpu' (CPU tensors) or 'torch'")

@@ -719,7 +719,8 @@ class Trainer:
         view, (viewmat, K) = self.train_views[i], self._cameras[i]
         H, W = view.image.shape[:2]
         p = self.model.params
-        colors = torch.cat([p["sh0"], p["shN"][:, : k - 1]], dim=1) if k > 1 else p["sh0"]
+        # (the pair is read in place by the cpu kernel: no [N,16,3] copy, and gradients in place)
+        colors = (p["sh0"], p["shN"]) if k > 1 else p["sh0"]
         try:
             render, _alpha, info = rasterization(
                 p["means"], p["quats"], torch.exp(p["scales"]), torch.sigmoid(p["opacities"]), colors,

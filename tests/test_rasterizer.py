@@ -645,6 +645,23 @@ def test_sh_pair_is_checked():
         rasterization(**{**args, "colors": (sh0, bad)}, sh_degree=1)
 
 
+@requires_kernel
+def test_check_finite_false_skips_the_scan_and_culls_non_finite_gaussians():
+    """``check_finite=False`` (for a caller that checked its inputs) does not scan them; a Gaussian
+    with a NaN centre or an infinite scale then renders as if absent (the projection culls it)."""
+    scene = random_scene(60, 24, 18, seed=2)
+    scene.pop("sh_degree")
+    bad = {k: (v.clone() if isinstance(v, torch.Tensor) else v) for k, v in scene.items()}
+    bad["means"][0, 1] = float("nan")
+    bad["scales"][1] = float("inf")
+    with pytest.raises(NonFiniteInputError):
+        rasterization(**bad, backend="cpu")
+    render, alpha, _ = rasterization(**bad, backend="cpu", check_finite=False)
+    keep = {k: (v[2:] if k in PARAMS else v) for k, v in scene.items()}
+    render_ref, alpha_ref, _ = rasterization(**keep, backend="cpu")
+    assert torch.equal(render, render_ref) and torch.equal(alpha, alpha_ref)
+
+
 def test_sh_needs_enough_coefficients():
     args = _valid_args()
     args["colors"] = torch.zeros(10, 4, 3)

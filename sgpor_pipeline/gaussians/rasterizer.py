@@ -154,7 +154,8 @@ def first_non_finite(tensors: dict[str, torch.Tensor | None]) -> str | None:
 
 
 def _validate(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane,
-              far_plane, sh_degree, backgrounds, render_mode, tile_size, contribution_mask):
+              far_plane, sh_degree, backgrounds, render_mode, tile_size, contribution_mask,
+              check_finite=True):
     """Checks every argument; returns (N, C, D) with D the number of colour channels (0 for D/ED)."""
     _check_tensor("means", means, (None, 3), 2)
     N = means.shape[0]
@@ -242,7 +243,7 @@ def _validate(means, quats, scales, opacities, colors, viewmats, Ks, width, heig
     inputs.update({"colors[0] (sh0)": colors[0], "colors[1] (shN)": colors[1]} if isinstance(colors, tuple)
                   else {"colors": colors})
     inputs.update({"viewmats": viewmats, "Ks": Ks, "backgrounds": backgrounds})
-    bad = first_non_finite(inputs)  # on a GPU one synchronisation for all
+    bad = first_non_finite(inputs) if check_finite else None  # on a GPU one synchronisation for all
     if bad is not None:
         raise NonFiniteInputError(
             f"rasterization(): {bad} holds {count_non_finite(inputs[bad])} NaN/inf value(s)",
@@ -304,6 +305,7 @@ def rasterization(
     eps2d: float = 0.3,
     num_threads: int | None = None,
     torch_block: int | None = 16,
+    check_finite: bool = True,
 ) -> tuple[torch.Tensor, torch.Tensor, dict[str, Any]]:
     """Render N 3D Gaussians into C pinhole cameras; differentiable w.r.t. the Gaussians.
 
@@ -341,6 +343,9 @@ def rasterization(
         num_threads: threads of the ``cpu`` kernel (default: env SGPOR_NUM_THREADS, else
             ``torch.get_num_threads()``); results are bitwise identical for any value.
         torch_block: pixel block edge of the ``torch`` backend (None = the whole image at once).
+        check_finite: scan the inputs for NaN/inf (NonFiniteInputError). False is for a caller that
+            has just checked them itself, as the trainer does after every step (the scan reads every
+            input once: 1.7 ms at 95k Gaussians with degree-3 SH on 2 cores, a GPU synchronisation).
 
     Returns:
         ``(render_colors, render_alphas, meta)``:
@@ -362,7 +367,7 @@ def rasterization(
     """
     N, C, D, backgrounds = _validate(means, quats, scales, opacities, colors, viewmats, Ks, width,
                                      height, near_plane, far_plane, sh_degree, backgrounds,
-                                     render_mode, tile_size, contribution_mask)
+                                     render_mode, tile_size, contribution_mask, check_finite)
     which = _resolve_backend(backend, means.device)
     viewmats = viewmats.detach().to(means.dtype)
     Ks = Ks.detach().to(means.dtype)

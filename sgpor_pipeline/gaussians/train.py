@@ -548,6 +548,7 @@ class Trainer:
         self.optimizers = self._build_optimizers()
         self.sstate = strategy.initialize_state(model, self.extent)
         self.step = 0
+        self._params_checked = False  # set when the last iteration found every parameter finite
         self.lr_scale = 1.0
         self.loss_ema: float | None = None
         self.curve: list[dict[str, Any]] = []
@@ -630,6 +631,7 @@ class Trainer:
         }
 
     def load_state_dict(self, st: dict[str, Any], restore_lr_scale: bool = True) -> None:
+        self._params_checked = False  # (the rasterizer checks loaded parameters)
         self.step = int(st["step"])
         self.model.load_state_dict(st["model"])
         self.model.to(self.device)  # a checkpoint is read onto the CPU
@@ -725,7 +727,7 @@ class Trainer:
             render, _alpha, info = rasterization(
                 p["means"], p["quats"], torch.exp(p["scales"]), torch.sigmoid(p["opacities"]), colors,
                 viewmat, K, W, H, sh_degree=deg, backgrounds=self.bg,
-                backend=self.p.backend)
+                backend=self.p.backend, check_finite=not self._params_checked)
         except NonFiniteInputError as e:
             raise RollbackNeeded(f"non-finite rasterizer input ({e.message})") from None
         info["generator"] = self.gen
@@ -758,6 +760,9 @@ class Trainer:
         bad = first_non_finite(dict(self.model.params))
         if bad is not None:
             raise RollbackNeeded(f"non-finite parameter '{bad}'")
+        # the next iteration's rasterizer need not scan them again (exp(scales) may still overflow
+        # to inf: the loss check catches what that renders)
+        self._params_checked = True
         self.step = step
         return float(loss.detach())
 

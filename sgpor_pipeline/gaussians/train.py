@@ -760,8 +760,8 @@ class Trainer:
         bad = first_non_finite(dict(self.model.params))
         if bad is not None:
             raise RollbackNeeded(f"non-finite parameter '{bad}'")
-        # the next iteration's rasterizer need not scan them again (exp(scales) may still overflow
-        # to inf: the loss check catches what that renders)
+        # the next iteration's rasterizer need not scan them again (exp(log-scales) may still
+        # overflow to inf: the projection culls such a Gaussian, as tests/test_fit.py checks)
         self._params_checked = True
         self.step = step
         return float(loss.detach())

@@ -199,8 +199,8 @@ def objects_to_delete(model: GaussianModel, cameras: list[Camera], masks: list[n
 
 
 def clamp_dc_colours(model: GaussianModel, select: np.ndarray) -> int:
-    """Clamp the DC colour of the ``select`` ed Gaussians to [0, 1] in place (the higher SH bands are
-    kept); returns how many changed."""
+    """Clamp the DC colour of the Gaussians where ``select`` is True to [0, 1], in place (the higher SH
+    bands are kept); returns how many changed."""
     sel = torch.from_numpy(np.asarray(select, bool))
     sh0 = model.params["sh0"]
     with torch.no_grad():

@@ -76,6 +76,11 @@ class FinetuneParams:
     # Loss weight of the band around the mask outside the holes (see the module doc). benchmarks/removal.py,
     # mask PSNR / feat, 1 -> 0: synthetic 25.88 / 0.056 -> 26.05 / 0.048 (held-out views 25.56 -> 25.61),
     # lund + box 14.77 / 0.180 -> 15.04 / 0.177 (held out 14.48 -> 14.61); forward synthetic 20.38 -> 20.37.
+    # Unsupervised, that band can get worse in the re-fit: statue-box's seen background scores 26.15 dB
+    # before it and 24.26 after (synthetic 28.66 -> 28.74, lund 15.48 -> 15.56). Session 23 tried
+    # anchoring it to the background's full-SH render from before the re-fit (not an option here), at
+    # weight 1 / 0.2: statue-box 21.67 -> 22.00 / 21.80, synthetic 26.49 -> 26.30 / 26.35, lund seed 0
+    # 14.92 -> 14.98 / 14.95. Mixed, so the default stays 0.
     seen_weight: float = 0.0
     # SDS (needs the diffusion extra and local weights); 0 = off
     lambda_sds: float = 0.0

@@ -82,10 +82,10 @@ CONTEXTS = ("photos", "renders")
 
 class RemoveStage(Stage):
     name = "remove"
-    VERSION = 8  # 3: the hole-depth floor renders the object proper only (no floaters); 4: rim holes;
+    VERSION = 9  # 3: the hole-depth floor renders the object proper only (no floaters); 4: rim holes;
     # 5: rim holes with hole_mode mask too; 6: seeds behind the completed surface (seed_depth_offset 4);
     # 7: the median depth, and holes where no other view saw the background (min_views 1, tolerance 0.02);
-    # 8: DC colours clamped behind the masks (clamp_share)
+    # 8: DC colours clamped behind the masks (clamp_share); 9: seeds carved by the views that saw through them
     Params = RemoveStageParams
     inputs = ("sfm", "fit", "masks")
 
@@ -145,7 +145,9 @@ class RemoveStage(Stage):
                                    "rim_pixels": int((hole & ~mask).sum()),
                                    "hole_pixels_by_opacity": int((mask & (alpha < p.hole_alpha)).sum())}
         spacing = median_spacing(background.means.detach().double().numpy())
-        seeds = seed_hole_gaussians(cameras, holes, depths, colours, spacing, model.max_sh_degree, p, p.seed)
+        observed = [(a >= p.hole_alpha) & ~h for a, h in zip(alphas, holes)] if p.carve_seeds else None
+        seeds = seed_hole_gaussians(cameras, holes, depths, colours, spacing, model.max_sh_degree, p, p.seed,
+                                    observed)
         cleaned = concat_models(background, seeds)
         write_ply(ctx.out_dir / "gaussians.ply", cleaned)
         np.save(ctx.out_dir / "seed_ids.npy", np.arange(len(background), len(cleaned)))

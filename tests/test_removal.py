@@ -388,6 +388,25 @@ def test_seeded_gaussians_lie_on_the_completed_surface(scene_and_model):
     assert torch.isfinite(seeds.params["scales"]).all()
 
 
+def test_seeds_that_another_view_sees_through_are_carved(scene_and_model):
+    """A hole seed that another view shows in front of background it saw is dropped: on the right
+    depth the seeds stay, on a depth far too near (floating in front of the scene) they go."""
+    scene, _, _ = scene_and_model
+    cams, masks, depths = scene.cameras, list(scene.masks), list(scene.depth_gt)
+    holes = [masks[0]] + [np.zeros_like(m) for m in masks[1:]]
+    colours = [np.full(d.shape + (3,), 0.3, np.float32) for d in depths]
+    observed = [~m for m in masks]  # each view saw the background outside its object mask
+    p = RemoveParams()
+
+    def seeds(depth0, carve):
+        return len(seed_hole_gaussians(cams, holes, [depth0] + depths[1:], colours, 0.02, 0, p,
+                                       observed=observed if carve else None))
+
+    assert seeds(depths[0], False) > 20
+    assert seeds(depths[0], True) >= 0.8 * seeds(depths[0], False)
+    assert seeds(0.5 * depths[0], True) < 0.3 * seeds(0.5 * depths[0], False)
+
+
 def test_seeds_sit_behind_the_completed_surface_by_the_depth_offset(scene_and_model):
     """remove.seed_depth_offset: each seed moves that many seed spacings away from its view along the
     pixel's ray, so it still projects into the same hole pixel of that view."""

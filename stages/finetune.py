@@ -80,7 +80,8 @@ class FinetuneParams:
     # before it and 24.26 after (synthetic 28.66 -> 28.74, lund 15.48 -> 15.56). Session 23 tried
     # anchoring it to the background's full-SH render from before the re-fit (not an option here), at
     # weight 1 / 0.2: statue-box 21.67 -> 22.00 / 21.80, synthetic 26.49 -> 26.30 / 26.35, lund seed 0
-    # 14.92 -> 14.98 / 14.95. Mixed, so the default stays 0.
+    # 14.92 -> 14.98 / 14.95. Mixed, so the default stays 0. The cause was hole seeds floating in front of
+    # the scene; the remove stage now carves them (remove.carve_seeds: statue-box 21.67 -> 22.67).
     seen_weight: float = 0.0
     # SDS (needs the diffusion extra and local weights); 0 = off
     lambda_sds: float = 0.0

@@ -29,7 +29,10 @@ DC colours (> 1) of the Gaussians behind the box cost 0.6-1.4 dB in views 9-17; 
 clamps them (``remove.clamp_share``): seeds 0 / 1 / 2 ours 14.92 / 15.84 / 15.63 (mean 15.47),
 fsr-refit 15.08 / 14.82 / 15.22, no-sbm 14.77 / 15.38 / 15.32 (delete-only unchanged, its renders use
 clamped DC colours already); ours minus each on the mean +0.60 / +0.43 / +0.31 dB. Synthetic seed 0:
-ours 26.50 -> 26.49.
+ours 26.50 -> 26.49. Then ``remove.carve_seeds`` (seeds that another view sees through are dropped),
+seed 0: synthetic ours 26.51, delete-only 24.54, fsr-refit 21.31, no-sbm 25.97; lund ours 14.92,
+fsr-refit 15.27 (its whole-mask seeds floated more), no-sbm 14.75; statue-box ours 21.67 -> 22.67
+(delete-only 21.60).
 
 The numbers quoted here were measured in earlier sessions; the rasterizer kernel build (x86-64 level,
 printed in the header and stored as ``kernel``) changes every fit, so a machine of another level gets

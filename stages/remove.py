@@ -123,14 +123,15 @@ class RemoveStage(Stage):
         front = subset(model, surface)
         floors = [object_depth(front, cam, p.backend) for cam in cameras] if p.behind_object else None
         depths = complete_hole_depths(cameras, raw_depths, [a >= p.hole_alpha for a in alphas], holes, p, floors)
-        if p.min_views > 0 and p.hole_mode == "unseen":
-            # second pass: mask pixels that too few other views observed become holes too
+        second_pass = p.min_views > 0 and p.hole_mode == "unseen"
+        if second_pass:  # mask pixels that too few other views observed become holes too
             seen = [m & ~h for m, h in zip(masks, holes)]
             counts = observing_views(cameras, masks, depths, seen, p)
             unobserved = [s & (c < p.min_views) for s, c in zip(seen, counts)]
             holes = [hole_mask(m, a, p, u) for m, a, u in zip(masks, alphas, unobserved)]
-            depths = complete_hole_depths(cameras, raw_depths, [(a >= p.hole_alpha) & ~h for a, h in
-                                                                zip(alphas, holes)], holes, p, floors)
+        observed = [(a >= p.hole_alpha) & ~h for a, h in zip(alphas, holes)]  # background each view saw
+        if second_pass:
+            depths = complete_hole_depths(cameras, raw_depths, observed, holes, p, floors)
         colours = []
         per_view = {}
         for cam, mask, rgb, alpha, hole, filled_depth in zip(cameras, masks, renders, alphas, holes, depths):
@@ -145,9 +146,8 @@ class RemoveStage(Stage):
                                    "rim_pixels": int((hole & ~mask).sum()),
                                    "hole_pixels_by_opacity": int((mask & (alpha < p.hole_alpha)).sum())}
         spacing = median_spacing(background.means.detach().double().numpy())
-        observed = [(a >= p.hole_alpha) & ~h for a, h in zip(alphas, holes)] if p.carve_seeds else None
         seeds = seed_hole_gaussians(cameras, holes, depths, colours, spacing, model.max_sh_degree, p, p.seed,
-                                    observed)
+                                    observed if p.carve_seeds else None)
         cleaned = concat_models(background, seeds)
         write_ply(ctx.out_dir / "gaussians.ply", cleaned)
         np.save(ctx.out_dir / "seed_ids.npy", np.arange(len(background), len(cleaned)))

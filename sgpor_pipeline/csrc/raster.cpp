@@ -156,7 +156,7 @@ SGPOR_API int sgpor_max_threads() {
                                     const T* viewmats, const T* g_rgb, T* g_means, T* g_sh0,       \
                                     int64_t gstride0, T* g_shN, int64_t gstrideN, int nthreads) {   \
     sh_bwd<T>(C, N, deg, means, ShRows<T>{sh0, stride0, shN, strideN, KN}, viewmats, g_rgb,        \
-              g_means, g_sh0, gstride0, g_shN, gstrideN, nthreads);                                 \
+              g_means, ShRowsOf<T*>{g_sh0, gstride0, g_shN, gstrideN, KN}, nthreads);               \
   }                                                                                                 \
   SGPOR_API void sgpor_bin_##SUF(int C, int N, int W, int H, int tile, const T* depths,            \
                                  const int32_t* rect, const int32_t* ntiles, int64_t* tile_off,     \

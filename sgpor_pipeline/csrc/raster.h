@@ -466,20 +466,23 @@ inline void campos_of(const T* viewmat, T* cp) {  // -R^T t
     cp[j] = -(viewmat[j] * viewmat[3] + viewmat[4 + j] * viewmat[7] + viewmat[8 + j] * viewmat[11]);
 }
 
-// The SH coefficients of Gaussian n come in two row arrays: the DC term at sh0 + n * stride0 and
-// the KN others at shN + n * strideN (3 values each, channel fastest). One [N,K,3] tensor is
-// sh0 = sh, shN = sh + 3, both strides 3K; the model's two parameters are passed without a copy.
-template <typename T>
-struct ShRows {
-  const T* sh0;
+// The SH coefficients (or their gradients: P = T*) of Gaussian n come in two row arrays: the DC
+// term at sh0 + n * stride0 and the KN others at shN + n * strideN (3 values each, channel fastest).
+// One [N,K,3] tensor is sh0 = sh, shN = sh + 3, both strides 3K; the model's two parameters are
+// passed without a copy.
+template <typename P>
+struct ShRowsOf {
+  P sh0;
   int64_t stride0;
-  const T* shN;
+  P shN;
   int64_t strideN;
   int KN;
-  const T* coef(int64_t n, int k) const {  // (k is a constant in the unrolled loops: no branch)
+  P coef(int64_t n, int k) const {  // (k is a constant in the unrolled loops: no branch)
     return k == 0 ? sh0 + n * stride0 : shN + n * strideN + 3 * (k - 1);
   }
 };
+template <typename T>
+using ShRows = ShRowsOf<const T*>;
 
 template <int DEG, typename T>
 void sh_fwd_deg(int C, int N, const T* means, const ShRows<T>& sh, const T* viewmats, T* rgb,
@@ -504,21 +507,18 @@ void sh_fwd_deg(int C, int N, const T* means, const ShRows<T>& sh, const T* view
   }
 }
 
-// g_means is accumulated into (+=), the coefficient gradients (rows as ShRows, g_sh0 / g_shN)
-// overwritten (coefficients above the degree get 0). Cameras are summed in camera order (outer
-// loop), Gaussians in parallel: deterministic.
+// g_means is accumulated into (+=), the coefficient gradients g_sh (rows as sh's) overwritten
+// (coefficients above the degree get 0). Cameras are summed in camera order (outer loop),
+// Gaussians in parallel: deterministic.
 template <int DEG, typename T>
 void sh_bwd_deg(int C, int N, const T* means, const ShRows<T>& sh, const T* viewmats, const T* g_rgb,
-                T* g_means, T* g_sh0, int64_t gstride0, T* g_shN, int64_t gstrideN, int nthreads) {
+                T* g_means, const ShRowsOf<T*>& g_sh, int nthreads) {
   constexpr int NB = (DEG + 1) * (DEG + 1);
-  const int KN = sh.KN;
-  const auto gcoef = [&](int64_t n, int k) -> T* {
-    return k == 0 ? g_sh0 + n * gstride0 : g_shN + n * gstrideN + 3 * (k - 1);
-  };
+  const int KN = g_sh.KN;
   if (KN + 1 > NB) {
 #pragma omp parallel for num_threads(par_threads(nthreads, 0.002 * double(N) * (KN + 1))) schedule(static)
     for (int64_t n = 0; n < N; ++n)
-      for (int i = (NB - 1) * 3; i < KN * 3; ++i) g_shN[n * gstrideN + i] = 0;
+      for (int i = (NB - 1) * 3; i < KN * 3; ++i) g_sh.shN[n * g_sh.strideN + i] = 0;
   }
   for (int c = 0; c < C; ++c) {
     T cp[3];
@@ -533,7 +533,7 @@ void sh_bwd_deg(int C, int N, const T* means, const ShRows<T>& sh, const T* view
       if (gr[3 * n] == T(0) && gr[3 * n + 1] == T(0) && gr[3 * n + 2] == T(0)) {
         if (first)
           for (int k = 0; k < NB; ++k)
-            for (int ch = 0; ch < 3; ++ch) gcoef(n, k)[ch] = T(0);
+            for (int ch = 0; ch < 3; ++ch) g_sh.coef(n, k)[ch] = T(0);
         continue;
       }
       const T dx = means[3 * n] - cx, dy = means[3 * n + 1] - cy, dz = means[3 * n + 2] - cz;
@@ -549,7 +549,7 @@ void sh_bwd_deg(int C, int N, const T* means, const ShRows<T>& sh, const T* view
         g[ch] = (acc + T(0.5) >= T(0)) ? gr[3 * n + ch] : T(0);
       }
       for (int k = 0; k < NB; ++k) {
-        T* gs = gcoef(n, k);
+        T* gs = g_sh.coef(n, k);
         for (int ch = 0; ch < 3; ++ch) gs[ch] = (first ? T(0) : gs[ch]) + b[k] * g[ch];
       }
       T v[16];
@@ -582,17 +582,13 @@ void sh_fwd(int C, int N, int deg, const T* means, const ShRows<T>& sh, const T*
 
 template <typename T>
 void sh_bwd(int C, int N, int deg, const T* means, const ShRows<T>& sh, const T* viewmats,
-            const T* g_rgb, T* g_means, T* g_sh0, int64_t gstride0, T* g_shN, int64_t gstrideN,
-            int nthreads) {
+            const T* g_rgb, T* g_means, const ShRowsOf<T*>& g_sh, int nthreads) {
   PhaseTimer timer_("sh_bwd");
   switch (deg) {
-#define SGPOR_SH_BWD(D) \
-  sh_bwd_deg<D>(C, N, means, sh, viewmats, g_rgb, g_means, g_sh0, gstride0, g_shN, gstrideN, nthreads)
-    case 0: SGPOR_SH_BWD(0); break;
-    case 1: SGPOR_SH_BWD(1); break;
-    case 2: SGPOR_SH_BWD(2); break;
-    default: SGPOR_SH_BWD(3); break;
-#undef SGPOR_SH_BWD
+    case 0: sh_bwd_deg<0>(C, N, means, sh, viewmats, g_rgb, g_means, g_sh, nthreads); break;
+    case 1: sh_bwd_deg<1>(C, N, means, sh, viewmats, g_rgb, g_means, g_sh, nthreads); break;
+    case 2: sh_bwd_deg<2>(C, N, means, sh, viewmats, g_rgb, g_means, g_sh, nthreads); break;
+    default: sh_bwd_deg<3>(C, N, means, sh, viewmats, g_rgb, g_means, g_sh, nthreads); break;
   }
 }
 

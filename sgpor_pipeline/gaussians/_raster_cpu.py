@@ -280,7 +280,7 @@ class _SHFn(torch.autograd.Function):
         _fn("sh_fwd", means.dtype)(C, N, KN, degree, _ptr(means), _ptr(s0), st0, _ptr(sN), stN, _ptr(viewmats),
                                    _ptr(rgb), threads)
         ctx.save_for_backward(means, s0, sN, viewmats)
-        ctx.degree, ctx.threads = degree, threads
+        ctx.degree, ctx.threads, ctx.strides = degree, threads, (st0, stN)
         return rgb
 
     @staticmethod
@@ -292,7 +292,7 @@ class _SHFn(torch.autograd.Function):
         g_sh0 = torch.empty(N, 1, 3, dtype=means.dtype)
         g_shN = torch.empty(N, KN, 3, dtype=means.dtype)
         g_rgb = g_rgb.contiguous()  # keep a reference: the kernel reads its memory
-        st0, stN = _sh_rows(s0)[1], _sh_rows(sN)[1]
+        st0, stN = ctx.strides
         _fn("sh_bwd", means.dtype)(C, N, KN, ctx.degree, _ptr(means), _ptr(s0), st0, _ptr(sN), stN,
                                    _ptr(viewmats), _ptr(g_rgb), _ptr(g_means), _ptr(g_sh0), 3, _ptr(g_shN),
                                    3 * KN, ctx.threads)

@@ -162,6 +162,50 @@ def test_oracle_holes_psnr_replaces_only_the_holes(bench, tmp_path):
                for c in checks)
 
 
+def test_blurred_truth_holes_psnr_falls_with_the_blur_and_names_the_blur_a_target_needs(bench, tmp_path):
+    """Ours' holes take the truth blurred by each sigma: a flat truth stays exact, a textured one loses more
+    with a wider blur; the [INFO] line says which blur a +1 dB target over the baselines asks for."""
+    from sgpor_pipeline.imageio import write_mask01, write_png
+
+    rng = np.random.default_rng(0)
+    truth = rng.uniform(0.2, 0.8, (32, 32, 3)).astype(np.float32)
+    mask = np.zeros((32, 32), bool)
+    mask[4:28, 4:28] = True
+    hole = np.zeros((32, 32), bool)
+    hole[10:22, 10:22] = True
+    for sub in ("holes", "masks", "truth"):
+        (tmp_path / sub).mkdir()
+    write_mask01(tmp_path / "holes" / "v.png", hole)
+    write_mask01(tmp_path / "masks" / "v.png", mask)
+    write_png(tmp_path / "truth" / "v.png", truth)
+    truth = np.round(truth * 255) / 255
+    final = truth.copy()
+    final[mask & ~hole] += 0.05  # the rest of the mask keeps its error (26 dB there)
+    got = bench.blurred_truth_holes_psnr({"v": final}, tmp_path, tmp_path / "masks", tmp_path / "truth")
+    assert list(got) == ["1", "2", "3", "5"]
+    vals = list(got.values())
+    assert all(a > b for a, b in zip(vals, vals[1:]))  # a wider blur is further from the truth
+    assert vals[0] < 10 * np.log10(1 / (0.05 ** 2 * (mask & ~hole).sum() / mask.sum()))  # below exact holes
+    flat = np.full_like(truth, 0.5)
+    write_png(tmp_path / "truth" / "v.png", flat)
+    got_flat = bench.blurred_truth_holes_psnr({"v": np.where(hole[..., None], 0.0, flat)}, tmp_path,
+                                              tmp_path / "masks", tmp_path / "truth")
+    assert all(v == bench.PSNR_CAP for v in got_flat.values())  # nothing to lose: exact everywhere
+    # the [INFO] line interpolates the blur at which ours would beat the best baseline (not no-rpr) by 1 dB
+    rows = [_row(m, p) for m, p in (("ours", 24.0), ("delete-only", 22.0), ("fsr-refit", 20.0), ("no-sbm", 24.5),
+                                    ("no-rpr", 24.0))]
+    scene = {"scene": "synthetic", "rows": rows, "wall_seconds": 1.0, "demo_seconds": 100.0,
+             "mask_psnr_holes_blurred_truth": {"1": 28.0, "2": 26.0, "3": 25.0, "5": 24.0}}
+    summary, checks = bench.summarise({"synthetic": scene})
+    assert summary["synthetic_mask_psnr_holes_blurred_truth"]["2"] == 26.0
+    line = next(c for c in checks if "truth blurred by sigma" in c)
+    assert "needs 25.50" in line and "delete-only, fsr-refit, no-sbm needs" in line
+    assert "blurred by 2.4 px" in line  # 25.5 lies halfway between 2 px (26) and 3 px (25) on a log scale
+    scene["mask_psnr_holes_blurred_truth"] = {"1": 25.0, "2": 24.0}
+    line = next(c for c in bench.summarise({"synthetic": scene})[1] if "truth blurred by sigma" in c)
+    assert "closer to the truth than the truth blurred by 1 px" in line
+
+
 def test_detail_ratio_is_one_for_the_truth_and_lower_for_a_blur(bench, tmp_path):
     import cv2
     import skimage.data

@@ -1055,7 +1055,9 @@ def summarise(results: dict[str, dict[str, Any]]) -> tuple[dict[str, Any], list[
                 t = (val[j - 1] - need) / (val[j - 1] - val[j])
                 s_need = float(np.exp(np.log(sig[j - 1]) + t * (np.log(sig[j]) - np.log(sig[j - 1]))))
                 reach = f"as close to the truth as the truth blurred by {s_need:.1f} px"
-            checks.append(f"[INFO] {scene}: ours' final renders with the truth blurred by sigma px in their holes: "
+            first = f" (fit seed {fs['seeds'][0]})" if fs and len(fs["seeds"]) > 1 else ""
+            checks.append(f"[INFO] {scene}{first}: ours' final renders with the truth blurred by sigma px in their "
+                          "holes: "
                           + ", ".join(f"{k} px {v:.2f}" for k, v in zip((f"{x:g}" for x in sig), val))
                           + f" dB mask PSNR; {TARGET_GAIN_DB:+.1f} dB over {', '.join(rivals)} needs {need:.2f}: "
                           f"a fill of the pixels no view saw {reach}")

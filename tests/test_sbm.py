@@ -246,6 +246,18 @@ def test_sbm_beats_delete_only_and_keeps_texture(scene):
         assert abs(np.log(e_sbm / e_gt)) < abs(np.log(e_fsr / e_gt)), (e_gt, e_sbm, e_fsr)
 
 
+def test_reranking_threads_change_nothing(scene):
+    """The re-ranking runs its targets on threads (cv2.matchTemplate releases the GIL): the fill, the
+    candidates and their costs are bitwise those of one thread."""
+    names, renders, holes = scene_inputs(scene)
+    bank = build_source_bank(names, renders, list(scene.masks), holes, SBMParams())
+    one = inpaint_view(renders[0], holes[0], bank, SBMParams(threads=1))
+    assert len(one.targets) >= 2 * 32  # enough targets for two threads
+    two = inpaint_view(renders[0], holes[0], bank, SBMParams(threads=2))
+    for name in ("image", "cand", "cost", "sim"):
+        assert np.array_equal(getattr(one, name), getattr(two, name), equal_nan=True), name
+
+
 def test_hole_content_of_the_render_is_ignored(scene):
     names, renders, holes = scene_inputs(scene)
     with_object = [scene.images_gt[i].copy() for i in range(len(names))]

@@ -32,6 +32,7 @@ The paper's step (DESIGN.md section 7), CPU-first:
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -104,7 +105,7 @@ class SBMParams:
     paste_temperature: float = 1.0  # 0 = equal weights
     seed: int = 0  # source subsampling when more than max_sources blocks
     chunk: int = 16384  # sources per matrix-product chunk
-    threads: int = 2  # onnxruntime threads for dinov2
+    threads: int = 2  # onnxruntime threads for dinov2; re-ranking threads (the result does not depend on it)
 
     def validate(self) -> None:
         if self.block_size < 3:
@@ -190,6 +191,14 @@ class SourceBank:
                 [_shrink_any(m, wh) for m, wh in zip(self.object_masks, half)],
                 [_shrink_any(~v, wh) for v, wh in zip(self.valid, half)], params)
         return self._coarser
+
+    def free_padded(self, view: int, pad: int) -> np.ndarray:
+        """The view's :func:`free_blocks` map with a border of ``pad`` False on every side (cached): the
+        free flags of the corners within +-pad of (y, x) are ``free_padded(v, pad)[y:y+2pad+1, x:x+2pad+1]``."""
+        key = -(view * 100003 + pad) - 1
+        if key not in self._padded:
+            self._padded[key] = np.pad(self.free[view], pad, constant_values=False)
+        return self._padded[key]
 
     def padded(self, view: int, pad: int) -> np.ndarray:
         """The view's image with invalid pixels and a border of ``pad`` set to SENTINEL (cached)."""
@@ -444,30 +453,23 @@ def _rerank(bank: SourceBank, cur_p: np.ndarray, known_p: np.ndarray, P: int, ty
     templ = cur_p[y0:y0 + win, x0:x0 + win]
     mask = known_p[y0:y0 + win, x0:x0 + win]
     msum = float(mask.sum())
-    out_pos = np.full((len(cands), 3), -1, np.int64)
-    out_cost = np.full(len(cands), np.inf)
-    if msum < 1:
-        out_pos[:] = bank.pos[cands]
-        return out_pos, np.full(len(cands), np.nan), sims
+    pos = bank.pos[cands].astype(np.int64)  # [kc,3] (view, y, x)
+    if msum < 1:  # no known context: the feature ranking stands
+        return pos[:k], np.full(min(k, len(cands)), np.nan), sims[:k]
     mask3 = np.repeat(mask[:, :, None], 3, axis=2)
     PP = pad + r
-    for j, c in enumerate(cands):
-        v, sy, sx = (int(a) for a in bank.pos[c])
-        src = bank.padded(v, PP)
-        region = src[sy - r - pad + PP: sy + r - pad + PP + win, sx - r - pad + PP: sx + r - pad + PP + win]
-        res = cv2.matchTemplate(region, templ, cv2.TM_SQDIFF, mask=mask3)  # [(2r+1),(2r+1)]
-        fr = bank.free[v]
-        yy = sy + np.arange(-r, r + 1)
-        xx = sx + np.arange(-r, r + 1)
-        okr = (yy >= 0) & (yy < fr.shape[0])
-        okc = (xx >= 0) & (xx < fr.shape[1])
-        ok = np.zeros_like(res, bool)
-        ok[np.ix_(okr, okc)] = fr[np.ix_(yy[okr], xx[okc])]
-        res = np.where(ok & np.isfinite(res), res, np.inf)
-        a = int(np.argmin(res))
-        dy, dx = divmod(a, res.shape[1])
-        out_pos[j] = (v, sy + dy - r, sx + dx - r)
-        out_cost[j] = res.flat[a] / (3.0 * msum)
+    side = 2 * r + 1
+    res = np.empty((len(cands), side, side), np.float32)
+    ok = np.empty((len(cands), side, side), bool)
+    for j, (v, sy, sx) in enumerate(pos.tolist()):
+        region = bank.padded(v, PP)[sy:sy + win + 2 * r, sx:sx + win + 2 * r]  # corners sy-r .. sy+r
+        res[j] = cv2.matchTemplate(region, templ, cv2.TM_SQDIFF, mask=mask3)
+        ok[j] = bank.free_padded(v, r)[sy:sy + side, sx:sx + side]  # (off the view: not free)
+    res = np.where(ok & np.isfinite(res), res, np.inf).reshape(len(cands), -1)
+    best = res.argmin(axis=1)
+    dy, dx = np.divmod(best, side)
+    out_pos = np.stack([pos[:, 0], pos[:, 1] + dy - r, pos[:, 2] + dx - r], axis=1)
+    out_cost = (res[np.arange(len(cands)), best] / (3.0 * msum)).astype(np.float64)  # (a float32 quotient)
     order = np.argsort(out_cost, kind="stable")[:k]
     return out_pos[order], out_cost[order], sims[order]
 
@@ -514,10 +516,23 @@ def match_blocks(image: np.ndarray, known: np.ndarray, targets: np.ndarray, bank
         img_p = cv2.copyMakeBorder(np.ascontiguousarray(image, np.float32), P, P, P, P, cv2.BORDER_CONSTANT,
                                    value=(0, 0, 0))
         known_p = cv2.copyMakeBorder(known.astype(np.float32), P, P, P, P, cv2.BORDER_CONSTANT, value=0)
-        for j in range(nt):
+        def one(j: int) -> None:
             p_, c_, s_ = _rerank(bank, img_p, known_p, P, int(targets[j, 0]), int(targets[j, 1]), idx[j], sc[j],
                                  pad, win, r, s, kk)
             pos[j, :len(p_)], cost[j, :len(p_)], sim[j, :len(p_)] = p_, c_, s_
+
+        for v in np.unique(bank.pos[idx.ravel(), 0]):  # fill the caches before the threads read them
+            bank.padded(int(v), pad + r)
+            bank.free_padded(int(v), r)
+        # cv2.matchTemplate is single-threaded and releases the GIL: targets in parallel (each writes its
+        # own rows, so the result does not depend on the thread count)
+        threads = min(max(1, params.threads), max(1, nt // 32))
+        if threads > 1:
+            with ThreadPoolExecutor(threads) as pool:
+                list(pool.map(one, range(nt)))
+        else:
+            for j in range(nt):
+                one(j)
     else:
         pos[:, :idx.shape[1]] = bank.pos[idx[:, :kk]]
         sim[:, :idx.shape[1]] = sc[:, :kk]

@@ -415,44 +415,19 @@ def detail_ratio(images: dict[str, np.ndarray], masks_dir: Path, truth_dir: Path
     return ours / truth_sum if truth_sum > 0 else float("nan")
 
 
-def oracle_holes_psnr(deleted: dict[str, np.ndarray], remove_dir: Path, masks_dir: Path, truth_dir: Path) -> float:
-    """Mask PSNR (evaluate's definition: mean over views) of the delete-only renders with their HOLE pixels
-    replaced by the truth: the most any inpainting of the holes can reach while the background seen by
-    other views stays as fitted (before a re-fit). Its distance to delete-only is the headroom of the
-    inpainting methods on this protocol. A view whose whole mask is a hole (``remove.thin_mask_rim``) is
-    perfect there: its PSNR counts as ``PSNR_CAP`` dB (8-bit images that agree to the last bit), not inf."""
-    from sgpor_pipeline.imageio import read_image, read_mask
-    from sgpor_pipeline.metrics import psnr
-
-    values = []
-    for name, img in deleted.items():
-        truth_path = truth_dir / f"{name}.png"
-        mask = read_mask(masks_dir / f"{name}.png")
-        if not truth_path.is_file() or not mask.any():
-            continue
-        truth = read_image(truth_path)
-        hole = read_mask(remove_dir / "holes" / f"{name}.png")
-        values.append(min(PSNR_CAP, psnr(np.where(hole[..., None], truth, img), truth, mask)))
-    return float(np.mean(values)) if values else float("nan")
-
-
-BLUR_SIGMAS = (1.0, 2.0, 3.0, 5.0)  # px: the blurred-truth fills of ours' holes (blurred_truth_holes_psnr)
-
-
-def blurred_truth_holes_psnr(final: dict[str, np.ndarray], remove_dir: Path, masks_dir: Path, truth_dir: Path,
-                             sigmas: Sequence[float] = BLUR_SIGMAS) -> dict[str, float]:
-    """Mask PSNR (evaluate's definition) of ours' final renders with their HOLE pixels replaced by the
-    truth blurred by a Gaussian of each sigma (px): how close to the truth a fill of the holes must be
-    for ours to reach a given mask PSNR, the re-fit's effect on the rest of the mask kept. The methods
-    differ from ours mainly in the holes, so this says what a target over them asks of any inpainting:
-    no method can know the pixels no view saw, and a sharp guess of them scores below a blurred truth."""
+def truth_in_holes_psnr(images: dict[str, np.ndarray], remove_dir: Path, masks_dir: Path, truth_dir: Path,
+                        sigmas: Sequence[float] = (0.0,)) -> dict[str, float]:
+    """Mask PSNR (evaluate's definition: mean over views) of ``images`` with their HOLE pixels replaced by
+    the truth blurred by a Gaussian of each sigma (px; 0 = the truth itself), keyed by ``f"{sigma:g}"``.
+    A view whose whole mask is a hole and gets the exact truth (``remove.thin_mask_rim``) is perfect:
+    its PSNR counts as ``PSNR_CAP`` dB (8-bit images that agree to the last bit), not inf."""
     import cv2
 
     from sgpor_pipeline.imageio import read_image, read_mask
     from sgpor_pipeline.metrics import psnr
 
     values: dict[str, list[float]] = {f"{s:g}": [] for s in sigmas}
-    for name, img in final.items():
+    for name, img in images.items():
         truth_path = truth_dir / f"{name}.png"
         mask = read_mask(masks_dir / f"{name}.png")
         if not truth_path.is_file() or not mask.any():
@@ -460,9 +435,29 @@ def blurred_truth_holes_psnr(final: dict[str, np.ndarray], remove_dir: Path, mas
         truth = read_image(truth_path)
         hole = read_mask(remove_dir / "holes" / f"{name}.png")[..., None]
         for s in sigmas:
-            values[f"{s:g}"].append(min(PSNR_CAP, psnr(np.where(hole, cv2.GaussianBlur(truth, (0, 0), s), img),
-                                                         truth, mask)))
-    return {k: float(np.mean(v)) for k, v in values.items() if v}
+            fill = cv2.GaussianBlur(truth, (0, 0), s) if s > 0 else truth
+            values[f"{s:g}"].append(min(PSNR_CAP, psnr(np.where(hole, fill, img), truth, mask)))
+    return {k: float(np.mean(v)) if v else float("nan") for k, v in values.items()}
+
+
+def oracle_holes_psnr(deleted: dict[str, np.ndarray], remove_dir: Path, masks_dir: Path, truth_dir: Path) -> float:
+    """The inpainting headroom: the delete-only renders with the exact truth in their holes. The most
+    any inpainting of the holes can reach while the background seen by other views stays as fitted
+    (before a re-fit); its distance to delete-only is the headroom of the inpainting methods."""
+    return truth_in_holes_psnr(deleted, remove_dir, masks_dir, truth_dir)["0"]
+
+
+BLUR_SIGMAS = (1.0, 2.0, 3.0, 5.0)  # px: the blurred-truth fills of ours' holes (blurred_truth_holes_psnr)
+
+
+def blurred_truth_holes_psnr(final: dict[str, np.ndarray], remove_dir: Path, masks_dir: Path, truth_dir: Path,
+                             sigmas: Sequence[float] = BLUR_SIGMAS) -> dict[str, float]:
+    """Mask PSNR of ours' final renders with their HOLE pixels replaced by the truth blurred by each
+    sigma (px): how close to the truth a fill of the holes must be for ours to reach a given mask PSNR,
+    the re-fit's effect on the rest of the mask kept. The methods differ from ours mainly in the holes,
+    so this says what a target over them asks of any inpainting: no method can know the pixels no view
+    saw, and a sharp guess of them scores below a blurred truth."""
+    return truth_in_holes_psnr(final, remove_dir, masks_dir, truth_dir, sigmas)
 
 
 def read_folder(folder: Path, names: list[str]) -> dict[str, np.ndarray]:

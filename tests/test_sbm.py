@@ -251,9 +251,9 @@ def test_reranking_threads_change_nothing(scene):
     candidates and their costs are bitwise those of one thread."""
     names, renders, holes = scene_inputs(scene)
     bank = build_source_bank(names, renders, list(scene.masks), holes, SBMParams())
-    one = inpaint_view(renders[0], holes[0], bank, SBMParams(threads=1))
+    one = inpaint_view(renders[0], holes[0], bank, SBMParams(rerank_threads=1))
     assert len(one.targets) >= 2 * 32  # enough targets for two threads
-    two = inpaint_view(renders[0], holes[0], bank, SBMParams(threads=2))
+    two = inpaint_view(renders[0], holes[0], bank, SBMParams(rerank_threads=2))
     for name in ("image", "cand", "cost", "sim"):
         assert np.array_equal(getattr(one, name), getattr(two, name), equal_nan=True), name
 

@@ -105,7 +105,10 @@ class SBMParams:
     paste_temperature: float = 1.0  # 0 = equal weights
     seed: int = 0  # source subsampling when more than max_sources blocks
     chunk: int = 16384  # sources per matrix-product chunk
-    threads: int = 2  # onnxruntime threads for dinov2; re-ranking threads (the result does not depend on it)
+    threads: int = 2  # onnxruntime threads for dinov2
+    # threads of the re-ranking's template matching; 0 = torch.get_num_threads() (the machine's cores).
+    # The result does not depend on it (each target is matched on its own).
+    rerank_threads: int = 0
 
     def validate(self) -> None:
         if self.block_size < 3:
@@ -122,6 +125,9 @@ class SBMParams:
             raise PipelineError(f"unknown blend mode {self.blend!r}", fix=f"use one of {', '.join(BLEND_MODES)}")
         if self.top_k < 1:
             raise PipelineError("top_k must be >= 1", fix="use e.g. 5")
+        if self.rerank_threads < 0:
+            raise PipelineError(f"rerank_threads must be >= 0 (got {self.rerank_threads})",
+                                fix="use 0 (every core torch uses) or a thread count")
         if self.levels < 1:
             raise PipelineError(f"levels must be >= 1 (got {self.levels})", fix="use 1 (full size only) or 2")
         if self.paste_top < 1 or self.paste_temperature < 0:
@@ -277,6 +283,12 @@ def _half_size(hw: tuple[int, int]) -> tuple[int, int]:
 def _shrink_any(mask: np.ndarray, wh: tuple[int, int]) -> np.ndarray:
     """A bool mask resized to (width, height): true where any covered pixel was true."""
     return cv2.resize(np.asarray(mask, np.float32), wh, interpolation=cv2.INTER_AREA) > 0
+
+
+def _torch_threads() -> int:
+    import torch
+
+    return max(1, torch.get_num_threads())
 
 
 def _as_f32(img: np.ndarray) -> np.ndarray:
@@ -526,7 +538,7 @@ def match_blocks(image: np.ndarray, known: np.ndarray, targets: np.ndarray, bank
             bank.free_padded(int(v), r)
         # cv2.matchTemplate is single-threaded and releases the GIL: targets in parallel (each writes its
         # own rows, so the result does not depend on the thread count)
-        threads = min(max(1, params.threads), max(1, nt // 32))
+        threads = min(params.rerank_threads or _torch_threads(), max(1, nt // 32))
         if threads > 1:
             with ThreadPoolExecutor(threads) as pool:
                 list(pool.map(one, range(nt)))

@@ -182,6 +182,7 @@ class SourceBank:
     seconds: float = 0.0
     object_masks: list[np.ndarray] = field(default_factory=list)
     _padded: dict[int, np.ndarray] = field(default_factory=dict)
+    _free_padded: dict[tuple[int, int], np.ndarray] = field(default_factory=dict)
     _coarser: SourceBank | None = None
 
     def __len__(self) -> int:
@@ -201,10 +202,9 @@ class SourceBank:
     def free_padded(self, view: int, pad: int) -> np.ndarray:
         """The view's :func:`free_blocks` map with a border of ``pad`` False on every side (cached): the
         free flags of the corners within +-pad of (y, x) are ``free_padded(v, pad)[y:y+2pad+1, x:x+2pad+1]``."""
-        key = -(view * 100003 + pad) - 1
-        if key not in self._padded:
-            self._padded[key] = np.pad(self.free[view], pad, constant_values=False)
-        return self._padded[key]
+        if (view, pad) not in self._free_padded:
+            self._free_padded[view, pad] = np.pad(self.free[view], pad, constant_values=False)
+        return self._free_padded[view, pad]
 
     def padded(self, view: int, pad: int) -> np.ndarray:
         """The view's image with invalid pixels and a border of ``pad`` set to SENTINEL (cached)."""
@@ -283,12 +283,6 @@ def _half_size(hw: tuple[int, int]) -> tuple[int, int]:
 def _shrink_any(mask: np.ndarray, wh: tuple[int, int]) -> np.ndarray:
     """A bool mask resized to (width, height): true where any covered pixel was true."""
     return cv2.resize(np.asarray(mask, np.float32), wh, interpolation=cv2.INTER_AREA) > 0
-
-
-def _torch_threads() -> int:
-    import torch
-
-    return max(1, torch.get_num_threads())
 
 
 def _as_f32(img: np.ndarray) -> np.ndarray:
@@ -538,7 +532,9 @@ def match_blocks(image: np.ndarray, known: np.ndarray, targets: np.ndarray, bank
             bank.free_padded(int(v), r)
         # cv2.matchTemplate is single-threaded and releases the GIL: targets in parallel (each writes its
         # own rows, so the result does not depend on the thread count)
-        threads = min(params.rerank_threads or _torch_threads(), max(1, nt // 32))
+        import torch
+
+        threads = min(params.rerank_threads or max(1, torch.get_num_threads()), max(1, nt // 32))
         if threads > 1:
             with ThreadPoolExecutor(threads) as pool:
                 list(pool.map(one, range(nt)))

@@ -592,23 +592,19 @@ def test_invalid_inputs_raise(change, match):
     assert isinstance(info.value, ValueError)
 
 
-@requires_kernel
-@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-@pytest.mark.parametrize("sh_degree", [0, 2, 3])
-def test_sh_as_dc_and_rest_pair_matches_one_tensor(dtype, sh_degree):
-    """``colors=(sh0, shN)`` (a model's two parameters, read in place by the cpu kernel) renders and
-    differentiates bitwise like the one [N,16,3] tensor, two cameras, on the cpu and torch backends;
-    the coefficients above the degree get zero gradients."""
+def _sh_pair_against_one_tensor(dtype: torch.dtype, sh_degree: int, backend: str, device: str = "cpu") -> tuple:
+    """Renders two cameras with ``colors`` as the one [N,16,3] tensor and as the pair (sh0, shN);
+    returns (one, pair, sh, nb): each a tuple (render, alpha, d means, d colours as [N,16,3])."""
     scene = random_scene(200, 40, 30, seed=5, dtype=dtype, sigma_px=2.0, sh_degree=3)
     vm2 = torch.eye(4, dtype=dtype)
     vm2[:3, 3] = torch.tensor([0.3, -0.1, 0.4], dtype=dtype)
     scene["viewmats"] = torch.cat([scene["viewmats"], vm2[None]])
     scene["Ks"] = scene["Ks"].expand(2, -1, -1).contiguous()
+    scene = {k: (v.to(device) if isinstance(v, torch.Tensor) else v) for k, v in scene.items()}
     sh = scene.pop("colors")
     scene.pop("sh_degree")
-    nb = (sh_degree + 1) ** 2
 
-    def render_and_grads(colors_of, backend):
+    def render_and_grads(colors_of):
         means = scene["means"].detach().clone().requires_grad_(True)
         leaves = [sh.detach().clone().requires_grad_(True)] if colors_of == "one" else \
             [sh[:, :1].detach().clone().requires_grad_(True), sh[:, 1:].detach().clone().requires_grad_(True)]
@@ -616,13 +612,22 @@ def test_sh_as_dc_and_rest_pair_matches_one_tensor(dtype, sh_degree):
         render, alpha, _ = rasterization(**{**scene, "means": means}, colors=colors, sh_degree=sh_degree,
                                          backend=backend)
         w = torch.randn(render.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
-        ((render * w.to(dtype)).sum() + alpha.sum()).backward()
+        ((render * w.to(render)).sum() + alpha.sum()).backward()
         g_sh = leaves[0].grad if colors_of == "one" else torch.cat([leaves[0].grad, leaves[1].grad], 1)
         return render.detach(), alpha.detach(), means.grad, g_sh
 
+    return render_and_grads("one"), render_and_grads("pair"), sh, (sh_degree + 1) ** 2
+
+
+@requires_kernel
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("sh_degree", [0, 2, 3])
+def test_sh_as_dc_and_rest_pair_matches_one_tensor(dtype, sh_degree):
+    """``colors=(sh0, shN)`` (a model's two parameters, read in place by the cpu kernel) renders and
+    differentiates bitwise like the one [N,16,3] tensor, two cameras, on the cpu and torch backends;
+    the coefficients above the degree get zero gradients."""
     for backend in ("cpu", "torch"):
-        one = render_and_grads("one", backend)
-        pair = render_and_grads("pair", backend)
+        one, pair, sh, nb = _sh_pair_against_one_tensor(dtype, sh_degree, backend)
         for a, b in zip(one, pair):
             assert torch.equal(a, b), backend
         assert one[3].shape == sh.shape and (one[3][:, nb:] == 0).all() and one[3][:, :nb].abs().sum() > 0
@@ -775,3 +780,18 @@ def test_gsplat_contribution_matches_torch():
         assert gs["contrib"].shape == ref["contrib"].shape == (1, 400)
         torch.testing.assert_close(gs["contrib"], ref["contrib"], rtol=1e-4, atol=1e-4)
     assert float(ref["contrib"].sum()) > 10.0  # the mask covers a real share of the image
+
+
+@requires_gsplat
+@pytest.mark.parametrize("sh_degree", [0, 3])
+def test_gsplat_takes_the_sh_pair(sh_degree):
+    """The trainer passes (sh0, shN) on CUDA too: gsplat (which concatenates them) renders the pair as
+    the one tensor, and the gradients reach both parameters (to float32 rounding: gsplat's backward
+    adds with atomics, in no fixed order)."""
+    pytest.importorskip("gsplat")
+    one, pair, sh, nb = _sh_pair_against_one_tensor(torch.float32, sh_degree, "gsplat", "cuda")
+    torch.testing.assert_close(pair[0], one[0], rtol=0, atol=1e-6)
+    torch.testing.assert_close(pair[1], one[1], rtol=0, atol=1e-6)
+    for a, b in zip(one[2:], pair[2:]):
+        torch.testing.assert_close(b, a, rtol=1e-4, atol=1e-6)
+    assert pair[3].shape == sh.shape and (pair[3][:, nb:] == 0).all() and pair[3][:, :nb].abs().sum() > 0

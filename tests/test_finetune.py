@@ -1,0 +1,125 @@
+"""The finetune stage's training device: the CPU by default here, CUDA where a GPU is (finetune.device).
+
+Self-contained (no Open3D): a textured plane of Gaussians, a hole in the middle, four cameras."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from sgpor_pipeline.dag import StageContext
+from sgpor_pipeline.errors import PipelineError
+from sgpor_pipeline.gaussians.model import GaussianModel, rgb_to_sh
+from sgpor_pipeline.gaussians.ply import read_ply, write_ply
+from sgpor_pipeline.gaussians.train import render_view
+from sgpor_pipeline.imageio import read_rgb8, write_mask01, write_png
+from sgpor_pipeline.scene import Camera, save_cameras
+from sgpor_pipeline.stages.finetune import FinetuneParams, FinetuneStage
+
+
+def plane_inputs(root: Path, side: int = 30, w: int = 64, h: int = 48, seed: int = 0) -> dict[str, Path]:
+    """The remove and refine folders of a plane scene: Gaussians on z = 2 with random colours, the
+    ones in the middle marked as hole seeds (grey), the fills a smooth colour ramp."""
+    rng = np.random.default_rng(seed)
+    g = np.linspace(-1.2, 1.2, side)
+    X, Y = np.meshgrid(g, g)
+    xyz = np.stack([X.ravel(), Y.ravel(), np.full(X.size, 2.0)], axis=1)
+    model = GaussianModel.empty(len(xyz), 0)
+    seeds = np.flatnonzero(np.abs(xyz[:, :2]).max(axis=1) < 0.35)
+    rgb = rng.random((len(xyz), 3))
+    rgb[seeds] = 0.5
+    with torch.no_grad():
+        model.params["means"].copy_(torch.from_numpy(xyz).float())
+        model.params["scales"].fill_(float(np.log(2.4 / side)))
+        model.params["opacities"].fill_(2.0)
+        model.params["sh0"].copy_(rgb_to_sh(torch.from_numpy(rgb).float())[:, None, :])
+    K = np.array([[w * 0.8, 0, w / 2], [0, w * 0.8, h / 2], [0, 0, 1.0]])
+    cams = []
+    for i, (dx, dy) in enumerate(((0.0, 0.0), (0.15, 0.0), (-0.1, 0.1), (0.05, -0.12))):
+        T = np.eye(4)
+        T[:2, 3] = (-dx, -dy)
+        cams.append(Camera(f"v{i}", w, h, K, T, image=f"v{i}"))
+    remove, refine = root / "remove", root / "refine"
+    for sub in (remove / "holes", refine / "images"):
+        sub.mkdir(parents=True)
+    write_ply(remove / "gaussians.ply", model)
+    np.save(remove / "seed_ids.npy", seeds)
+    save_cameras(remove / "cameras.json", cams)
+    yy, xx = np.mgrid[0:h, 0:w] / max(h, w)
+    fill = np.stack([0.2 + 0.6 * xx, 0.3 + 0.5 * yy, 0.6 - 0.3 * xx], -1).astype(np.float32)
+    for cam in cams:
+        hole = np.zeros((h, w), bool)
+        hole[h // 3: 2 * h // 3, w // 3: 2 * w // 3] = True
+        write_mask01(remove / "holes" / f"{cam.image}.png", hole)
+        img = render_view(model, cam, backend="torch").numpy()
+        write_png(refine / "images" / f"{cam.image}.png", np.where(hole[..., None], fill, img))
+    return {"remove": remove, "refine": refine}
+
+
+def run_finetune(root: Path, inputs: dict[str, Path], **kw) -> tuple[dict, GaussianModel, Path]:
+    ctx = StageContext.standalone(root, "finetune", FinetuneParams(iterations=60, max_size=0, **kw), inputs)
+    FinetuneStage().run(ctx)
+    return json.loads((ctx.out_dir / "finetune.json").read_text()), read_ply(ctx.out_dir / "gaussians.ply"), \
+        ctx.out_dir
+
+
+def changed(before: GaussianModel, after: GaussianModel) -> np.ndarray:
+    """[N] bool: the Gaussians with any parameter value different after the re-fit."""
+    return np.any([(before.params[n] != after.params[n]).reshape(len(before), -1).any(1).numpy()
+                   for n in before.params], 0)
+
+
+def untouched(before: GaussianModel, after: GaussianModel, trained: np.ndarray) -> bool:
+    """Every Gaussian outside ``trained`` keeps its values bit for bit."""
+    keep = torch.from_numpy(~trained)
+    return all(torch.equal(before.params[n][keep], after.params[n][keep]) for n in before.params)
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the error on a machine without CUDA")
+def test_finetune_on_a_missing_gpu_fails_before_any_work(tmp_path):
+    inputs = plane_inputs(tmp_path / "in")
+    ctx = StageContext.standalone(tmp_path, "finetune", FinetuneParams(device="cuda"), inputs)
+    with pytest.raises(PipelineError, match="finetune.device") as e:
+        FinetuneStage().run(ctx)
+    assert "finetune.device=cpu" in e.value.fix
+    assert not any(ctx.out_dir.iterdir())
+    with pytest.raises(PipelineError, match="finetune.device"):
+        FinetuneStage().run(StageContext.standalone(tmp_path, "finetune", FinetuneParams(device="tpu"), inputs))
+
+
+def test_finetune_trains_the_hole_on_the_cpu_by_default(tmp_path):
+    """Without a GPU ("auto" resolves to the CPU; with one, to it only where gsplat is installed): the
+    hole's Gaussians move towards the fill, the others keep their values bit for bit."""
+    inputs = plane_inputs(tmp_path / "in")
+    before = read_ply(inputs["remove"] / "gaussians.ply")
+    info, after, _ = run_finetune(tmp_path, inputs, device="cpu")
+    assert info["device"] == "cpu" and info["iterations"] == 60
+    trained = changed(before, after)
+    assert 0 < trained.sum() <= info["trainable"]
+    assert untouched(before, after, trained)
+    seeds = np.load(inputs["remove"] / "seed_ids.npy")
+    assert trained[seeds].mean() > 0.9  # the grey seeds learnt the fill
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_finetune_on_cuda_matches_the_cpu(tmp_path):
+    """The same re-fit on CUDA (gsplat when installed, else the torch reference there): it trains the
+    same Gaussians, leaves all others bit for bit, writes its PLY and renders from the CPU, and its
+    renders agree with the CPU re-fit's to within the backends' rounding and alpha clamps."""
+    inputs = plane_inputs(tmp_path / "in")
+    before = read_ply(inputs["remove"] / "gaussians.ply")
+    cpu, m_cpu, d_cpu = run_finetune(tmp_path / "cpu", inputs, device="cpu")
+    gpu, m_gpu, d_gpu = run_finetune(tmp_path / "gpu", inputs, device="cuda")
+    assert gpu["device"].startswith("cuda") and cpu["device"] == "cpu"
+    assert gpu["trainable"] == cpu["trainable"] > 0
+    trained_cpu, trained_gpu = changed(before, m_cpu), changed(before, m_gpu)
+    assert trained_gpu.sum() <= gpu["trainable"] and (trained_gpu & trained_cpu).sum() > 0.9 * trained_cpu.sum()
+    assert abs(gpu["train_psnr"] - cpu["train_psnr"]) < 0.5
+    for name in ("v0", "v2"):
+        a = read_rgb8(d_cpu / "renders" / f"{name}.png").astype(np.float64) / 255
+        b = read_rgb8(d_gpu / "renders" / f"{name}.png").astype(np.float64) / 255
+        assert -10 * np.log10(((a - b) ** 2).mean() + 1e-12) > 30.0, name

@@ -472,22 +472,50 @@ def test_planar_parts_keeps_the_parts_whose_rim_lies_on_a_plane():
 
 
 def test_inpaint_stage_carries_only_pinned_parts(scene, tmp_path):
-    """By default (carry_max_rim = -1: the block size) a part of the reference's hole deeper than a block
-    is not carried: its completed depth is a guess. With a limit above the holes' depth they are carried."""
+    """By default (carry_max_rim = -1: the block size) a part of a hole deeper than a block is not
+    carried by the consensus median (with thick_reference none, not at all). With a limit above the
+    holes' depth they are carried."""
     from sgpor_pipeline.stages.inpaint import InpaintParams, InpaintStage
 
     remove = write_remove_fixture(scene, tmp_path / "remove", holes="mask")
     deep = [float(cv2.distanceTransform(m.astype(np.uint8), cv2.DIST_L2, 3).max()) for m in scene.masks]
     assert min(deep) > 15  # the object masks are thicker than two blocks
-    ctx = StageContext.standalone(tmp_path / "thick", "inpaint", InpaintParams(), {"remove": remove})
+    ctx = StageContext.standalone(tmp_path / "thick", "inpaint", InpaintParams(thick_reference="none"),
+                                  {"remove": remove})
     InpaintStage().run(ctx)
     report = json.loads((ctx.out_dir / "inpaint.json").read_text())
-    assert report["multiview"] and report["projected"] == 0
+    assert report["multiview"] and report["projected"] == 0 and report["thick_reference"] is None
     assert report["inpainted"] == sum(int(m.sum()) for m in scene.masks)
     # the same holes with the stage told to carry every part: projections happen
     ctx = StageContext.standalone(tmp_path / "all", "inpaint", InpaintParams(carry_max_rim=100), {"remove": remove})
     InpaintStage().run(ctx)
     assert json.loads((ctx.out_dir / "inpaint.json").read_text())["projected"] > 0
+
+
+def test_inpaint_stage_thick_planar_parts_take_one_reference(scene, tmp_path):
+    """consensus with thick_reference "largest": the parts of the holes deeper than a block
+    on a planar rim (here the fixture's exact depth) take the fill of the view with the most such pixels,
+    and SBM continues it in each other view; the views then agree there far better than when each fills
+    them on its own."""
+    from sgpor_pipeline.stages.inpaint import InpaintParams, InpaintStage
+
+    remove = write_remove_fixture(scene, tmp_path / "remove", holes="mask")
+    builds: list = []
+    runs = {}
+    for mode in ("none", "largest"):
+        ctx = StageContext.standalone(tmp_path / mode, "inpaint", InpaintParams(thick_reference=mode),
+                                      {"remove": remove}, builds)
+        InpaintStage().run(ctx)
+        runs[mode] = (json.loads((ctx.out_dir / "inpaint.json").read_text()), consistency_error(scene, ctx.out_dir))
+    report, err = runs["largest"]
+    ref = report["thick_reference"]
+    assert report["reference"] == "consensus" and ref in [c.name for c in scene.cameras]
+    assert report["views"][ref]["projected"] == 0
+    assert all(v["projected"] > 0 for n, v in report["views"].items() if n != ref)
+    assert err < 0.6 * runs["none"][1], (err, runs["none"][1])
+    with pytest.raises(PipelineError, match="thick_reference"):
+        InpaintStage().run(StageContext.standalone(tmp_path / "bad", "inpaint", InpaintParams(thick_reference="big"),
+                                                   {"remove": remove}))
 
 
 def test_inpaint_stage_carries_no_hole_whose_rim_crosses_a_depth_step(scene, tmp_path):

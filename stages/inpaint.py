@@ -176,8 +176,8 @@ class InpaintParams:
     #   view's fill there instead (carry_max_rim 0) gives 0.24 / 0.012: a blur;
     # * synthetic-box (a box on the rug, 76 % of the hole pixels thick and planar), none -> largest, mask
     #   PSNR / feat: training views 26.39 / 0.073 -> 25.43 / 0.063 (detail 0.72 -> 0.79, consistency
-    #   0.018 -> 0.008), held-out views (--novel) 25.21 / 0.075 -> 24.55 / 0.090; FSR fills (no-sbm)
-    #   28.09 -> 28.14;
+    #   0.018 -> 0.008), held-out views (--novel) 25.21 / 0.075 -> 24.55 / 0.090 ("central": 25.92 /
+    #   0.074 and 24.99 / 0.097); FSR fills (no-sbm) 28.09 -> 28.14;
     # * the synthetic scene, lund + box and statue + box have no thick planar part: unchanged.
     thick_reference: str = added_param("none")
     depth_tol: float = 0.02

@@ -310,6 +310,8 @@ class InpaintStage(Stage):
         consensus = multiview and p.reference == CONSENSUS
         if multiview and not progressive and not consensus:
             ref = choose_reference(holes, [v.camera for v in data.views], p.reference, names)
+        elif p.multiview and len(with_hole) > 1 and not data.has_geometry:
+            ctx.log.warning("the remove folder has no cameras/depth: views are inpainted independently")
         if p.thick_reference not in ("none",) + REFERENCE_MODES and p.thick_reference not in names:
             raise PipelineError(f"unknown inpaint.thick_reference {p.thick_reference!r}",
                                 fix=f"use none, {', '.join(REFERENCE_MODES)} or a view name")
@@ -320,8 +322,6 @@ class InpaintStage(Stage):
                      for i, h in enumerate(holes)]
             if sum(bool(t.any()) for t in thick) > 1:  # (one view alone has nothing to agree with)
                 thick_ref = choose_reference(thick, [v.camera for v in data.views], p.thick_reference, names)
-        elif p.multiview and len(with_hole) > 1 and not data.has_geometry:
-            ctx.log.warning("the remove folder has no cameras/depth: views are inpainted independently")
 
         state: dict[str, object] = {}
 

@@ -118,6 +118,13 @@ class FinetuneParams:
                                     fix="use e.g. 0.02 and 0.5")
 
 
+def _masks_grad(mask: torch.Tensor):
+    """A post-accumulate-grad hook that multiplies the parameter's ``.grad`` by ``mask`` in place."""
+    def hook(param: torch.Tensor) -> None:
+        param.grad.mul_(mask)
+    return hook
+
+
 class FocusStrategy(Strategy):
     """No densification; zeroes the gradients of the Gaussians outside ``trainable`` (a bool mask).
 
@@ -135,7 +142,9 @@ class FocusStrategy(Strategy):
         for p in model.params.values():
             if not getattr(p, "_sgpor_focus_hook", False):
                 mask = self.trainable.to(p.device, p.dtype).view((-1,) + (1,) * (p.dim() - 1))
-                p.register_hook(lambda g, m=mask: g * m)
+                # in place on the accumulated .grad: a hook returning g * m allocated a new gradient the
+                # size of the parameter every iteration (kitchen, 322k Gaussians: 24 ms of 290)
+                p.register_post_accumulate_grad_hook(_masks_grad(mask))
                 p._sgpor_focus_hook = True
 
 

@@ -123,3 +123,32 @@ def test_finetune_on_cuda_matches_the_cpu(tmp_path):
         a = read_rgb8(d_cpu / "renders" / f"{name}.png").astype(np.float64) / 255
         b = read_rgb8(d_gpu / "renders" / f"{name}.png").astype(np.float64) / 255
         assert -10 * np.log10(((a - b) ** 2).mean() + 1e-12) > 30.0, name
+
+
+def test_focus_strategy_keeps_frozen_gaussians_through_a_rollback(tmp_path):
+    """The focus mask zeroes the frozen Gaussians' gradients in place after accumulation; a NaN
+    rollback replaces the parameter tensors, and the new ones get the hook too: after a rollback the
+    frozen Gaussians still keep their values bit for bit, and the trainable ones learn."""
+    import logging
+
+    from sgpor_pipeline.gaussians.train import Trainer, TrainParams, make_view, scene_extent
+    from sgpor_pipeline.scene import load_cameras
+    from sgpor_pipeline.stages.finetune import FocusStrategy
+
+    inputs = plane_inputs(tmp_path / "in")
+    before = read_ply(inputs["remove"] / "gaussians.ply")
+    model = read_ply(inputs["remove"] / "gaussians.ply")
+    cams = load_cameras(inputs["remove"] / "cameras.json")
+    views = [make_view(c.image, read_rgb8(inputs["refine"] / "images" / f"{c.image}.png"), c) for c in cams]
+    trainable = np.zeros(len(model), bool)
+    trainable[np.load(inputs["remove"] / "seed_ids.npy")] = True
+    trainable[0] = True  # the Gaussian the injected NaN lands on
+    tp = TrainParams(iterations=30, sh_degree=0, sh_degree_every=0, eval_every=0, checkpoint_every=0,
+                     budget=len(model), debug_inject_nan_at=10)
+    trainer = Trainer(model, FocusStrategy(torch.from_numpy(trainable)), views, [], tp, scene_extent(cams),
+                      logger=logging.getLogger("test"))
+    summary = trainer.train()
+    assert [rb["iteration"] for rb in summary["rollbacks"]] == [10]
+    after = trainer.model
+    assert untouched(before, after, trainable)
+    assert changed(before, after)[trainable].mean() > 0.9

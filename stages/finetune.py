@@ -53,7 +53,7 @@ from sgpor_pipeline.gaussians.model import GaussianModel
 from sgpor_pipeline.gaussians.ply import read_ply, write_ply
 from sgpor_pipeline.gaussians.rasterizer import rasterization
 from sgpor_pipeline.gaussians.strategy import Strategy
-from sgpor_pipeline.gaussians.train import Trainer, TrainParams, make_view, render_view, resolve_device, scene_extent
+from sgpor_pipeline.gaussians.train import Trainer, TrainParams, make_view, render_view, scene_extent, stage_device
 from sgpor_pipeline.hashing import hash_obj
 from sgpor_pipeline.imageio import read_mask, read_rgb8, write_png
 from sgpor_pipeline.removal import diffusion as sd
@@ -272,11 +272,7 @@ class FinetuneStage(Stage):
             sds_dir = sd.resolve_model_dir(p.diffusion_model, "finetune.diffusion_model")
         if p.targets not in ("photos", "inpainted"):
             raise PipelineError(f"unknown finetune.targets {p.targets!r}", fix='use "photos" or "inpainted"')
-        try:
-            device = resolve_device(p.device, p.backend)
-        except ValueError as e:
-            raise PipelineError(f"finetune.device: {e}", fix="set finetune.device=auto (the GPU when there is "
-                                                             "one) or finetune.device=cpu") from None
+        device = stage_device("finetune", p.device, p.backend)
         if not p.seen_weight >= 0:
             raise PipelineError(f"finetune.seen_weight must be >= 0 (got {p.seen_weight})",
                                 fix="use 0 (the default: the seen background is not supervised) or 1")

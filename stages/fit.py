@@ -415,7 +415,7 @@ def fit_scene(sfm_dir: Path, out_dir: Path, params: FitParams, checkpoint_dir: P
     from sgpor_pipeline.gaussians.model import GaussianModel, InitParams
     from sgpor_pipeline.gaussians.ply import write_ply
     from sgpor_pipeline.gaussians.strategy import make_strategy
-    from sgpor_pipeline.gaussians.train import Trainer, TrainParams, resolve_device, scene_extent
+    from sgpor_pipeline.gaussians.train import Trainer, TrainParams, scene_extent, stage_device
     from sgpor_pipeline.scene import load_cameras
 
     t0 = time.perf_counter()
@@ -427,11 +427,7 @@ def fit_scene(sfm_dir: Path, out_dir: Path, params: FitParams, checkpoint_dir: P
         raise PipelineError("fit.iterations must be at least 1")
     if params.object_masks not in ("auto", "fit", "ignore"):
         raise PipelineError(f"unknown fit.object_masks {params.object_masks!r}", fix="use auto, fit or ignore")
-    try:
-        device = resolve_device(params.device, params.backend)
-    except ValueError as e:
-        raise PipelineError(f"fit.device: {e}", fix="set fit.device=auto (the GPU when there is one) or "
-                                                   "fit.device=cpu") from None
+    device = stage_device("fit", params.device, params.backend)
     log.info(f"fit: training on {device}")
     sfm_dir = Path(sfm_dir)
     ignore_masks = params.object_masks != "fit"

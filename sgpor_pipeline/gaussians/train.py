@@ -39,7 +39,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..errors import NonFiniteError
+from ..errors import NonFiniteError, PipelineError
 from ..scene import Camera
 from . import _raster_cpu
 from .model import GaussianModel
@@ -138,6 +138,16 @@ def resolve_device(device: str, backend: str = "auto") -> torch.device:
     if dev.type == "cuda" and dev.index is None:  # as tensors report it, so devices compare equal
         dev = torch.device("cuda", torch.cuda.current_device())
     return dev
+
+
+def stage_device(stage: str, device: str, backend: str = "auto") -> torch.device:
+    """:func:`resolve_device` for a stage's ``device`` parameter: a bad or unavailable device is a
+    :class:`PipelineError` that names ``<stage>.device`` and the settings that work."""
+    try:
+        return resolve_device(device, backend)
+    except ValueError as e:
+        raise PipelineError(f"{stage}.device: {e}", fix=f"set {stage}.device=auto (the GPU when there is one) or "
+                                                       f"{stage}.device=cpu") from None
 
 
 def training_size(width: int, height: int, max_size: int) -> tuple[int, int]:

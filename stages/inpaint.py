@@ -209,21 +209,23 @@ class InpaintParams:
                                   context=self.diffusion_context, blend=self.diffusion_blend, seed=self.seed)
 
 
+def thin_parts(hole: np.ndarray, p: InpaintParams) -> np.ndarray:
+    """The parts of a view's hole within ``carry_max_rim`` px of their rim (-1: the block size; 0:
+    every part)."""
+    return pinned_parts(hole, p.block_size if p.carry_max_rim < 0 else p.carry_max_rim)
+
+
 def carried_parts(hole: np.ndarray, depth: np.ndarray, p: InpaintParams) -> np.ndarray:
     """The parts of a view's hole that are carried between views: thin enough (``carry_max_rim``)
     and with a planar rim (``carry_max_misfit``), where the completed depth can be trusted."""
-    carry = pinned_parts(hole, p.block_size if p.carry_max_rim < 0 else p.carry_max_rim)
-    return carry & planar_parts(hole, depth, p.carry_max_misfit)
+    return thin_parts(hole, p) & planar_parts(hole, depth, p.carry_max_misfit)
 
 
 def thick_planar_parts(hole: np.ndarray, depth: np.ndarray, p: InpaintParams) -> np.ndarray:
     """The parts of a view's hole deeper than ``carry_max_rim`` from their rim whose rim lies on a
     plane (``carry_max_misfit``): with ``consensus`` they take one reference's fill
     (``thick_reference``). Empty when every part is carried (``carry_max_rim`` 0)."""
-    if p.carry_max_rim == 0:
-        return np.zeros(np.shape(hole), bool)
-    thin = pinned_parts(hole, p.block_size if p.carry_max_rim < 0 else p.carry_max_rim)
-    return np.asarray(hole, bool) & ~thin & planar_parts(hole, depth, p.carry_max_misfit)
+    return np.asarray(hole, bool) & ~thin_parts(hole, p) & planar_parts(hole, depth, p.carry_max_misfit)
 
 
 def resolve_backend(p: InpaintParams) -> tuple[str, str]:

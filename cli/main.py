@@ -10,6 +10,7 @@ import traceback
 from pathlib import Path
 
 from sgpor_pipeline import __version__
+from sgpor_pipeline.allocator import keep_freed_memory
 from sgpor_pipeline.errors import PipelineError
 
 log = logging.getLogger("sgpor_pipeline")
@@ -187,6 +188,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     setup_logging(args.debug)
+    keep_freed_memory()
     try:
         return COMMANDS[args.command](args)
     except PipelineError as e:

@@ -41,7 +41,7 @@ COMMON_FLAGS = [
     "-g0",
 ]
 CSRC = "sgpor_pipeline/csrc"
-DEPENDS = [f"{CSRC}/raster.h", f"{CSRC}/ssim.h", f"{CSRC}/raster.cpp"]
+DEPENDS = [f"{CSRC}/raster.h", f"{CSRC}/ssim.h", f"{CSRC}/match.h", f"{CSRC}/raster.cpp"]
 
 
 def _kernel(suffix: str, march: list[str]) -> Extension:

@@ -11,6 +11,7 @@ import pytest
 
 from sgpor_pipeline.dag import StageContext
 from sgpor_pipeline.errors import PipelineError
+from sgpor_pipeline.gaussians import _raster_cpu
 from sgpor_pipeline.imageio import read_image
 from sgpor_pipeline.removal.features import (
     BlockFeatures,
@@ -34,6 +35,7 @@ from sgpor_pipeline.removal.sbm import (
     build_source_bank,
     fsr_inpaint,
     inpaint_view,
+    match_blocks,
     retrieve,
     rim_priority,
     target_positions,
@@ -246,9 +248,15 @@ def test_sbm_beats_delete_only_and_keeps_texture(scene):
         assert abs(np.log(e_sbm / e_gt)) < abs(np.log(e_fsr / e_gt)), (e_gt, e_sbm, e_fsr)
 
 
-def test_reranking_threads_change_nothing(scene):
-    """The re-ranking runs its targets on threads (cv2.matchTemplate releases the GIL): the fill, the
-    candidates and their costs are bitwise those of one thread."""
+@pytest.mark.parametrize("kernel", [True, False], ids=["kernel", "opencv"])
+def test_reranking_threads_change_nothing(scene, kernel, monkeypatch):
+    """The re-ranking runs its targets on threads (the kernel's OpenMP ones, or cv2.matchTemplate's
+    calls, which release the GIL): the fill, the candidates and their costs are bitwise those of one
+    thread."""
+    if kernel and not _raster_cpu.available():
+        pytest.skip("the cpu kernel is not built")
+    if not kernel:
+        monkeypatch.setattr(_raster_cpu, "available", lambda: False)
     names, renders, holes = scene_inputs(scene)
     bank = build_source_bank(names, renders, list(scene.masks), holes, SBMParams())
     one = inpaint_view(renders[0], holes[0], bank, SBMParams(rerank_threads=1))
@@ -256,6 +264,64 @@ def test_reranking_threads_change_nothing(scene):
     two = inpaint_view(renders[0], holes[0], bank, SBMParams(rerank_threads=2))
     for name in ("image", "cand", "cost", "sim"):
         assert np.array_equal(getattr(one, name), getattr(two, name), equal_nan=True), name
+
+
+@pytest.mark.skipif(not _raster_cpu.available(), reason="the cpu kernel is not built")
+def test_masked_ssd_kernel_is_opencvs_masked_template_matching():
+    """The kernel's masked SSD equals cv2.matchTemplate(TM_SQDIFF, mask) (weights: the mask squared)
+    at every shift, for 0/1 and fractional masks; a missing candidate costs +inf; windows that leave
+    their image are refused before the kernel reads them."""
+    rng = np.random.default_rng(3)
+    win, r = 21, 3
+    views = [texture(70, 90, seed=s) for s in range(3)]
+    cur = texture(60, 60, seed=7)
+    for fractional in (False, True):
+        mask = (rng.random((60, 60)) > 0.4).astype(np.float32)
+        mask[:, :12] = 0.0  # whole rows of a window without weight, and rows weighted in part
+        if fractional:
+            mask *= rng.random((60, 60)).astype(np.float32)
+        tpos = rng.integers(0, 60 - win, (6, 2))
+        cand = np.stack([rng.integers(0, 3, (6, 4)), rng.integers(0, 70 - win - 2 * r, (6, 4)),
+                         rng.integers(0, 90 - win - 2 * r, (6, 4))], axis=-1)
+        cand[2, 1] = (-1, 0, 0)
+        out = _raster_cpu.masked_ssd(cur, mask, tpos, win, views, cand, r, threads=2)
+        assert out.shape == (6, 4, 2 * r + 1, 2 * r + 1) and out.dtype == np.float32
+        assert np.isinf(out[2, 1]).all()
+        for t in range(6):
+            y, x = tpos[t]
+            m3 = np.repeat(mask[y:y + win, x:x + win, None], 3, axis=2)
+            for j in range(4):
+                v, cy, cx = cand[t, j]
+                if v < 0:
+                    continue
+                ref = cv2.matchTemplate(views[v][cy:cy + win + 2 * r, cx:cx + win + 2 * r], cur[y:y + win, x:x + win],
+                                        cv2.TM_SQDIFF, mask=m3)
+                np.testing.assert_allclose(out[t, j], ref, rtol=1e-4, atol=1e-3)
+    with pytest.raises(ValueError, match="leaves its view"):
+        _raster_cpu.masked_ssd(cur, mask, tpos, win, views, np.array([[[0, 70 - win - 2 * r + 1, 0]]] * 6), r, 1)
+    with pytest.raises(ValueError, match="template window"):
+        _raster_cpu.masked_ssd(cur, mask, np.array([[60 - win + 1, 0]]), win, views, cand[:1], r, 1)
+
+
+@pytest.mark.skipif(not _raster_cpu.available(), reason="the cpu kernel is not built")
+def test_reranking_by_the_kernel_matches_opencv(scene, monkeypatch):
+    """The same candidates, shifts and costs with the kernel as with OpenCV's template matching (the two
+    sum in different orders: costs agree to float precision, so near-ties may rank apart; two
+    candidates that shift onto the same block tie exactly, so their feature similarities are not
+    compared)."""
+    names, renders, holes = scene_inputs(scene)
+    bank = build_source_bank(names, renders, list(scene.masks), holes, SBMParams())
+    targets = target_positions(holes[0], 15, 5, 0.1)
+    known = ~holes[0]
+    pos_k, cost_k, _, _ = match_blocks(renders[0], known, targets, bank, SBMParams())
+    with monkeypatch.context() as mp:
+        mp.setattr(_raster_cpu, "available", lambda: False)
+        pos_c, cost_c, _, _ = match_blocks(renders[0], known, targets, bank, SBMParams())
+    assert len(targets) > 50
+    same = (pos_k == pos_c).all(axis=(1, 2))
+    assert same.mean() >= 0.95
+    np.testing.assert_allclose(cost_k[same], cost_c[same], rtol=1e-4, atol=1e-6)
+    assert np.array_equal(np.isnan(cost_k), np.isnan(cost_c))  # targets without known context alike
 
 
 def test_hole_content_of_the_render_is_ignored(scene):

@@ -21,6 +21,7 @@ import re
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from torch.autograd.function import once_differentiable
 
@@ -108,7 +109,7 @@ def _open(path: Path) -> ctypes.CDLL:
     # sgpor_pipeline/__init__.py sets it before torch is imported through the package.
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     lib = ctypes.CDLL(str(path))
-    if lib.sgpor_abi_version() != 4:
+    if lib.sgpor_abi_version() != 5:
         raise OSError(f"{path.name}: unexpected ABI version")
     for base, (res, args) in _SIGNATURES.items():
         for suf in ("f32", "f64"):
@@ -121,6 +122,8 @@ def _open(path: Path) -> ctypes.CDLL:
         fn = getattr(lib, f"sgpor_count_nonfinite_{suf}")
         fn.restype = _I64
         fn.argtypes = [_P, _I64]
+    lib.sgpor_masked_ssd_f32.restype = None
+    lib.sgpor_masked_ssd_f32.argtypes = [_I, _I, _I, _I, _P, _I64, _P, _I64, _P, _P, _P, _P, _P, _I]
     return lib
 
 
@@ -205,6 +208,48 @@ def ssim_backward(x: torch.Tensor, y: torch.Tensor, mom: torch.Tensor, wmap: tor
     _fn("ssim_bwd", x.dtype)(C, H, W, x.data_ptr(), y.data_ptr(), mom.data_ptr(), _ptr(wmap), float(scale),
                              dx.data_ptr(), threads)
     return dx
+
+
+def masked_ssd(cur: np.ndarray, mask: np.ndarray, tpos: np.ndarray, win: int, views: list[np.ndarray],
+               cand: np.ndarray, r: int, threads: int) -> np.ndarray:
+    """cv2.matchTemplate's TM_SQDIFF with a mask, for many templates and candidates at once
+    (csrc/match.h): target t's template is ``cur[y:y+win, x:x+win]`` (HxWx3 float32) at
+    ``tpos[t] = (y, x)``, weighted by ``mask[y:y+win, x:x+win]`` squared (HxW float32); candidate j is
+    the region ``views[v][cy:cy+win+2r, cx:cx+win+2r]`` for ``cand[t, j] = (v, cy, cx)`` (v -1: none,
+    +inf). Every window must lie inside its image. Returns [T, KC, 2r+1, 2r+1] float32: the sum over
+    the window and channels of mask^2 (region - template)^2 at each shift."""
+    if not available():
+        raise RuntimeError(f"the cpu kernel is not loaded: {load_error()}")
+    arrays = [np.ascontiguousarray(v, np.float32) for v in views]
+    for a in (cur, *arrays):
+        if a.ndim != 3 or a.shape[2] != 3:
+            raise ValueError(f"images must be HxWx3, got {a.shape}")
+    cur = np.ascontiguousarray(cur, np.float32)
+    mask = np.ascontiguousarray(mask, np.float32)
+    tpos = np.ascontiguousarray(tpos, np.int32).reshape(-1, 2)
+    cand = np.ascontiguousarray(cand, np.int32)
+    T, KC = cand.shape[:2]
+    side = 2 * r + 1
+    # the windows stay inside their images: the kernel reads without bounds checks
+    if T and ((tpos < 0).any() or (tpos[:, 0] + win > cur.shape[0]).any() or (tpos[:, 1] + win > cur.shape[1]).any()
+              or mask.shape != cur.shape[:2]):
+        raise ValueError("a template window leaves the current image")
+    valid = cand[..., 0] >= 0
+    if valid.any():
+        cv = cand[valid]
+        if cv[:, 0].max() >= len(arrays) or (cv[:, 1:] < 0).any():
+            raise ValueError("a candidate names a missing view or a negative corner")
+        hs = np.array([a.shape[0] for a in arrays])[cv[:, 0]]
+        ws = np.array([a.shape[1] for a in arrays])[cv[:, 0]]
+        if (cv[:, 1] + win + 2 * r > hs).any() or (cv[:, 2] + win + 2 * r > ws).any():
+            raise ValueError("a candidate region leaves its view")
+    out = np.empty((T, KC, side, side), np.float32)
+    ptrs = (ctypes.c_void_p * max(len(arrays), 1))(*[a.ctypes.data for a in arrays])
+    strides = np.array([a.shape[1] * 3 for a in arrays] or [0], np.int64)
+    _lib.sgpor_masked_ssd_f32(T, KC, win, r, cur.ctypes.data, cur.shape[1] * 3, mask.ctypes.data, mask.shape[1],
+                              tpos.ctypes.data, ctypes.addressof(ptrs), strides.ctypes.data, cand.ctypes.data,
+                              out.ctypes.data, max(1, int(threads)))
+    return out
 
 
 def _ptr(t: torch.Tensor | None) -> int | None:

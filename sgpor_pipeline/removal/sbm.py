@@ -18,7 +18,8 @@ The paper's step (DESIGN.md section 7), CPU-first:
    layer against ALL views' source blocks at once, with three matrix products per chunk of sources
    (no Python loop over blocks x blocks); the ``rerank`` best are then re-ranked by the masked sum
    of squared colour differences over the target's known context, with a local alignment search of
-   +-``shift`` pixels around each candidate (``cv2.matchTemplate`` with a mask). The ``top_k``
+   +-``shift`` pixels around each candidate (``cv2.matchTemplate`` with a mask, computed for all
+   targets at once by the cpu kernel where it is built: :func:`_shift_costs`). The ``top_k``
    best are kept per target: RPR's "next-best sources".
 5. The target's best source block (or, with ``paste_top`` > 1, its best sources' weighted mean:
    :func:`paste_block`) is pasted with a feathered (tent) weight into the target block; overlaps
@@ -106,8 +107,9 @@ class SBMParams:
     seed: int = 0  # source subsampling when more than max_sources blocks
     chunk: int = 16384  # sources per matrix-product chunk
     threads: int = 2  # onnxruntime threads for dinov2
-    # threads of the re-ranking's template matching; 0 = torch.get_num_threads() (the machine's cores).
-    # The result does not depend on it (each target is matched on its own).
+    # threads of the re-ranking's template matching (the kernel's, or OpenCV's calls without it);
+    # 0 = torch.get_num_threads() (the machine's cores). The result does not depend on it (each
+    # target is matched on its own).
     rerank_threads: int = 0
 
     def validate(self) -> None:
@@ -451,33 +453,71 @@ class SBMResult:
                 "sim": self.sim.astype(np.float32)}
 
 
-def _rerank(bank: SourceBank, cur_p: np.ndarray, known_p: np.ndarray, P: int, ty: int, tx: int,
-            cands: np.ndarray, sims: np.ndarray, pad: int, win: int, r: int, block: int, k: int
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Masked SSD of the target's known context against each candidate, at shifts within +-r."""
-    y0, x0 = ty - pad + P, tx - pad + P
-    templ = cur_p[y0:y0 + win, x0:x0 + win]
-    mask = known_p[y0:y0 + win, x0:x0 + win]
-    msum = float(mask.sum())
-    pos = bank.pos[cands].astype(np.int64)  # [kc,3] (view, y, x)
-    if msum < 1:  # no known context: the feature ranking stands
-        return pos[:k], np.full(min(k, len(cands)), np.nan), sims[:k]
-    mask3 = np.repeat(mask[:, :, None], 3, axis=2)
-    PP = pad + r
+def _shift_costs(bank: SourceBank, cur_p: np.ndarray, known_p: np.ndarray, corners: np.ndarray, pos: np.ndarray,
+                 win: int, r: int, threads: int) -> np.ndarray:
+    """Masked colour SSD [T,kc,2r+1,2r+1] of each target's context window (top-left ``corners`` [T,2] in
+    the padded ``cur_p``, weighted by ``known_p``) against its candidates ``pos`` [T,kc,3] (view, y, x)
+    at every shift within +-r (cv2.matchTemplate TM_SQDIFF with a mask). By the cpu kernel's
+    :func:`~sgpor_pipeline.gaussians._raster_cpu.masked_ssd` where it is built (6-8x faster on kitchen's
+    45 px windows), else by OpenCV, targets in parallel (it releases the GIL)."""
+    from sgpor_pipeline.gaussians import _raster_cpu
+
+    PP = (win - bank.features.layout.block) // 2 + r  # the regions' padding: pad + r
+    used = np.unique(pos[..., 0])
+    if _raster_cpu.available():
+        views = [bank.padded(v, PP) if v in used else np.zeros((1, 1, 3), np.float32) for v in range(len(bank.images))]
+        return _raster_cpu.masked_ssd(cur_p, known_p, corners, win, views, pos, r, threads)
+    for v in used:  # fill the caches before the threads read them
+        bank.padded(int(v), PP)
     side = 2 * r + 1
-    res = np.empty((len(cands), side, side), np.float32)
-    ok = np.empty((len(cands), side, side), bool)
-    for j, (v, sy, sx) in enumerate(pos.tolist()):
-        region = bank.padded(v, PP)[sy:sy + win + 2 * r, sx:sx + win + 2 * r]  # corners sy-r .. sy+r
-        res[j] = cv2.matchTemplate(region, templ, cv2.TM_SQDIFF, mask=mask3)
-        ok[j] = bank.free_padded(v, r)[sy:sy + side, sx:sx + side]  # (off the view: not free)
-    res = np.where(ok & np.isfinite(res), res, np.inf).reshape(len(cands), -1)
-    best = res.argmin(axis=1)
+    res = np.empty(pos.shape[:2] + (side, side), np.float32)
+
+    def one(t: int) -> None:
+        y0, x0 = corners[t]
+        templ = cur_p[y0:y0 + win, x0:x0 + win]
+        mask3 = np.repeat(known_p[y0:y0 + win, x0:x0 + win, None], 3, axis=2)
+        for j, (v, sy, sx) in enumerate(pos[t].tolist()):
+            region = bank.padded(v, PP)[sy:sy + win + 2 * r, sx:sx + win + 2 * r]  # corners sy-r .. sy+r
+            res[t, j] = cv2.matchTemplate(region, templ, cv2.TM_SQDIFF, mask=mask3)
+
+    if threads > 1 and len(pos) >= 64:  # each target writes its own rows: the result does not depend on it
+        with ThreadPoolExecutor(threads) as pool:
+            list(pool.map(one, range(len(pos))))
+    else:
+        for t in range(len(pos)):
+            one(t)
+    return res
+
+
+def _best_shifts(bank: SourceBank, res: np.ndarray, pos: np.ndarray, sims: np.ndarray, msum: np.ndarray, r: int,
+                 k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each candidate at its best free shift, the candidates ranked by colour cost per valid pixel: from
+    the SSD ``res`` [T,kc,side,side] of candidates ``pos`` [T,kc,3] with feature similarities ``sims``
+    [T,kc] and the targets' context weights ``msum`` [T]. A target without known context (``msum`` < 1)
+    keeps the feature ranking (cost NaN). Returns (positions [T,k,3], cost [T,k], similarity [T,k])."""
+    T, kc, side = res.shape[0], res.shape[1], res.shape[2]
+    ok = np.zeros(res.shape, bool)  # the shifted corner must be a free source block (off the view: not)
+    ar = np.arange(side)
+    for v in np.unique(pos[..., 0]):
+        sel = pos[..., 0] == v
+        fp = bank.free_padded(int(v), r)
+        ok[sel] = fp[pos[sel][:, 1, None, None] + ar[None, :, None], pos[sel][:, 2, None, None] + ar[None, None, :]]
+    flat = np.where(ok & np.isfinite(res), res, np.inf).reshape(T, kc, -1)
+    best = flat.argmin(axis=2)
     dy, dx = np.divmod(best, side)
-    out_pos = np.stack([pos[:, 0], pos[:, 1] + dy - r, pos[:, 2] + dx - r], axis=1)
-    out_cost = (res[np.arange(len(cands)), best] / (3.0 * msum)).astype(np.float64)  # (a float32 quotient)
-    order = np.argsort(out_cost, kind="stable")[:k]
-    return out_pos[order], out_cost[order], sims[order]
+    shifted = np.stack([pos[..., 0], pos[..., 1] + dy - r, pos[..., 2] + dx - r], axis=-1)
+    # a float32 quotient, as cv2's float32 SSD over the float weight sum
+    per_px = np.take_along_axis(flat, best[..., None], axis=2)[..., 0] / (3.0 * msum[:, None]).astype(np.float32)
+    cost = per_px.astype(np.float64)
+    order = np.argsort(cost, axis=1, kind="stable")[:, :k]
+    out_pos = np.take_along_axis(shifted, order[..., None], axis=1)
+    out_cost = np.take_along_axis(cost, order, axis=1)
+    out_sim = np.take_along_axis(sims, order, axis=1)
+    none = msum < 1  # no known context: the feature ranking stands
+    out_pos[none] = pos[none, :k]
+    out_cost[none] = np.nan
+    out_sim[none] = sims[none, :k]
+    return out_pos, out_cost, out_sim
 
 
 def match_blocks(image: np.ndarray, known: np.ndarray, targets: np.ndarray, bank: SourceBank, params: SBMParams
@@ -522,25 +562,16 @@ def match_blocks(image: np.ndarray, known: np.ndarray, targets: np.ndarray, bank
         img_p = cv2.copyMakeBorder(np.ascontiguousarray(image, np.float32), P, P, P, P, cv2.BORDER_CONSTANT,
                                    value=(0, 0, 0))
         known_p = cv2.copyMakeBorder(known.astype(np.float32), P, P, P, P, cv2.BORDER_CONSTANT, value=0)
-        def one(j: int) -> None:
-            p_, c_, s_ = _rerank(bank, img_p, known_p, P, int(targets[j, 0]), int(targets[j, 1]), idx[j], sc[j],
-                                 pad, win, r, s, kk)
-            pos[j, :len(p_)], cost[j, :len(p_)], sim[j, :len(p_)] = p_, c_, s_
-
-        for v in np.unique(bank.pos[idx.ravel(), 0]):  # fill the caches before the threads read them
-            bank.padded(int(v), pad + r)
-            bank.free_padded(int(v), r)
-        # cv2.matchTemplate is single-threaded and releases the GIL: targets in parallel (each writes its
-        # own rows, so the result does not depend on the thread count)
         import torch
 
-        threads = min(params.rerank_threads or max(1, torch.get_num_threads()), max(1, nt // 32))
-        if threads > 1:
-            with ThreadPoolExecutor(threads) as pool:
-                list(pool.map(one, range(nt)))
-        else:
-            for j in range(nt):
-                one(j)
+        corners = targets - pad + P
+        cpos = bank.pos[idx].astype(np.int64)  # [T,kc,3] (view, y, x)
+        msum = known_p[corners[:, 0, None, None] + np.arange(win)[None, :, None],
+                       corners[:, 1, None, None] + np.arange(win)[None, None, :]].sum(axis=(1, 2), dtype=np.float64)
+        res = _shift_costs(bank, img_p, known_p, corners, cpos, win, r,
+                           params.rerank_threads or max(1, torch.get_num_threads()))
+        p_, c_, s_ = _best_shifts(bank, res, cpos, sc, msum, r, kk)
+        pos[:, :p_.shape[1]], cost[:, :p_.shape[1]], sim[:, :p_.shape[1]] = p_, c_, s_
     else:
         pos[:, :idx.shape[1]] = bank.pos[idx[:, :kk]]
         sim[:, :idx.shape[1]] = sc[:, :kk]

@@ -454,7 +454,7 @@ class SBMResult:
 
 
 def _shift_costs(bank: SourceBank, cur_p: np.ndarray, known_p: np.ndarray, corners: np.ndarray, pos: np.ndarray,
-                 win: int, r: int, threads: int) -> np.ndarray:
+                 pad: int, win: int, r: int, threads: int) -> np.ndarray:
     """Masked colour SSD [T,kc,2r+1,2r+1] of each target's context window (top-left ``corners`` [T,2] in
     the padded ``cur_p``, weighted by ``known_p``) against its candidates ``pos`` [T,kc,3] (view, y, x)
     at every shift within +-r (cv2.matchTemplate TM_SQDIFF with a mask). By the cpu kernel's
@@ -462,7 +462,7 @@ def _shift_costs(bank: SourceBank, cur_p: np.ndarray, known_p: np.ndarray, corne
     45 px windows), else by OpenCV, targets in parallel (it releases the GIL)."""
     from sgpor_pipeline.gaussians import _raster_cpu
 
-    PP = (win - bank.features.layout.block) // 2 + r  # the regions' padding: pad + r
+    PP = pad + r  # a region (the window at every shift) of a source block at (y, x) is padded[y:, x:]
     used = np.unique(pos[..., 0])
     if _raster_cpu.available():
         views = [bank.padded(v, PP) if v in used else np.zeros((1, 1, 3), np.float32) for v in range(len(bank.images))]
@@ -568,7 +568,7 @@ def match_blocks(image: np.ndarray, known: np.ndarray, targets: np.ndarray, bank
         cpos = bank.pos[idx].astype(np.int64)  # [T,kc,3] (view, y, x)
         msum = known_p[corners[:, 0, None, None] + np.arange(win)[None, :, None],
                        corners[:, 1, None, None] + np.arange(win)[None, None, :]].sum(axis=(1, 2), dtype=np.float64)
-        res = _shift_costs(bank, img_p, known_p, corners, cpos, win, r,
+        res = _shift_costs(bank, img_p, known_p, corners, cpos, pad, win, r,
                            params.rerank_threads or max(1, torch.get_num_threads()))
         p_, c_, s_ = _best_shifts(bank, res, cpos, sc, msum, r, kk)
         pos[:, :p_.shape[1]], cost[:, :p_.shape[1]], sim[:, :p_.shape[1]] = p_, c_, s_

@@ -26,13 +26,11 @@ constexpr int kLanes = 16;
 // -march at hand), so one source serves every kernel variant
 typedef float vf __attribute__((vector_size(kLanes * sizeof(float))));
 
-inline vf loadu(const float* p) {
-  vf v;
-  std::memcpy(&v, p, sizeof v);
-  return v;
-}
+// (vectors by reference, not by value: a 64-byte vector in a signature changes the ABI without AVX-512,
+// and GCC warns for the v2 and v3 builds)
+inline void loadu(vf& v, const float* p) { std::memcpy(&v, p, sizeof v); }
 
-inline float hsum(vf v) {
+inline float hsum(const vf& v) {
   float s = 0.0f;
   for (int l = 0; l < kLanes; ++l) s += v[l];
   return s;
@@ -53,9 +51,13 @@ inline void ssd_shifts(const float* buf, int64_t Lr, const float* tm, const floa
     const float* Tm = tm + int64_t(u) * Lp;
     const float* M = m2 + int64_t(u) * Lp;
     for (int i = lo[k]; i < hi[k]; i += kLanes) {
-      const vf t = loadu(Tm + i), m = loadu(M + i);
+      vf t, m;
+      loadu(t, Tm + i);
+      loadu(m, M + i);
       for (int g = 0; g < G; ++g) {
-        const vf d = loadu(R + i + 3 * g) - t;
+        vf d;
+        loadu(d, R + i + 3 * g);
+        d -= t;
         acc[g] += m * d * d;
       }
     }

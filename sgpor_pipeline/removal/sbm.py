@@ -507,7 +507,8 @@ def _best_shifts(bank: SourceBank, res: np.ndarray, pos: np.ndarray, sims: np.nd
     dy, dx = np.divmod(best, side)
     shifted = np.stack([pos[..., 0], pos[..., 1] + dy - r, pos[..., 2] + dx - r], axis=-1)
     # a float32 quotient, as cv2's float32 SSD over the float weight sum
-    per_px = np.take_along_axis(flat, best[..., None], axis=2)[..., 0] / (3.0 * msum[:, None]).astype(np.float32)
+    per_px = (np.take_along_axis(flat, best[..., None], axis=2)[..., 0]
+              / np.where(msum < 1, 1.0, 3.0 * msum)[:, None].astype(np.float32))  # (msum < 1: replaced below)
     cost = per_px.astype(np.float64)
     order = np.argsort(cost, axis=1, kind="stable")[:, :k]
     out_pos = np.take_along_axis(shifted, order[..., None], axis=1)

@@ -82,7 +82,9 @@ from sgpor_pipeline.removal.multiview import (
     pinned_parts,
     planar_parts,
 )
+from sgpor_pipeline.removal.plane import PLANE_NAME, PlaneParams, plane_texture, sample_into_view
 from sgpor_pipeline.removal.sbm import SBMParams, build_source_bank
+from sgpor_pipeline.scene import Camera
 
 
 @dataclass
@@ -202,11 +204,17 @@ class InpaintParams:
                          guide_weight=self.guide_weight, paste_top=self.paste_top,
                          paste_temperature=self.paste_temperature, seed=self.seed)
 
+    def plane(self) -> PlaneParams:
+        return PlaneParams()
+
     def diffusion(self) -> sd.DiffusionParams:
         return sd.DiffusionParams(prompt=self.diffusion_prompt, negative_prompt=self.diffusion_negative_prompt,
                                   strength=self.diffusion_strength, steps=self.diffusion_steps,
                                   guidance=self.diffusion_guidance, resolution=self.diffusion_resolution,
                                   context=self.diffusion_context, blend=self.diffusion_blend, seed=self.seed)
+
+
+PLANE_SOURCE = -2  # thick_reference = "plane": the thick planar parts take the plane texture's fill
 
 
 def thin_parts(hole: np.ndarray, p: InpaintParams) -> np.ndarray:
@@ -314,18 +322,21 @@ class InpaintStage(Stage):
             ref = choose_reference(holes, [v.camera for v in data.views], p.reference, names)
         elif p.multiview and len(with_hole) > 1 and not data.has_geometry:
             ctx.log.warning("the remove folder has no cameras/depth: views are inpainted independently")
-        if p.thick_reference not in ("none",) + REFERENCE_MODES and p.thick_reference not in names:
+        if p.thick_reference not in ("none", PLANE_NAME) + REFERENCE_MODES and p.thick_reference not in names:
             raise PipelineError(f"unknown inpaint.thick_reference {p.thick_reference!r}",
-                                fix=f"use none, {', '.join(REFERENCE_MODES)} or a view name")
+                                fix=f"use none, {PLANE_NAME}, {', '.join(REFERENCE_MODES)} or a view name")
         thick: list[np.ndarray] = []  # consensus: each view's thick planar parts (thick_reference)
         thick_ref = -1
         if consensus and p.thick_reference != "none":
             thick = [thick_planar_parts(h, data.views[i].depth(), p) if h.any() else np.zeros(h.shape, bool)
                      for i, h in enumerate(holes)]
             if sum(bool(t.any()) for t in thick) > 1:  # (one view alone has nothing to agree with)
-                thick_ref = choose_reference(thick, [v.camera for v in data.views], p.thick_reference, names)
+                thick_ref = (PLANE_SOURCE if p.thick_reference == PLANE_NAME else
+                             choose_reference(thick, [v.camera for v in data.views], p.thick_reference, names))
 
-        state: dict[str, object] = {}
+        state: dict[str, Any] = {}
+        done: list[int] = []
+        digests_done: list[str] = []
 
         def bank():
             if "bank" not in state:
@@ -360,7 +371,15 @@ class InpaintStage(Stage):
             return carriers[j, thick_only]
 
         def carried(i: int, sources: list[int], thick_only: bool = False):
-            """What the already-filled ``sources`` views carry into view i (see :func:`carrier`)."""
+            """What the already-filled ``sources`` views carry into view i (see :func:`carrier`), or the
+            filled plane texture (``sources == [PLANE_SOURCE]``)."""
+            if sources == [PLANE_SOURCE]:
+                view = data.views[i]
+                depth = view.depth()
+                target = planar_parts(holes[i], depth, p.carry_max_misfit)
+                tex = state["plane"]
+                return sample_into_view(tex["image"], tex["camera"], tex["depth"], tex["normal"], view.camera,
+                                        depth, target, p.depth_tol)
             loaded = [c for c in (carrier(j, thick_only) for j in sources) if c is not None]
             if not loaded:
                 return None
@@ -400,24 +419,65 @@ class InpaintStage(Stage):
             info.update(extra)
             (folder / "info.json").write_text(json.dumps(info))
 
+        def build_plane(folder: Path) -> None:
+            """The plane under the thick planar parts as one texture, its hole filled (see
+            :mod:`sgpor_pipeline.removal.plane`); plane.json says why not when the parts are not one plane."""
+            t0 = time.perf_counter()
+            tex, why = plane_texture([v.camera for v in data.views], [v.context() for v in data.views],
+                                     [~h for h in holes], [v.depth() for v in data.views], thick,
+                                     p.plane(), p.depth_tol)
+            info: dict[str, Any] = {"built": tex is not None, "reason": why}
+            if tex is not None:
+                img, filled_from, res = tex.image, np.zeros(tex.hole.shape, np.uint8), None
+                if tex.hole.any():
+                    tb = build_source_bank([PLANE_NAME], [tex.image], [~tex.seen], [tex.hole], sbm)
+                    img, filled_from, res = fill_view(tex.image, tex.hole, "sbm" if uses_sbm else backend,
+                                                      tb if uses_sbm else None, sbm)
+                write_png(folder / "texture.png", tex.image)
+                write_png(folder / "filled.png", img)
+                write_mask01(folder / "seen.png", tex.seen)
+                write_mask01(folder / "hole.png", tex.hole)
+                info.update(tex.info, camera=tex.camera.to_dict(), normal=tex.plane.normal.tolist(),
+                            offset=tex.plane.offset)
+            info["seconds"] = time.perf_counter() - t0
+            (folder / "plane.json").write_text(json.dumps(info, indent=1))
+
         for sub in ("images", "filled_from", "source"):
             (ctx.out_dir / sub).mkdir()
         items: dict[str, Path] = {}
+        plane_info: dict[str, Any] | None = None
+        if thick_ref == PLANE_SOURCE:
+            pkey = {"role": PLANE_NAME, "all": bank_key}  # (the thick parts follow from the files and params)
+            pfolder = ctx.cached_item(pkey, build_plane)
+            plane_info = json.loads((pfolder / "plane.json").read_text())
+            if plane_info["built"]:
+                state["plane"] = {"image": read_image(pfolder / "filled.png"), "camera": Camera.from_dict(
+                    plane_info["camera"]), "normal": np.asarray(plane_info["normal"]),
+                    "depth": np.full((plane_info["height"], plane_info["width"]), plane_info["height_above_plane"],
+                                     np.float32)}
+                digests_done.append(hash_obj([ctx.file_digest(pfolder / "filled.png"), plane_info["camera"]]))
+                (ctx.out_dir / PLANE_NAME).mkdir()
+                for f in ("texture.png", "filled.png", "plane.json"):
+                    _link_or_copy(pfolder / f, ctx.out_dir / PLANE_NAME / f)
+                ctx.log.info(f"inpaint: the plane under the object as one texture, {plane_info['width']}x"
+                             f"{plane_info['height']} texels ({plane_info['hole_texels']} to fill)")
+            else:
+                ctx.log.warning(f"inpaint: thick_reference = plane: {plane_info['reason']}; each view fills "
+                                "its thick parts on its own")
+                thick_ref = -1
         if progressive:  # smallest hole first, as the remove stage completed the depths
             order = sorted(with_hole, key=lambda k: (int(holes[k].sum()), names[k]))
         else:
             first = ref if ref >= 0 else thick_ref
             order = ([first] if first >= 0 else []) + [i for i in with_hole if i != first]
-        done: list[int] = []
-        digests_done: list[str] = []
         for i in ctx.progress(order, total=len(order), desc="inpaint"):
             name = names[i]
             key: dict[str, Any] = {"view": name, "files": digests[name], "all": bank_key}
             if progressive:
                 key.update(role="progressive", before=list(digests_done))
                 sources = list(done)
-            elif consensus and thick_ref >= 0 and i != thick_ref and thick[i].any():
-                # continues the thick reference's fill of the thick planar parts (filled first)
+            elif consensus and (thick_ref >= 0 or thick_ref == PLANE_SOURCE) and i != thick_ref and thick[i].any():
+                # continues the thick reference's (or the plane texture's) fill of the thick planar parts
                 key.update(role="thick", ref=digests_done[0])
                 sources = [thick_ref]
             elif consensus:  # every view on its own first (the same item as with multiview off)
@@ -476,7 +536,9 @@ class InpaintStage(Stage):
             "reference": names[ref] if ref >= 0 else (PROGRESSIVE if progressive else
                                                       CONSENSUS if consensus else None),
             "multiview": ref >= 0 or progressive or consensus,
-            "thick_reference": names[thick_ref] if thick_ref >= 0 else None,
+            "thick_reference": (names[thick_ref] if thick_ref >= 0 else
+                                PLANE_NAME if thick_ref == PLANE_SOURCE else None),
+            "plane": plane_info,
             "block_size": p.block_size,
             "views": summary,
             "hole_pixels": sum(s["hole_pixels"] for s in summary.values()),

@@ -584,6 +584,35 @@ def test_inpaint_stage_thick_planar_parts_take_one_reference(scene, tmp_path):
                                                    {"remove": remove}))
 
 
+def test_inpaint_stage_fills_the_thick_planar_parts_once_on_the_plane(scene, tmp_path):
+    """consensus with thick_reference "plane": the thick planar parts of every view take one texture of
+    the plane, filled once (a cached item of its own, copied to plane/), so the views agree there better
+    than when each fills them on its own; the item is reused by a second run."""
+    from sgpor_pipeline.stages.inpaint import InpaintParams, InpaintStage
+
+    remove = write_remove_fixture(scene, tmp_path / "remove", holes="mask")
+    builds: list = []
+    runs = {}
+    for mode in ("none", "plane"):
+        ctx = StageContext.standalone(tmp_path / mode, "inpaint", InpaintParams(thick_reference=mode),
+                                      {"remove": remove}, builds)
+        InpaintStage().run(ctx)
+        runs[mode] = (json.loads((ctx.out_dir / "inpaint.json").read_text()), consistency_error(scene, ctx.out_dir))
+    report, err = runs["plane"]
+    assert report["thick_reference"] == "plane" and report["plane"]["built"], report["plane"]
+    assert report["plane"]["rms_relative"] < 0.01 and report["plane"]["hole_texels"] > 0
+    assert all(v["projected"] > 0 for v in report["views"].values())
+    for f in ("texture.png", "filled.png", "plane.json"):
+        assert (tmp_path / "plane" / "inpaint" / "plane" / f).exists()
+    assert err < 0.6 * runs["none"][1], (err, runs["none"][1])
+    n = len(builds)
+    assert sum(k.get("role") == "plane" for k in builds) == 1
+    ctx = StageContext.standalone(tmp_path / "plane", "inpaint", InpaintParams(thick_reference="plane"),
+                                  {"remove": remove}, builds)
+    InpaintStage().run(ctx)
+    assert len(builds) == n  # every item, the plane's included, came from the cache
+
+
 def test_inpaint_stage_carries_no_hole_whose_rim_crosses_a_depth_step(scene, tmp_path):
     """carry_max_misfit: with every view's completed depth cut by a step through the middle of its hole
     (a foreground surface beside the far one), no part is carried by default; without the limit it is."""

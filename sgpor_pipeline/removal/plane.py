@@ -1,0 +1,252 @@
+"""The plane under an object, as one texture: fill a thick planar hole once, for every view.
+
+Where an object stands on a plane (a table, a floor), most of its hole is the plane under it, and
+every view's hole there is the same patch of that plane seen in another perspective. Filled in
+each view on its own, the textures do not line up and the re-fit blurs them; filled in one
+reference view, the fill inherits that view's foreshortening and its occlusions. Here the plane is
+filled once, in its own frame:
+
+1. :func:`fit_plane`: a plane through the views' thick planar hole pixels lifted with their
+   completed depth (the remove stage completes the depth of a planar rim exactly), with the
+   outliers trimmed.
+2. A virtual pinhole camera looks straight down at the plane (:func:`plane_camera`): the plane is
+   fronto-parallel to it, so its image is the plane's texture rectified (a similarity of the
+   plane: no foreshortening), and every texel's z-depth is the camera's height.
+3. :func:`plane_texture`: every texel takes the colour of the view that sees it at the finest
+   resolution (pixel footprint on the plane), among the views that see it unoccluded (their depth
+   agrees) outside their holes. Texels no view saw near the lifted holes are the texture's hole;
+   other unseen texels get a smooth fill (OpenCV Telea) so they are harmless context, and are kept
+   out of the source blocks.
+4. The caller fills the texture's hole (SBM over the texture itself: source blocks at the plane's
+   true scale) and :func:`sample_into_view` carries the filled texture into each view's hole
+   pixels that lie on the plane (depths within ``depth_tol``), low-pass filtered to the view's
+   footprint so far views do not alias.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+
+from sgpor_pipeline.scene import Camera
+
+from .multiview import warp_from_reference
+
+PLANE_NAME = "plane"
+
+
+@dataclass
+class PlaneParams:
+    max_size: int = 1024  # longest side of the texture (texels); coarser texels beyond it
+    margin: float = 0.5  # the texture spans the lifted holes' extent plus this fraction of it per side
+    max_rms: float = 0.01  # the lifted hole points' RMS distance to the plane, x the cameras' distance to it
+    sample_points: int = 4000  # per view: hole pixels lifted to fit the plane
+    footprint_quantile: float = 0.2  # texel size: this quantile of the views' pixel footprints on the plane
+    votes: int = 5  # a texel's colour: the median of at most this many views that see it, finest first
+    vote_ratio: float = 2.0  # ... whose pixel footprint there is at most this x the finest one's
+
+
+@dataclass
+class Plane:
+    normal: np.ndarray  # [3] unit, towards the cameras
+    offset: float  # normal . x + offset = 0 on the plane
+    rms: float  # RMS distance of the inliers to the plane
+    inliers: np.ndarray  # [M,3] the lifted points kept
+    kept: np.ndarray  # [N] bool: which of the points given were kept
+
+    def distance(self, points: np.ndarray) -> np.ndarray:
+        return np.asarray(points, np.float64) @ self.normal + self.offset
+
+
+def fit_plane(points: np.ndarray, centers: np.ndarray, rounds: int = 3) -> Plane | None:
+    """Least-squares plane through ``points`` [N,3] (SVD), refitted ``rounds`` times without the points
+    farther than 3 x the median absolute distance; the normal points towards the mean of ``centers``
+    (the cameras). None with fewer than 3 points."""
+    pts = np.asarray(points, np.float64)
+    keep = np.ones(len(pts), bool)
+    normal, offset = np.zeros(3), 0.0
+    for _ in range(max(1, rounds)):
+        if keep.sum() < 3:
+            return None
+        c = pts[keep].mean(0)
+        _, _, vt = np.linalg.svd(pts[keep] - c, full_matrices=False)
+        normal = vt[2]
+        offset = -float(normal @ c)
+        dist = np.abs(pts @ normal + offset)
+        mad = float(np.median(dist[keep]))
+        keep = dist <= max(3.0 * mad, 1e-12)
+    if np.mean(np.asarray(centers, np.float64) @ normal + offset) < 0:
+        normal, offset = -normal, -offset
+    inl = pts[keep]
+    return Plane(normal, offset, float(np.sqrt(np.mean((inl @ normal + offset) ** 2))), inl, keep)
+
+
+def plane_camera(plane: Plane, height: float, texel: float, max_size: int, margin: float) -> Camera:
+    """A pinhole camera ``height`` above the plane looking straight down its normal, its image
+    covering the inliers' extent grown by ``margin`` x per side at ``texel`` world units per pixel (or
+    coarser, to stay within ``max_size``). x follows the inliers' main direction on the plane."""
+    n = plane.normal
+    pts = plane.inliers - np.outer(plane.distance(plane.inliers), n)  # onto the plane
+    c = pts.mean(0)
+    _, _, vt = np.linalg.svd(pts - c, full_matrices=False)
+    x = vt[0] - (vt[0] @ n) * n
+    x /= np.linalg.norm(x)
+    z = -n
+    y = np.cross(z, x)
+    ab = (pts - c) @ np.stack([x, y], 1)
+    lo, hi = ab.min(0), ab.max(0)
+    span = hi - lo
+    grow = margin * max(float(span.max()), 1e-9)
+    lo, hi = lo - grow, hi + grow
+    texel = max(texel, float((hi - lo).max()) / max_size)
+    w, h = (int(np.ceil(v)) for v in (hi - lo) / texel)
+    centre = c + x * (lo[0] + hi[0]) / 2 + y * (lo[1] + hi[1]) / 2
+    eye = centre + n * height
+    R = np.stack([x, y, z])
+    cam_from_world = np.eye(4)
+    cam_from_world[:3, :3] = R
+    cam_from_world[:3, 3] = -R @ eye
+    f = height / texel
+    K = np.array([[f, 0.0, w / 2.0], [0.0, f, h / 2.0], [0.0, 0.0, 1.0]])
+    return Camera(PLANE_NAME, w, h, K, cam_from_world)
+
+
+def footprint(cam: Camera, points: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """[N] the side of ``cam``'s pixel on the plane at ``points`` (world units): z / f stretched by
+    1 / |cos| of the angle between the viewing ray and the plane's ``normal``."""
+    pc = points @ cam.cam_from_world[:3, :3].T + cam.cam_from_world[:3, 3]
+    z = pc[:, 2]
+    rays = points - cam.center
+    cos = np.abs(rays @ normal) / np.maximum(np.linalg.norm(rays, axis=1), 1e-12)
+    return np.abs(z) / cam.K[0, 0] / np.maximum(cos, 0.05)
+
+
+@dataclass
+class PlaneTexture:
+    camera: Camera  # the virtual camera; its image is the texture
+    image: np.ndarray  # HxWx3 float32: the views' colours, unseen texels away from the holes smoothed
+    depth: np.ndarray  # HxW float32: the plane's z-depth in the virtual camera (its height)
+    seen: np.ndarray  # HxW bool: texels some view saw outside its hole
+    hole: np.ndarray  # HxW bool: unseen texels where the views' holes lie: what to fill
+    best_view: np.ndarray  # HxW int16: the view each seen texel came from (-1: none)
+    plane: Plane
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+def lift_parts(cameras: list[Camera], depths: list[np.ndarray], parts: list[np.ndarray], sample: int
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """World points of (a regular subsample of at most ``sample``) pixels of each view's ``parts``,
+    lifted with its depth; and the view of each point."""
+    pts, view = [], []
+    for j, (cam, depth, part) in enumerate(zip(cameras, depths, parts)):
+        if cam is None or part is None:
+            continue
+        ys, xs = np.nonzero(part & np.isfinite(depth) & (depth > 0))
+        if len(ys) == 0:
+            continue
+        pick = np.unique(np.linspace(0, len(ys) - 1, min(sample, len(ys))).astype(np.int64))
+        pts.append(cam.unproject(ys[pick], xs[pick], depth[ys[pick], xs[pick]]))
+        view.append(np.full(len(pick), j))
+    if not pts:
+        return np.zeros((0, 3)), np.zeros(0, np.int64)
+    return np.concatenate(pts), np.concatenate(view)
+
+
+def plane_texture(cameras: list[Camera], images: list[np.ndarray], knowns: list[np.ndarray],
+                  depths: list[np.ndarray], parts: list[np.ndarray], params: PlaneParams,
+                  depth_tol: float = 0.02) -> tuple[PlaneTexture | None, str]:
+    """The texture of the plane under the views' thick planar hole ``parts`` (see the module doc).
+
+    ``images``: what the views show (the remove stage's context images); ``knowns``: their pixels that
+    may give colour (outside the holes); ``depths``: their completed depths. Returns (texture, "") or
+    (None, why not: too few points, or the parts do not lie on one plane)."""
+    pts, pview = lift_parts(cameras, depths, parts, params.sample_points)
+    centers = np.stack([c.center for c in cameras if c is not None])
+    plane = fit_plane(pts, centers) if len(pts) >= 3 else None
+    if plane is None:
+        return None, "fewer than 3 hole pixels to fit a plane to"
+    dist_cams = np.abs(plane.distance(centers))
+    height = float(np.median(dist_cams))
+    if plane.rms > params.max_rms * height:
+        return None, (f"the holes do not lie on one plane (RMS {plane.rms / height:.3f} of the cameras' "
+                      f"distance, limit {params.max_rms})")
+    # texel: a low quantile of the views' median pixel footprints at the hole points
+    feet = []
+    for j in np.unique(pview[plane.kept]):
+        own = pts[plane.kept & (pview == j)]
+        feet.append(float(np.median(footprint(cameras[j], own[:: max(1, len(own) // 500)], plane.normal))))
+    texel = float(np.quantile(feet, params.footprint_quantile))
+    vcam = plane_camera(plane, height, texel, params.max_size, params.margin)
+    h, w = vcam.height, vcam.width
+    vdepth = np.full((h, w), height, np.float32)
+    # every texel: the per-channel median of the (at most ``votes``) finest views that see it,
+    # unoccluded, outside their holes, among those within ``vote_ratio`` of the finest footprint: a
+    # view whose object mask missed part of the object (its photo shows the object there) is outvoted
+    ys, xs = np.mgrid[0:h, 0:w]
+    world = vcam.unproject(ys.ravel(), xs.ravel(), vdepth.ravel())
+    used = [j for j, cam in enumerate(cameras) if cam is not None]
+    feet_all = np.full((len(used), h * w), np.inf, np.float32)
+    cols = np.zeros((len(used), h * w, 3), np.float32)
+    everything = np.ones((h, w), bool)
+    for k, j in enumerate(used):
+        col, got = warp_from_reference(images[j], cameras[j], depths[j], knowns[j], vcam, vdepth, everything,
+                                       "backward", depth_tol)
+        idx = np.nonzero(got.ravel())[0]
+        if len(idx):
+            feet_all[k, idx] = footprint(cameras[j], world[idx], plane.normal)
+            cols[k, idx] = col.reshape(-1, 3)[idx]
+    order = np.argsort(feet_all, axis=0)[: params.votes]  # [votes, T] finest first
+    fsorted = np.take_along_axis(feet_all, order, 0)
+    ok = np.isfinite(fsorted) & (fsorted <= params.vote_ratio * fsorted[:1])
+    picked = np.take_along_axis(cols, order[..., None], 0)  # [votes, T, 3]
+    picked = np.where(ok[..., None], picked, np.nan)
+    seen_flat = ok[0]
+    colour = np.zeros((h * w, 3), np.float32)
+    if seen_flat.any():
+        colour[seen_flat] = np.nanmedian(picked[:, seen_flat], axis=0)
+    best_view = np.where(seen_flat, np.asarray(used)[order[0]], -1).astype(np.int16)
+    del cols, picked
+    seen = (best_view >= 0).reshape(h, w)
+    # the holes' footprint: the lifted hole points, splatted and closed over the gaps between them
+    fpx, _, inside = vcam.pixels(plane.inliers)
+    foot = np.zeros((h, w), np.uint8)
+    foot[fpx[inside, 1], fpx[inside, 0]] = 1
+    gap = int(np.ceil(max(np.max(feet) / texel, 1.0))) + 2
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * gap + 1, 2 * gap + 1))
+    foot = cv2.morphologyEx(foot, cv2.MORPH_CLOSE, k)
+    foot = cv2.dilate(foot, k) > 0
+    hole = foot & ~seen
+    image = colour.reshape(h, w, 3)
+    other = ~seen & ~hole
+    if other.any() and seen.any():  # harmless context (kept out of the source blocks by the caller)
+        u8 = np.clip(image * 255 + 0.5, 0, 255).astype(np.uint8)
+        image = cv2.inpaint(u8, other.astype(np.uint8), 3, cv2.INPAINT_TELEA).astype(np.float32) / 255.0
+    info = {"width": w, "height": h, "texel": texel, "height_above_plane": height,
+            "rms_relative": plane.rms / height, "points": int(len(pts)), "inliers": int(len(plane.inliers)),
+            "seen_texels": int(seen.sum()), "hole_texels": int(hole.sum()),
+            "views_used": int(len(np.unique(best_view[best_view >= 0])))}
+    return PlaneTexture(vcam, image.astype(np.float32), vdepth, seen, hole, best_view.reshape(h, w), plane, info), ""
+
+
+def sample_into_view(texture: np.ndarray, vcam: Camera, vdepth: np.ndarray, normal: np.ndarray, cam: Camera,
+                     depth: np.ndarray, target: np.ndarray, depth_tol: float = 0.02
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """Colours for ``cam``'s ``target`` pixels that lie on the plane (unit ``normal``; their completed ``depth`` within
+    ``depth_tol`` of it), from the filled ``texture`` low-pass filtered to the view's pixel footprint.
+    Returns (colours HxWx3 float32, got bool HxW)."""
+    ys, xs = np.nonzero(target & np.isfinite(depth) & (depth > 0))
+    if len(ys) == 0:
+        return np.zeros((*target.shape, 3), np.float32), np.zeros(target.shape, bool)
+    pick = np.unique(np.linspace(0, len(ys) - 1, min(500, len(ys))).astype(np.int64))
+    pts = cam.unproject(ys[pick], xs[pick], depth[ys[pick], xs[pick]])
+    texel = float(vdepth.flat[0]) / vcam.K[0, 0]
+    ratio = float(np.median(footprint(cam, pts, np.asarray(normal, np.float64)))) / texel
+    tex = np.asarray(texture, np.float32)
+    if ratio > 1.25:  # a texel smaller than the view's pixel: average them first (no aliasing)
+        sigma = 0.5 * np.sqrt(ratio * ratio - 1.0)
+        tex = cv2.GaussianBlur(tex, (0, 0), sigma)
+    return warp_from_reference(tex, vcam, vdepth, np.ones(vdepth.shape, bool), cam, depth, target,
+                               "backward", depth_tol)

@@ -27,7 +27,7 @@ from .dag import (
     upstream_of,
 )
 from .errors import PipelineError
-from .hashing import DigestMemo, hash_obj
+from .hashing import DigestMemo, file_digest, hash_obj
 
 CACHE_FORMAT = 1
 RUN_FILE = "run.json"
@@ -407,14 +407,17 @@ STAMP = ".sgpor-source"
 
 def materialize(src: Path, dst: Path, key: str) -> None:
     """Copy a published stage folder to a user-facing folder (e.g. <out>/export), atomically;
-    nothing to do when it already holds that result."""
+    nothing to do when it already holds that result: the same key and the same publication (a stage
+    forced to run again republishes under its key, with a new manifest)."""
     stamp = dst / STAMP
-    if stamp.is_file() and stamp.read_text() == key:
+    manifest = src / "manifest.json"
+    source = f"{key} {file_digest(manifest)}" if manifest.is_file() else key
+    if stamp.is_file() and stamp.read_text() == source:
         return
     tmp = dst.parent / f".{dst.name}.tmp-{os.getpid()}"
     shutil.rmtree(tmp, ignore_errors=True)
     shutil.copytree(src, tmp, ignore=shutil.ignore_patterns("manifest.json"))
-    (tmp / STAMP).write_text(key)
+    (tmp / STAMP).write_text(source)
     if dst.exists():
         old = dst.parent / f".{dst.name}.old-{os.getpid()}"
         os.replace(dst, old)

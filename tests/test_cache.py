@@ -236,3 +236,24 @@ def test_nothing_is_written_outside_the_out_folder(tmp_path, image_dir, toy_stag
     before = sorted(p.name for p in Path(image_dir).iterdir())
     run(tmp_path / "out", image_dir, toy_stages)
     assert sorted(p.name for p in Path(image_dir).iterdir()) == before
+
+
+def test_materialize_copies_a_republished_stage_again(tmp_path):
+    """<out>/export is copied from the stage's cache folder once per publication: the same key and
+    manifest are skipped, a stage forced to run again (same key, new manifest) is copied again."""
+    from sgpor_pipeline.runner import STAMP, materialize
+
+    src, dst = tmp_path / "cache" / "k1", tmp_path / "export"
+    src.mkdir(parents=True)
+    (src / "scene.ply").write_text("first")
+    (src / "manifest.json").write_text(json.dumps({"created": 1.0}))
+    materialize(src, dst, "k1")
+    assert (dst / "scene.ply").read_text() == "first" and not (dst / "manifest.json").exists()
+    stamp = (dst / STAMP).read_text()
+    (dst / "scene.ply").write_text("edited by the user")
+    materialize(src, dst, "k1")  # the same publication: left alone
+    assert (dst / "scene.ply").read_text() == "edited by the user" and (dst / STAMP).read_text() == stamp
+    (src / "scene.ply").write_text("second")  # --force: the same key published again
+    (src / "manifest.json").write_text(json.dumps({"created": 2.0}))
+    materialize(src, dst, "k1")
+    assert (dst / "scene.ply").read_text() == "second" and (dst / STAMP).read_text() != stamp

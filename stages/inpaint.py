@@ -42,12 +42,16 @@ Only the parts of a hole that lie within ``carry_max_rim`` pixels of their rim a
 a plane (``carry_max_misfit``) are carried: the completed depth that lifts a fill is interpolated
 from the rim, so deep inside a thick hole or across a depth step it is a guess.
 
-Optionally (``thick_reference``, off by default: see its measurements), with ``consensus`` the
-*thick* parts on a planar rim (deeper than ``carry_max_rim``: the table under an object on it, where the
-plane makes the completed depth exact) take one reference's fill: filled by each view on its own, a
-large area gets textures that do not line up, which the re-fit blurs (and their median is a blur too).
-The reference is filled on its own; every other view with a thick planar part takes what its fill
-carries there, and SBM continues it into what is left; the thin parts are then fused by the median.
+With ``consensus`` the *thick* parts on a planar rim (deeper than ``carry_max_rim``: the table under
+an object on it, where the plane makes the completed depth exact) are filled once for all views
+(``thick_reference``): filled by each view on its own, a large area gets textures that do not line up,
+which the re-fit blurs (and their median is a blur too). By default (``plane``) the plane under them is
+one texture (:mod:`sgpor_pipeline.removal.plane`: the views' colours rectified into a virtual camera
+looking straight down at it), its hole is filled by SBM at the plane's true scale (a cached item,
+copied to ``plane/texture.png``, ``plane/filled.png`` and ``plane/plane.json``), and every view takes
+the filled texture on its hole pixels that lie on the plane; SBM continues into what is left. With
+a reference view instead, that view is filled on its own and every other view with a thick planar
+part takes what its fill carries there. The thin parts are then fused by the median.
 """
 
 from __future__ import annotations
@@ -168,20 +172,23 @@ class InpaintParams:
     # cons2d 0.150 -> 0.028), statue + box 21.08 / 0.115 -> 21.28 / 0.112; one fit each, small gains
     # and a little blur: the limits stay.
     carry_max_misfit: float = 0.1
-    # consensus: the thick planar parts of the holes (see carry_max_rim and the module doc) take the
-    # fill of one reference, chosen as by ``reference`` among the views' thick planar parts ("largest":
-    # the view with the most such pixels; "central", or a view name); "none" = each view fills them on
-    # its own. Sharper and more consistent, but not better on the ground truth, so off by default:
-    # * mip360 kitchen (one given mask, a bulldozer on a table; 96 % of the hole pixels thick and
-    #   planar; no truth): the final renders' detail in the holes (Sobel energy / a ring of photo around
-    #   the mask) 0.36 -> 0.68, their multi-view colour difference 0.036 -> 0.028; the median of every
-    #   view's fill there instead (carry_max_rim 0) gives 0.24 / 0.012: a blur;
-    # * synthetic-box (a box on the rug, 76 % of the hole pixels thick and planar), none -> largest, mask
-    #   PSNR / feat: training views 26.39 / 0.073 -> 25.43 / 0.063 (detail 0.72 -> 0.79, consistency
-    #   0.018 -> 0.008), held-out views (--novel) 25.21 / 0.075 -> 24.55 / 0.090 ("central": 25.92 /
-    #   0.074 and 24.99 / 0.097); FSR fills (no-sbm) 28.09 -> 28.14;
-    # * the synthetic scene, lund + box and statue + box have no thick planar part: unchanged.
-    thick_reference: str = added_param("none")
+    # consensus: how the thick planar parts of the holes (see carry_max_rim and the module doc: the
+    # table under an object standing on it) are filled. "plane" (default): once, in a texture of the
+    # plane (removal.plane: a virtual camera looks straight down at it, each texel the median of the
+    # finest views that saw it; SBM fills the texture's hole at the plane's true scale) sampled into
+    # every view; a view name, "largest" (the view with the most such pixels) or "central": that
+    # view's fill, carried into the others; "none": each view on its own. benchmarks/removal.py,
+    # synthetic-box (a box on the rug, 76 % of the hole pixels thick and planar; fit seed 0, x86_64_v4),
+    # mask PSNR / feat, ours and no-sbm (FSR fills):
+    #   none 26.39 / 0.073 and 28.09; largest 25.43 / 0.063 and 28.14 (held-out views, --novel: none
+    #   25.21, largest 24.55, central 24.99); plane 27.96 / 0.072 and 28.49 (the holes 21.22 -> 24.48 dB
+    #   against largest; fsr-refit 24.14, delete-only 20.55).
+    # The synthetic scene, lund + box and statue + box have no thick planar part: unchanged (26.51,
+    # 14.92, 22.67). mip360 kitchen (a bulldozer on a table, one given mask, no truth): every view shows
+    # the same fill, the mats' stripes continue through it (largest: detail 0.36 -> 0.68, multi-view
+    # colour difference 0.036 -> 0.028 against none); the inpaint stage took 33 s instead of 68 s. With
+    # remove.under_object the texels under the object's silhouette are filled too (its contact shadow).
+    thick_reference: str = "plane"
     depth_tol: float = 0.02
     seed: int = 0
     # diffusion backend (see sgpor_pipeline.removal.diffusion); "" = $SGPOR_DIFFUSION_MODEL
@@ -425,7 +432,7 @@ class InpaintStage(Stage):
             t0 = time.perf_counter()
             tex, why = plane_texture([v.camera for v in data.views], [v.context() for v in data.views],
                                      [~h for h in holes], [v.depth() for v in data.views], thick,
-                                     p.plane(), p.depth_tol)
+                                     p.plane(), p.depth_tol, under=data.under_object())
             info: dict[str, Any] = {"built": tex is not None, "reason": why}
             if tex is not None:
                 img, filled_from, res = tex.image, np.zeros(tex.hole.shape, np.uint8), None
@@ -447,7 +454,10 @@ class InpaintStage(Stage):
         items: dict[str, Path] = {}
         plane_info: dict[str, Any] | None = None
         if thick_ref == PLANE_SOURCE:
-            pkey = {"role": PLANE_NAME, "all": bank_key}  # (the thick parts follow from the files and params)
+            # (the thick parts follow from the files and params)
+            under = data.folder / "under_object"
+            pkey = {"role": PLANE_NAME, "all": bank_key, "under": [ctx.file_digest(under / f) for f in (
+                "camera.json", "silhouette.png")] if data.under_object() is not None else None}
             pfolder = ctx.cached_item(pkey, build_plane)
             plane_info = json.loads((pfolder / "plane.json").read_text())
             if plane_info["built"]:

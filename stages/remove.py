@@ -19,8 +19,11 @@ Out (the contract the inpaint and refine stages read):
 - ``gaussians.ply``: the background Gaussians followed by the new hole Gaussians,
   ``seed_ids.npy``: indices of the new ones; ``object.ply``: the deleted Gaussians (a reusable asset
   when the fit modelled the object: ``object_fitted`` in remove.json),
+- ``under_object/``, with ``under_object`` when it found the plane under the object: ``silhouette.png``,
+  the object seen straight down that plane's normal by the camera in ``camera.json``,
 - ``remove.json``: counts (``hull_centres``: Gaussians deleted because no view shows their centre
-  outside its mask) and per-view hole sizes (``hole_pixels_by_opacity``: before ``min_views``).
+  outside its mask; with ``under_object``, ``under_object``: the mask pixels it made holes, or why
+  none) and per-view hole sizes (``hole_pixels_by_opacity``: before ``min_views``).
 
 After a fit without the masked pixels (``fit.object_masks = "ignore"``) nothing is deleted by its object
 score: a Gaussian mostly inside the masks is then background that other views saw behind the object.
@@ -57,6 +60,7 @@ from sgpor_pipeline.removal.holes import (
     seed_hole_gaussians,
     subset,
 )
+from sgpor_pipeline.removal.plane import under_object
 from sgpor_pipeline.scene import Camera, save_cameras
 from sgpor_pipeline.sfm import load_sfm
 from sgpor_pipeline.stages.fit import fit_ignored_masks
@@ -132,6 +136,20 @@ class RemoveStage(Stage):
         observed = [(a >= p.hole_alpha) & ~h for a, h in zip(alphas, holes)]  # background each view saw
         if second_pass:
             depths = complete_hole_depths(cameras, raw_depths, observed, holes, p, floors)
+        if p.under_object and p.hole_mode == "unseen":
+            under, why = under_object(cameras, masks, holes, depths, depth_tol=p.view_depth_tol)
+            if under is None:
+                ctx.log.info(f"remove: under_object: {why}; nothing added to the holes")
+                stats["under_object"] = {"pixels": 0, "reason": why}
+            else:
+                # (their completed depth is their rendered depth: the plane)
+                holes = [h | u for h, u in zip(holes, under.pixels)]
+                observed = [o & ~u for o, u in zip(observed, under.pixels)]
+                stats["under_object"] = under.info
+                (ctx.out_dir / "under_object").mkdir()
+                save_cameras(ctx.out_dir / "under_object" / "camera.json", [under.camera])
+                write_mask01(ctx.out_dir / "under_object" / "silhouette.png", under.silhouette)
+                ctx.log.info(f"remove: {under.info['pixels']} mask pixels lay on the plane under the object: holes")
         colours = []
         per_view = {}
         for cam, mask, rgb, alpha, hole, filled_depth in zip(cameras, masks, renders, alphas, holes, depths):

@@ -103,3 +103,19 @@ def test_with_every_mask_given_the_fit_leaves_the_object_out(finished_run, tmp_p
     deleted = json.loads((fitted.path("remove") / "remove.json").read_text())
     assert selected > 0 and deleted["from_masks_stage"] == selected
     assert deleted["deleted"] > 10 * max(stats["deleted"], 1)
+
+
+@pytest.mark.slow
+def test_under_object_is_recorded_and_the_stages_after_it_run(finished_run):
+    """``remove.under_object``: the remove stage says in remove.json what it made holes of (or why
+    nothing), writes the object's silhouette when it found one, and the stages after it run on that."""
+    out, inputs, _ = finished_run
+    result = run_pipeline(out, inputs, overrides=[*FAST, "remove.under_object=true"], until="inpaint")
+    remove_dir = result.path("remove")
+    info = json.loads((remove_dir / "remove.json").read_text())["under_object"]
+    if info["pixels"]:
+        assert (remove_dir / "under_object" / "silhouette.png").is_file()
+        assert (remove_dir / "under_object" / "camera.json").is_file()
+    else:
+        assert info["reason"] and not (remove_dir / "under_object").exists()
+    assert (result.path("inpaint") / "inpaint.json").is_file()

@@ -140,3 +140,74 @@ def test_plane_texture_refuses_points_off_one_plane(views):
         holes.append(h)
     tex, why = plane_texture(cams, [v[1] for v in views], [~h for h in holes], depths, holes, PlaneParams())
     assert tex is None and "one plane" in why
+
+
+def test_plane_texture_fills_what_lay_under_the_object(views):
+    """With the object's opacity given, the texels under its silhouette (seen straight down) are hole
+    even where every view saw the plane (its contact shadow, seen through its gaps)."""
+    cams = [v[0] for v in views]
+    depths = [v[2] for v in views]
+    holes = [disc_in_view(c, d, (0.0, 0.0), 0.2) for c, d in zip(cams, depths)]
+
+    # an object of radius 0.35 standing on the floor, seen straight down (as the remove stage gives it)
+    floor = fit_plane(np.array([[x, y, FLOOR_Z] for x in (-1, 0, 1) for y in (-1, 0, 1)], float),
+                      np.array([[0.0, 0.0, 3.0]]))
+    ucam = plane_camera(floor, 2.0, 0.01, 1000, 0.0)
+    ys, xs = np.mgrid[0:ucam.height, 0:ucam.width]
+    top = ucam.unproject(ys.ravel(), xs.ravel(), np.full(ys.size, 2.0))
+    silhouette = (np.hypot(top[:, 0], top[:, 1]) < 0.35).reshape(ucam.height, ucam.width)
+
+    args = (cams, [v[1] for v in views], [~h for h in holes], depths, holes, PlaneParams())
+    plain, _ = plane_texture(*args, depth_tol=0.01)
+    shadowed, why = plane_texture(*args, depth_tol=0.01, under=(ucam, silhouette))
+    assert shadowed is not None, why
+    for tex, radius in ((plain, 0.2), (shadowed, 0.35)):
+        vc = tex.camera
+        hy, hx = np.nonzero(tex.hole)
+        r = np.hypot(*vc.unproject(hy, hx, tex.depth[hy, hx])[:, :2].T)
+        sy, sx = np.nonzero(tex.seen)
+        rs = np.hypot(*vc.unproject(sy, sx, tex.depth[sy, sx])[:, :2].T)
+        assert rs.min() > radius - 0.02 and np.percentile(r, 95) < radius + 0.03, (radius, rs.min(), r.max())
+    assert shadowed.info["under_object_texels"] > 0 and plain.info["under_object_texels"] == 0
+
+
+def cylinder_mask(cam: Camera, z0: float, z1: float, radius: float = 0.2) -> np.ndarray:
+    """The pixels of a vertical cylinder (axis through the floor's origin, from z0 to z1) in a view:
+    a dense sample of its surface splatted and closed."""
+    import cv2
+
+    a = np.linspace(0, 2 * np.pi, 720, endpoint=False)
+    zs = np.linspace(z0, z1, 120)
+    side = np.stack([np.repeat(radius * np.cos(a)[None], len(zs), 0), np.repeat(radius * np.sin(a)[None], len(zs), 0),
+                     np.repeat(zs[:, None], len(a), 1)], -1).reshape(-1, 3)
+    rr = np.linspace(0, radius, 40)
+    cap = np.stack([np.outer(rr, np.cos(a)).ravel(), np.outer(rr, np.sin(a)).ravel()], 1)
+    pts = np.concatenate([side, np.c_[cap, np.full(len(cap), z1)], np.c_[cap, np.full(len(cap), z0)]])
+    px, _, inside = cam.pixels(pts)
+    m = np.zeros((cam.height, cam.width), np.uint8)
+    m[px[inside, 1], px[inside, 0]] = 1
+    return cv2.morphologyEx(m, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)) > 0
+
+
+def test_under_object_finds_the_floor_under_a_standing_object_only(views):
+    """A cylinder standing on the floor: the floor under its silhouette (seen straight down, from the
+    visual hull of the masks) is found in the views' masks; hovering above the floor, it is refused."""
+    from sgpor_pipeline.removal.plane import under_object
+
+    cams = [v[0] for v in views]
+    depths = [v[2] for v in views]
+    holes = [disc_in_view(c, d, (0.0, 0.0), 0.2) for c, d in zip(cams, depths)]  # the floor no view saw
+    masks = [cylinder_mask(c, FLOOR_Z, FLOOR_Z + 0.4) | h for c, h in zip(cams, holes)]
+    under, why = under_object(cams, masks, holes, depths, thin=3)
+    assert under is not None, why
+    assert np.allclose(np.abs(under.plane.normal), [0, 0, 1], atol=0.02) and under.info["standing"] > 0.5
+    assert under.info["pixels"] > 0
+    for cam, depth, mask, hole, px in zip(cams, depths, masks, holes, under.pixels):
+        assert not (px & ~mask).any() and not (px & hole).any()
+        ys, xs = np.nonzero(px)
+        r = np.hypot(*cam.unproject(ys, xs, depth[ys, xs])[:, :2].T)
+        assert (r < 0.6).all()  # near the object (3 views: a loose hull)
+    # hovering: each view's hole is the floor its silhouette hides (the floor under it the views see)
+    hovering = [cylinder_mask(c, FLOOR_Z + 0.5, FLOOR_Z + 0.9) for c in cams]
+    none, why = under_object(cams, hovering, hovering, depths, thin=3)
+    assert none is None and "stand" in why

@@ -16,6 +16,9 @@ The ``remove`` folder (``ctx.inputs["remove"]`` of the inpaint and refine stages
 * ``depth/<view>.npy``: float32 HxW z-depth of the background with the hole already completed
   from its surroundings, so a filled pixel can be lifted to 3D. Optional: without it (or without
   cameras) every view is inpainted independently.
+* ``under_object/camera.json`` and ``silhouette.png``: the object seen straight down the plane it
+  stood on (``remove.under_object``). Optional: the plane texture (``inpaint.thick_reference =
+  plane``) then fills what lay under it too.
 
 :func:`load_remove_folder` reads and checks it; :func:`write_remove_fixture` writes one from a
 synthetic scene with ground truth (holes = object masks, optionally eroded, or the truly unseen
@@ -114,6 +117,15 @@ class RemovalInputs:
     @property
     def has_geometry(self) -> bool:
         return all(v.camera is not None and v.depth_path is not None for v in self.views)
+
+    def under_object(self) -> tuple[Camera, np.ndarray] | None:
+        """The removed object's silhouette on the plane it stood on (``under_object/``, written by the
+        remove stage with ``remove.under_object``): (a camera looking straight down at the plane, its
+        bool mask), or None."""
+        folder = self.folder / "under_object"
+        if not (folder / "silhouette.png").is_file() or not (folder / "camera.json").is_file():
+            return None
+        return load_cameras(folder / "camera.json")[0], read_mask(folder / "silhouette.png")
 
 
 def load_remove_folder(folder: str | Path) -> RemovalInputs:

@@ -42,11 +42,12 @@ PLANE_NAME = "plane"
 class PlaneParams:
     max_size: int = 1024  # longest side of the texture (texels); coarser texels beyond it
     margin: float = 0.5  # the texture spans the lifted holes' extent plus this fraction of it per side
-    max_rms: float = 0.01  # the lifted hole points' RMS distance to the plane, x the cameras' distance to it
+    max_rms: float = 0.02  # the lifted hole points' RMS distance to the plane, x the cameras' distance to it
     sample_points: int = 4000  # per view: hole pixels lifted to fit the plane
     footprint_quantile: float = 0.2  # texel size: this quantile of the views' pixel footprints on the plane
     votes: int = 5  # a texel's colour: the median of at most this many views that see it, finest first
     vote_ratio: float = 2.0  # ... whose pixel footprint there is at most this x the finest one's
+    shadow_grow: float = 0.02  # the object's silhouette on the plane is grown by this x the texture's side
 
 
 @dataclass
@@ -157,12 +158,16 @@ def lift_parts(cameras: list[Camera], depths: list[np.ndarray], parts: list[np.n
 
 def plane_texture(cameras: list[Camera], images: list[np.ndarray], knowns: list[np.ndarray],
                   depths: list[np.ndarray], parts: list[np.ndarray], params: PlaneParams,
-                  depth_tol: float = 0.02) -> tuple[PlaneTexture | None, str]:
+                  depth_tol: float = 0.02, under: tuple[Camera, np.ndarray] | None = None
+                  ) -> tuple[PlaneTexture | None, str]:
     """The texture of the plane under the views' thick planar hole ``parts`` (see the module doc).
 
     ``images``: what the views show (the remove stage's context images); ``knowns``: their pixels that
-    may give colour (outside the holes); ``depths``: their completed depths. Returns (texture, "") or
-    (None, why not: too few points, or the parts do not lie on one plane)."""
+    may give colour (outside the holes); ``depths``: their completed depths. ``under``, when given, is
+    the removed object's silhouette on the plane (:func:`under_object`: a camera looking straight down
+    and its mask): the texels under it, grown by ``shadow_grow``, are part of the hole, whatever the
+    views saw there (its contact shadow, seen through its gaps). Returns (texture, "") or (None, why
+    not: too few points, or the parts do not lie on one plane)."""
     pts, pview = lift_parts(cameras, depths, parts, params.sample_points)
     centers = np.stack([c.center for c in cameras if c is not None])
     plane = fit_plane(pts, centers) if len(pts) >= 3 else None
@@ -210,6 +215,19 @@ def plane_texture(cameras: list[Camera], images: list[np.ndarray], knowns: list[
     best_view = np.where(seen_flat, np.asarray(used)[order[0]], -1).astype(np.int16)
     del cols, picked
     seen = (best_view >= 0).reshape(h, w)
+    blocked = np.zeros((h, w), bool)
+    if under is not None:
+        ucam, sil = under
+        upx, _, uin = ucam.pixels(world)
+        flat = np.zeros(h * w, bool)
+        flat[uin] = np.asarray(sil, bool)[upx[uin, 1], upx[uin, 0]]
+        blocked = flat.reshape(h, w)
+        r = int(round(params.shadow_grow * max(h, w)))
+        if r > 0:
+            k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2)
+            blocked = cv2.dilate(blocked.astype(np.uint8), k) > 0
+        seen &= ~blocked
+        best_view[blocked.ravel()] = -1
     # the holes' footprint: the lifted hole points, splatted and closed over the gaps between them
     fpx, _, inside = vcam.pixels(plane.inliers)
     foot = np.zeros((h, w), np.uint8)
@@ -218,7 +236,7 @@ def plane_texture(cameras: list[Camera], images: list[np.ndarray], knowns: list[
     k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * gap + 1, 2 * gap + 1))
     foot = cv2.morphologyEx(foot, cv2.MORPH_CLOSE, k)
     foot = cv2.dilate(foot, k) > 0
-    hole = foot & ~seen
+    hole = (foot | blocked) & ~seen
     image = colour.reshape(h, w, 3)
     other = ~seen & ~hole
     if other.any() and seen.any():  # harmless context (kept out of the source blocks by the caller)
@@ -226,7 +244,7 @@ def plane_texture(cameras: list[Camera], images: list[np.ndarray], knowns: list[
         image = cv2.inpaint(u8, other.astype(np.uint8), 3, cv2.INPAINT_TELEA).astype(np.float32) / 255.0
     info = {"width": w, "height": h, "texel": texel, "height_above_plane": height,
             "rms_relative": plane.rms / height, "points": int(len(pts)), "inliers": int(len(plane.inliers)),
-            "seen_texels": int(seen.sum()), "hole_texels": int(hole.sum()),
+            "seen_texels": int(seen.sum()), "hole_texels": int(hole.sum()), "under_object_texels": int(blocked.sum()),
             "views_used": int(len(np.unique(best_view[best_view >= 0])))}
     return PlaneTexture(vcam, image.astype(np.float32), vdepth, seen, hole, best_view.reshape(h, w), plane, info), ""
 
@@ -250,3 +268,97 @@ def sample_into_view(texture: np.ndarray, vcam: Camera, vdepth: np.ndarray, norm
         tex = cv2.GaussianBlur(tex, (0, 0), sigma)
     return warp_from_reference(tex, vcam, vdepth, np.ones(vdepth.shape, bool), cam, depth, target,
                                "backward", depth_tol)
+
+
+@dataclass
+class UnderObject:
+    """Where the removed object stood on a plane: what lay under it, in every view."""
+
+    pixels: list[np.ndarray]  # per view HxW bool: mask pixels on the plane under the object's silhouette
+    plane: Plane
+    silhouette: np.ndarray  # HxW bool: the object seen straight down the plane's normal (``camera``)
+    camera: Camera
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+def hull_columns(plane: Plane, vcam: Camera, cameras: list[Camera], masks: list[np.ndarray], top: float,
+                 levels: int = 48, dilate: int = 2, min_views: int = 2) -> np.ndarray:
+    """[levels, H, W] bool: which points of each texel's column (the plane's normal through it, at
+    heights (k + 0.5) / levels x ``top`` above the plane) lie in the object's visual hull: inside every
+    mask (dilated by ``dilate`` px) of the views they fall in, and in at least ``min_views`` views."""
+    from .selection import in_visual_cone
+
+    h, w = vcam.height, vcam.width
+    ys, xs = np.mgrid[0:h, 0:w]
+    base = vcam.unproject(ys.ravel(), xs.ravel(), np.full(h * w, abs(float(plane.distance(vcam.center[None])[0]))))
+    out = np.zeros((levels, h * w), bool)
+    for k in range(levels):
+        pts = base + plane.normal * (top * (k + 0.5) / levels)
+        out[k] = in_visual_cone(pts, cameras, masks, dilate, min_views=min_views)
+    return out.reshape(levels, h, w)
+
+
+def under_object(cameras: list[Camera], masks: list[np.ndarray], holes: list[np.ndarray], depths: list[np.ndarray],
+                 grow: float = 0.02, depth_tol: float = 0.02, thin: int = 15, max_rms: float = 0.02,
+                 max_lift: float = 0.1, sample: int = 4000, resolution: int = 256) -> tuple[UnderObject | None, str]:
+    """The mask pixels of each view whose background lies on the plane under the object.
+
+    The plane is fitted to the holes' parts deeper than ``thin`` px on a planar rim
+    (:func:`~.multiview.planar_parts`), lifted with their completed ``depths``. The object is its visual
+    hull (the masks' cones; whether or not the fit modelled it), seen straight down the plane's normal
+    by a virtual camera over the holes (:func:`hull_columns`, ``resolution`` texels across): its
+    silhouette is the texels whose column meets the hull, grown by ``grow`` x the texture's side. The
+    object must stand on the plane: in most of the silhouette the hull reaches down to within
+    ``max_lift`` x its height of it. A mask pixel outside the holes whose completed depth lifts it onto
+    the plane (within ``depth_tol`` x its depth) inside that silhouette lay under the object: in its
+    contact shadow, seen, if at all, at a grazing angle. Returns (UnderObject, "") or (None, why not)."""
+    from .multiview import pinned_parts, planar_parts
+
+    # the thick parts (deeper than ``thin`` px) on a planar rim, as the inpaint stage's plane texture
+    parts = [planar_parts(h, d, 0.1) & ~pinned_parts(h, thin) if h.any() else None for h, d in zip(holes, depths)]
+    pts, _ = lift_parts(cameras, depths, parts, sample)
+    centers = np.stack([c.center for c in cameras])
+    plane = fit_plane(pts, centers) if len(pts) >= 3 else None
+    if plane is None:
+        return None, "no thick hole on a planar rim"
+    distance = float(np.median(np.abs(plane.distance(centers))))
+    if plane.rms > max_rms * distance:
+        return None, f"the holes do not lie on one plane (RMS {plane.rms / distance:.3f} of the cameras' distance)"
+    extent = float(np.ptp(plane.inliers - np.outer(plane.distance(plane.inliers), plane.normal), axis=0).max())
+    vcam = plane_camera(plane, distance, 2.0 * extent / resolution, 4 * resolution, 0.5)
+    top = 0.5 * distance
+    cols = hull_columns(plane, vcam, cameras, masks, top)
+    sil = cols.any(0)
+    if not sil.any():
+        return None, "no view's mask covers the plane over the holes"
+    # the object's parts, not specks of hull where few views' masks meet (at the edges of the views)
+    n, labels, st, _ = cv2.connectedComponentsWithStats(sil.astype(np.uint8), connectivity=8)
+    area = st[1:, cv2.CC_STAT_AREA]
+    sil = np.isin(labels, 1 + np.nonzero(area >= 0.1 * area.max())[0])
+    cols &= sil[None]
+    lowest = np.argmax(cols, axis=0)[sil] + 0.5  # in levels
+    highest = cols.shape[0] - np.argmax(cols[::-1], axis=0)[sil]
+    height = float(np.percentile(highest, 95))
+    standing = float(np.mean(lowest <= max(1.0, max_lift * height)))
+    if standing < 0.5:
+        return None, (f"the object does not stand on the plane of the holes (its visual hull reaches the plane "
+                      f"in {100 * standing:.0f} % of its silhouette)")
+    r = int(round(grow * max(vcam.width, vcam.height)))
+    if r > 0:
+        sil = cv2.dilate(sil.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2)) > 0
+    pixels = []
+    for cam, mask, hole, depth in zip(cameras, masks, holes, depths):
+        out = np.zeros(mask.shape, bool)
+        ys, xs = np.nonzero(mask & ~hole & np.isfinite(depth) & (depth > 0))
+        if len(ys):
+            z = depth[ys, xs].astype(np.float64)
+            world = cam.unproject(ys, xs, z)
+            on = np.abs(plane.distance(world)) <= depth_tol * z
+            px, _, inside = vcam.pixels(world)
+            hit = on & inside
+            hit[hit] = sil[px[hit, 1], px[hit, 0]]
+            out[ys[hit], xs[hit]] = True
+        pixels.append(out)
+    info = {"rms_relative": plane.rms / distance, "object_height": height / cols.shape[0] * top,
+            "standing": standing, "silhouette_texels": int(sil.sum()), "pixels": int(sum(int(u.sum()) for u in pixels))}
+    return UnderObject(pixels, plane, sil, vcam, info), ""

@@ -466,10 +466,37 @@ class MetricsSection:
         return "".join(parts) or None
 
 
+@dataclass
+class PlaneSection:
+    """The inpaint stage's texture of the plane under the object (``plane/``, inpaint.thick_reference =
+    plane): the views' colours rectified, and with its hole filled, side by side, and its numbers."""
+
+    title: str = "The plane under the object, as one texture"
+
+    def render(self, rc: ReportContext) -> str | None:
+        folder = rc.inputs.get("inpaint")
+        if folder is None or not (folder / "plane" / "filled.png").is_file():
+            return None
+        figs = []
+        for name, caption in (("texture.png", "the views' colours, rectified (black: no view saw it)"),
+                              ("filled.png", "its hole filled, as every view takes it")):
+            path = folder / "plane" / name
+            if path.is_file():
+                ref = rc.add_image(path, f"plane_{name}", 640)
+                figs.append(f"<figure><img src='{esc(ref)}' alt='{esc(caption)}'><figcaption>{esc(caption)}"
+                            "</figcaption></figure>")
+        info = _read_json(folder / "plane" / "plane.json")
+        keys = ("width", "height", "texel", "hole_texels", "under_object_texels", "views_used", "rms_relative",
+                "seconds")
+        table = kv_table([(k, _fmt(info[k])) for k in keys if k in info]) if isinstance(info, dict) else ""
+        return "".join(figs) + table
+
+
 DEFAULT_SECTIONS: list[Any] = [
     SummarySection(),
     MetricsSection(),
     ViewsSection(),
+    PlaneSection(),
     TrainingSection(),
     StageFileSection("Speed against error", "speed_error.png"),
 ]
@@ -524,7 +551,7 @@ REPORT_STAGES = ("fit", "masks", "remove", "inpaint", "refine") if SCENE_STAGE =
 
 class ReportExporter(Exporter):
     name = "report"
-    VERSION = 2  # 2: evaluate's metrics as tables (and metrics.json beside the report)
+    VERSION = 3  # 2: evaluate's metrics as tables (and metrics.json beside the report); 3: the plane texture
     needs = ("ingest", CAMERAS_STAGE, SCENE_STAGE, *REPORT_STAGES)
     optional_needs = ("evaluate",)  # when the run has ground truth; its key then enters export's key
     description = ("report.html (+ report/ PNGs): inputs, masks, renders, training curve, metrics (with ground "

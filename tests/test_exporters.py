@@ -624,3 +624,22 @@ def test_evaluate_key_enters_the_export_key_only_with_ground_truth(tmp_path):
     k_new = keys(truth)
     assert k_new["evaluate"] != k_truth["evaluate"] and k_new["export"] != k_truth["export"]
     assert k_new["finetune"] == k_truth["finetune"]
+
+
+def test_report_shows_the_plane_texture_when_the_inpaint_stage_made_one(tmp_path):
+    from sgpor_pipeline.exporters.report import PlaneSection, ReportContext
+    from sgpor_pipeline.imageio import write_png
+
+    inpaint = tmp_path / "inpaint"
+    rc = ReportContext(inputs={"inpaint": inpaint}, export_dir=tmp_path / "export", cameras=[])
+    inpaint.mkdir()
+    assert PlaneSection().render(rc) is None  # no plane texture: no section
+    (inpaint / "plane").mkdir()
+    rng = np.random.default_rng(0)
+    for name in ("texture.png", "filled.png"):
+        write_png(inpaint / "plane" / name, rng.uniform(0, 1, (40, 60, 3)).astype(np.float32))
+    (inpaint / "plane" / "plane.json").write_text(json.dumps({"built": True, "width": 60, "height": 40,
+                                                              "hole_texels": 123, "texel": 0.01}))
+    html = PlaneSection().render(rc)
+    assert html.count("<img") == 2 and "hole_texels" in html and "123" in html
+    assert len(list((tmp_path / "export" / "report").glob("plane_*.png"))) == 2

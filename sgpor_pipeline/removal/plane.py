@@ -192,28 +192,38 @@ def plane_texture(cameras: list[Camera], images: list[np.ndarray], knowns: list[
     # view whose object mask missed part of the object (its photo shows the object there) is outvoted
     ys, xs = np.mgrid[0:h, 0:w]
     world = vcam.unproject(ys.ravel(), xs.ravel(), vdepth.ravel())
-    used = [j for j, cam in enumerate(cameras) if cam is not None]
-    feet_all = np.full((len(used), h * w), np.inf, np.float32)
-    cols = np.zeros((len(used), h * w, 3), np.float32)
+    # the ``votes`` finest so far per texel, updated view by view (memory: votes x texels, any view count)
+    votes = max(1, params.votes)
+    kept_feet = np.full((votes, h * w), np.inf, np.float32)
+    cols = np.zeros((votes, h * w, 3), np.float32)
+    views = np.full((votes, h * w), -1, np.int32)
     everything = np.ones((h, w), bool)
-    for k, j in enumerate(used):
-        col, got = warp_from_reference(images[j], cameras[j], depths[j], knowns[j], vcam, vdepth, everything,
+    for j, cam in enumerate(cameras):
+        if cam is None:
+            continue
+        col, got = warp_from_reference(images[j], cam, depths[j], knowns[j], vcam, vdepth, everything,
                                        "backward", depth_tol)
         idx = np.nonzero(got.ravel())[0]
-        if len(idx):
-            feet_all[k, idx] = footprint(cameras[j], world[idx], plane.normal)
-            cols[k, idx] = col.reshape(-1, 3)[idx]
-    order = np.argsort(feet_all, axis=0)[: params.votes]  # [votes, T] finest first
-    fsorted = np.take_along_axis(feet_all, order, 0)
-    ok = np.isfinite(fsorted) & (fsorted <= params.vote_ratio * fsorted[:1])
-    picked = np.take_along_axis(cols, order[..., None], 0)  # [votes, T, 3]
-    picked = np.where(ok[..., None], picked, np.nan)
+        if not len(idx):
+            continue
+        fp = footprint(cam, world[idx], plane.normal).astype(np.float32)
+        better = fp < kept_feet[-1, idx]  # finer than the coarsest kept
+        idx, fp = idx[better], fp[better]
+        f = np.concatenate([kept_feet[:, idx], fp[None]])  # [votes + 1, n]
+        c = np.concatenate([cols[:, idx], col.reshape(-1, 3)[idx][None]])
+        v = np.concatenate([views[:, idx], np.full((1, len(idx)), j, np.int32)])
+        order = np.argsort(f, axis=0, kind="stable")[:votes]
+        kept_feet[:, idx] = np.take_along_axis(f, order, 0)
+        cols[:, idx] = np.take_along_axis(c, order[..., None], 0)
+        views[:, idx] = np.take_along_axis(v, order, 0)
+    ok = np.isfinite(kept_feet) & (kept_feet <= params.vote_ratio * kept_feet[:1])
     seen_flat = ok[0]
     colour = np.zeros((h * w, 3), np.float32)
     if seen_flat.any():
-        colour[seen_flat] = np.nanmedian(picked[:, seen_flat], axis=0)
-    best_view = np.where(seen_flat, np.asarray(used)[order[0]], -1).astype(np.int16)
-    del cols, picked
+        picked = np.where(ok[:, seen_flat, None], cols[:, seen_flat], np.nan)
+        colour[seen_flat] = np.nanmedian(picked, axis=0)
+    best_view = np.where(seen_flat, views[0], -1).astype(np.int16)
+    del cols
     seen = (best_view >= 0).reshape(h, w)
     blocked = np.zeros((h, w), bool)
     if under is not None:

@@ -5,16 +5,19 @@ In: the ``remove`` folder (layout: :mod:`sgpor_pipeline.removal.multiview`). Out
 * ``images/<view>.png``: the remove stage's context image (the photo outside the object mask, the
   render inside; older remove folders: the render) with its hole completed (views without a hole:
   the context image);
-* ``filled_from/<view>.png``: 0 = not filled (outside the hole), 1 = projected from the reference
-  view (``consensus``: the median of this and other views' fills), 2 = inpainted in this view (SBM,
-  SBM refined by diffusion, or the OpenCV baseline);
+* ``filled_from/<view>.png``: 0 = not filled (outside the hole), 1 = projected from the plane
+  texture or the reference view (``consensus``: the median of this and other views' fills), 2 =
+  inpainted in this view (SBM, SBM refined by diffusion, or the OpenCV baseline);
 * ``source/<view>.npz``: per target block its corner (``targets``), onion-peel ``layer``, the ranked
   source blocks ``cand`` [T,k,3] = (view index, y, x) (entry 0 was used; the rest are RPR's
   next-best), their colour ``cost`` and feature ``sim``, and ``views`` (the view names the indices
   refer to);
+* ``plane/``: with ``thick_reference = plane`` and a thick planar hole: ``texture.png`` (the views'
+  colours on the plane, rectified), ``filled.png`` (its hole filled: what the views take) and
+  ``plane.json`` (its virtual camera, plane, sizes and seconds);
 * ``inpaint.json``: the backend that ran (``backend``), the one asked for (``backend_requested``) and
-  why (``backend_reason``), features, reference view, per-view counts and seconds; with diffusion, the
-  weights folder and its fingerprint.
+  why (``backend_reason``), features, reference view, ``plane`` (plane.json, or why none was built),
+  per-view counts and seconds; with diffusion, the weights folder and its fingerprint.
 
 Backends (``backend``): ``sbm`` (default), ``opencv`` (xphoto FSR baseline), ``diffusion`` (optional
 extra ``sgpor-pipeline[diffusion]``, local weights in ``diffusion_model`` or ``$SGPOR_DIFFUSION_MODEL``:

@@ -181,16 +181,17 @@ class InpaintParams:
     # finest views that saw it; SBM fills the texture's hole at the plane's true scale) sampled into
     # every view; a view name, "largest" (the view with the most such pixels) or "central": that
     # view's fill, carried into the others; "none": each view on its own. benchmarks/removal.py,
-    # synthetic-box (a box on the rug, 76 % of the hole pixels thick and planar; fit seed 0, x86_64_v4),
-    # mask PSNR / feat, ours and no-sbm (FSR fills):
-    #   none 26.39 / 0.073 and 28.09; largest 25.43 / 0.063 and 28.14 (held-out views, --novel: none
-    #   25.21, largest 24.55, central 24.99); plane 27.96 / 0.072 and 28.49 (the holes 21.22 -> 24.48 dB
-    #   against largest; fsr-refit 24.14, delete-only 20.55).
+    # synthetic-box (a box on the rug, 76 % of the hole pixels thick and planar; x86_64_v4), mask PSNR:
+    #   ours, fit.seed 0 / 1 / 2: none 26.39 / 26.47 / 26.18, plane 27.96 / 27.80 / 27.10 (seed 0:
+    #   largest 25.43, central 25.92; the holes none 21.2 -> plane 24.5 dB); held-out views (--novel,
+    #   seed 0): none 25.21, largest 24.55, central 24.99, plane 27.05;
+    #   no-sbm (FSR fills): none 28.09 / 28.01 / 27.88, plane 28.49 / 29.25 / 29.22.
     # The synthetic scene, lund + box and statue + box have no thick planar part: unchanged (26.51,
     # 14.92, 22.67). mip360 kitchen (a bulldozer on a table, one given mask, no truth): every view shows
-    # the same fill, the mats' stripes continue through it (largest: detail 0.36 -> 0.68, multi-view
-    # colour difference 0.036 -> 0.028 against none); the inpaint stage took 33 s instead of 68 s. With
-    # remove.under_object the texels under the object's silhouette are filled too (its contact shadow).
+    # the same fill, the mats' stripes continue through it; the final renders' multi-view colour
+    # difference in the holes 0.036 (none) -> 0.021, their detail (Sobel energy against a ring of photo)
+    # 0.36 -> 0.48; the stage took 33 s instead of 68 s. With remove.under_object the texels under the
+    # object's silhouette are filled too (its contact shadow: see that option).
     thick_reference: str = "plane"
     depth_tol: float = 0.02
     seed: int = 0

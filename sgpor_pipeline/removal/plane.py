@@ -12,11 +12,13 @@ filled once, in its own frame:
 2. A virtual pinhole camera looks straight down at the plane (:func:`plane_camera`): the plane is
    fronto-parallel to it, so its image is the plane's texture rectified (a similarity of the
    plane: no foreshortening), and every texel's z-depth is the camera's height.
-3. :func:`plane_texture`: every texel takes the colour of the view that sees it at the finest
-   resolution (pixel footprint on the plane), among the views that see it unoccluded (their depth
-   agrees) outside their holes. Texels no view saw near the lifted holes are the texture's hole;
-   other unseen texels get a smooth fill (OpenCV Telea) so they are harmless context, and are kept
-   out of the source blocks.
+3. :func:`plane_texture`: every texel takes the per-channel median colour of the (at most 5) views
+   that see it at the finest resolution (pixel footprint on the plane), among the views that see it
+   unoccluded (their depth agrees) outside their holes; the median outvotes a view whose mask missed
+   part of the object. Texels no view saw near the lifted holes are the texture's hole; other
+   unseen texels get a smooth fill (OpenCV Telea) so they are harmless context, and are kept out of
+   the source blocks. With :func:`under_object`'s silhouette, the texels under the object are hole
+   too (its contact shadow).
 4. The caller fills the texture's hole (SBM over the texture itself: source blocks at the plane's
    true scale) and :func:`sample_into_view` carries the filled texture into each view's hole
    pixels that lie on the plane (depths within ``depth_tol``), low-pass filtered to the view's

@@ -170,9 +170,9 @@ Protocols:
     around it, where the smooth fill keeps the rim's colour.
     Session 27, the plane texture (``inpaint.thick_reference`` plane, the default: the rug under the
     box filled once, in a rectified texture of the floor, for all views), fit.seed 0 / 1 / 2: ours
-    26.39 / 26.47 / 26.18 -> 27.96 / 27.80 / 27.10 (seed 0: holes 21.22 -> 24.48 dB; held-out views,
-    ``--novel``, 25.21 -> 27.05), no-sbm 28.09 / 28.01 / 27.88 -> 28.49 / 29.25 / 29.22; seed 0
-    no-rpr 27.96, fsr-refit 24.14, delete-only 20.55. The sphere, lund and statue-box have no thick
+    26.39 / 26.47 / 26.18 -> 28.77 / 28.42 / 27.36 (held-out views, ``--novel``, seed 0: 25.21 ->
+    26.62; with a texture margin of 0.5 instead of 1: 27.96 / 27.80 / 27.10, held out 27.05), no-sbm
+    28.09 / 28.01 / 27.88 -> 28.67 / 26.49 / 28.52. The sphere, lund and statue-box have no thick
     planar hole and keep their scores.
 (b) ``lund``: a synthetic object inserted into the real lund photos. First our SfM runs on the
     untouched photos at full size (pipeline until ``sfm``; with ``ingest.max_size`` 160 only 2, with

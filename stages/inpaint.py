@@ -182,10 +182,11 @@ class InpaintParams:
     # every view; a view name, "largest" (the view with the most such pixels) or "central": that
     # view's fill, carried into the others; "none": each view on its own. benchmarks/removal.py,
     # synthetic-box (a box on the rug, 76 % of the hole pixels thick and planar; x86_64_v4), mask PSNR:
-    #   ours, fit.seed 0 / 1 / 2: none 26.39 / 26.47 / 26.18, plane 27.96 / 27.80 / 27.10 (seed 0:
-    #   largest 25.43, central 25.92; the holes none 21.2 -> plane 24.5 dB); held-out views (--novel,
-    #   seed 0): none 25.21, largest 24.55, central 24.99, plane 27.05;
-    #   no-sbm (FSR fills): none 28.09 / 28.01 / 27.88, plane 28.49 / 29.25 / 29.22.
+    #   ours, fit.seed 0 / 1 / 2: none 26.39 / 26.47 / 26.18 (mean 26.35), plane 28.77 / 28.42 / 27.36
+    #   (28.18; with a texture margin of 0.5 instead of 1: 27.96 / 27.80 / 27.10); seed 0: largest
+    #   25.43, central 25.92; the holes none 21.2 -> plane 24.5 dB (margin 0.5); held-out views
+    #   (--novel, seed 0): none 25.21, largest 24.55, central 24.99, plane 26.62 (margin 0.5: 27.05);
+    #   no-sbm (FSR fills): none 28.09 / 28.01 / 27.88 (27.99), plane 28.67 / 26.49 / 28.52 (27.89).
     # The synthetic scene, lund + box and statue + box have no thick planar part: unchanged (26.51,
     # 14.92, 22.67). mip360 kitchen (a bulldozer on a table, one given mask, no truth): every view shows
     # the same fill, the mats' stripes continue through it; the final renders' multi-view colour

@@ -75,6 +75,7 @@ from sgpor_pipeline.errors import PipelineError
 from sgpor_pipeline.hashing import hash_obj
 from sgpor_pipeline.imageio import read_image, read_labels, write_labels, write_mask01, write_png
 from sgpor_pipeline.removal import diffusion as sd
+from sgpor_pipeline.removal import multiview
 from sgpor_pipeline.removal.multiview import (
     CONSENSUS,
     FILLED_INPAINTED,
@@ -216,6 +217,10 @@ class InpaintParams:
                          guide_weight=self.guide_weight, paste_top=self.paste_top,
                          paste_temperature=self.paste_temperature, seed=self.seed)
 
+    def carry_rim(self) -> int:
+        """``carry_max_rim`` resolved: the block size for -1."""
+        return self.block_size if self.carry_max_rim < 0 else self.carry_max_rim
+
     def plane(self) -> PlaneParams:
         return PlaneParams()
 
@@ -232,7 +237,7 @@ PLANE_SOURCE = -2  # thick_reference = "plane": the thick planar parts take the 
 def thin_parts(hole: np.ndarray, p: InpaintParams) -> np.ndarray:
     """The parts of a view's hole within ``carry_max_rim`` px of their rim (-1: the block size; 0:
     every part)."""
-    return pinned_parts(hole, p.block_size if p.carry_max_rim < 0 else p.carry_max_rim)
+    return pinned_parts(hole, p.carry_rim())
 
 
 def carried_parts(hole: np.ndarray, depth: np.ndarray, p: InpaintParams) -> np.ndarray:
@@ -245,7 +250,7 @@ def thick_planar_parts(hole: np.ndarray, depth: np.ndarray, p: InpaintParams) ->
     """The parts of a view's hole deeper than ``carry_max_rim`` from their rim whose rim lies on a
     plane (``carry_max_misfit``): with ``consensus`` they take one reference's fill
     (``thick_reference``). Empty when every part is carried (``carry_max_rim`` 0)."""
-    return np.asarray(hole, bool) & ~thin_parts(hole, p) & planar_parts(hole, depth, p.carry_max_misfit)
+    return multiview.thick_planar_parts(hole, depth, p.carry_rim(), p.carry_max_misfit)
 
 
 def resolve_backend(p: InpaintParams) -> tuple[str, str]:
@@ -437,18 +442,16 @@ class InpaintStage(Stage):
             t0 = time.perf_counter()
             tex, why = plane_texture([v.camera for v in data.views], [v.context() for v in data.views],
                                      [~h for h in holes], [v.depth() for v in data.views], thick,
-                                     p.plane(), p.depth_tol, under=data.under_object())
+                                     p.plane(), p.depth_tol, under=under)
             info: dict[str, Any] = {"built": tex is not None, "reason": why}
             if tex is not None:
-                img, filled_from, res = tex.image, np.zeros(tex.hole.shape, np.uint8), None
+                img = tex.image
                 if tex.hole.any():
                     tb = build_source_bank([PLANE_NAME], [tex.image], [~tex.seen], [tex.hole], sbm)
-                    img, filled_from, res = fill_view(tex.image, tex.hole, "sbm" if uses_sbm else backend,
-                                                      tb if uses_sbm else None, sbm)
+                    img = fill_view(tex.image, tex.hole, "sbm" if uses_sbm else backend, tb if uses_sbm else None,
+                                    sbm)[0]
                 write_png(folder / "texture.png", tex.image)
                 write_png(folder / "filled.png", img)
-                write_mask01(folder / "seen.png", tex.seen)
-                write_mask01(folder / "hole.png", tex.hole)
                 info.update(tex.info, camera=tex.camera.to_dict(), normal=tex.plane.normal.tolist(),
                             offset=tex.plane.offset)
             info["seconds"] = time.perf_counter() - t0
@@ -460,9 +463,9 @@ class InpaintStage(Stage):
         plane_info: dict[str, Any] | None = None
         if thick_ref == PLANE_SOURCE:
             # (the thick parts follow from the files and params)
-            under = data.folder / "under_object"
-            pkey = {"role": PLANE_NAME, "all": bank_key, "under": [ctx.file_digest(under / f) for f in (
-                "camera.json", "silhouette.png")] if data.under_object() is not None else None}
+            under = data.under_object()
+            pkey = {"role": PLANE_NAME, "all": bank_key, "under": None if under is None else hash_obj(
+                [under[0].to_dict(), np.packbits(under[1]).tolist()])}
             pfolder = ctx.cached_item(pkey, build_plane)
             plane_info = json.loads((pfolder / "plane.json").read_text())
             if plane_info["built"]:

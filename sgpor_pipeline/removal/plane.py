@@ -161,6 +161,24 @@ def lift_parts(cameras: list[Camera], depths: list[np.ndarray], parts: list[np.n
     return np.concatenate(pts), np.concatenate(view)
 
 
+def fit_hole_plane(cameras: list[Camera], depths: list[np.ndarray], parts: list[np.ndarray | None], sample: int,
+                   max_rms: float) -> tuple[tuple[Plane, float, np.ndarray, np.ndarray] | None, str]:
+    """:func:`fit_plane` through the views' hole ``parts`` lifted with their ``depths``
+    (:func:`lift_parts`), refused when its RMS distance exceeds ``max_rms`` x the cameras' (median)
+    distance to it. Returns ((plane, that distance, the lifted points, their views), "") or (None,
+    why not)."""
+    pts, pview = lift_parts(cameras, depths, parts, sample)
+    centers = np.stack([c.center for c in cameras if c is not None])
+    plane = fit_plane(pts, centers) if len(pts) >= 3 else None
+    if plane is None:
+        return None, "fewer than 3 pixels of thick holes on a planar rim to fit a plane to"
+    distance = float(np.median(np.abs(plane.distance(centers))))
+    if plane.rms > max_rms * distance:
+        return None, (f"the holes do not lie on one plane (RMS {plane.rms / distance:.3f} of the cameras' "
+                      f"distance, limit {max_rms})")
+    return (plane, distance, pts, pview), ""
+
+
 def plane_texture(cameras: list[Camera], images: list[np.ndarray], knowns: list[np.ndarray],
                   depths: list[np.ndarray], parts: list[np.ndarray], params: PlaneParams,
                   depth_tol: float = 0.02, under: tuple[Camera, np.ndarray] | None = None
@@ -173,16 +191,10 @@ def plane_texture(cameras: list[Camera], images: list[np.ndarray], knowns: list[
     and its mask): the texels under it, grown by ``shadow_grow``, are part of the hole, whatever the
     views saw there (its contact shadow, seen through its gaps). Returns (texture, "") or (None, why
     not: too few points, or the parts do not lie on one plane)."""
-    pts, pview = lift_parts(cameras, depths, parts, params.sample_points)
-    centers = np.stack([c.center for c in cameras if c is not None])
-    plane = fit_plane(pts, centers) if len(pts) >= 3 else None
-    if plane is None:
-        return None, "fewer than 3 hole pixels to fit a plane to"
-    dist_cams = np.abs(plane.distance(centers))
-    height = float(np.median(dist_cams))
-    if plane.rms > params.max_rms * height:
-        return None, (f"the holes do not lie on one plane (RMS {plane.rms / height:.3f} of the cameras' "
-                      f"distance, limit {params.max_rms})")
+    fitted, why = fit_hole_plane(cameras, depths, parts, params.sample_points, params.max_rms)
+    if fitted is None:
+        return None, why
+    plane, height, pts, pview = fitted
     # texel: a low quantile of the views' median pixel footprints at the hole points
     feet = []
     for j in np.unique(pview[plane.kept]):
@@ -301,15 +313,16 @@ def hull_columns(plane: Plane, vcam: Camera, cameras: list[Camera], masks: list[
     """[levels, H, W] bool: which points of each texel's column (the plane's normal through it, at
     heights (k + 0.5) / levels x ``top`` above the plane) lie in the object's visual hull: inside every
     mask (dilated by ``dilate`` px) of the views they fall in, and in at least ``min_views`` views."""
-    from .selection import in_visual_cone
+    from .selection import in_visual_cone, within_margin
 
+    masks = [within_margin(m, dilate) for m in masks]  # once, not at every height
     h, w = vcam.height, vcam.width
     ys, xs = np.mgrid[0:h, 0:w]
     base = vcam.unproject(ys.ravel(), xs.ravel(), np.full(h * w, abs(float(plane.distance(vcam.center[None])[0]))))
     out = np.zeros((levels, h * w), bool)
     for k in range(levels):
         pts = base + plane.normal * (top * (k + 0.5) / levels)
-        out[k] = in_visual_cone(pts, cameras, masks, dilate, min_views=min_views)
+        out[k] = in_visual_cone(pts, cameras, masks, 0, min_views=min_views)
     return out.reshape(levels, h, w)
 
 
@@ -327,18 +340,14 @@ def under_object(cameras: list[Camera], masks: list[np.ndarray], holes: list[np.
     ``max_lift`` x its height of it. A mask pixel outside the holes whose completed depth lifts it onto
     the plane (within ``depth_tol`` x its depth) inside that silhouette lay under the object: in its
     contact shadow, seen, if at all, at a grazing angle. Returns (UnderObject, "") or (None, why not)."""
-    from .multiview import pinned_parts, planar_parts
+    from .multiview import thick_planar_parts
 
-    # the thick parts (deeper than ``thin`` px) on a planar rim, as the inpaint stage's plane texture
-    parts = [planar_parts(h, d, 0.1) & ~pinned_parts(h, thin) if h.any() else None for h, d in zip(holes, depths)]
-    pts, _ = lift_parts(cameras, depths, parts, sample)
-    centers = np.stack([c.center for c in cameras])
-    plane = fit_plane(pts, centers) if len(pts) >= 3 else None
-    if plane is None:
-        return None, "no thick hole on a planar rim"
-    distance = float(np.median(np.abs(plane.distance(centers))))
-    if plane.rms > max_rms * distance:
-        return None, f"the holes do not lie on one plane (RMS {plane.rms / distance:.3f} of the cameras' distance)"
+    # the thick parts on a planar rim, as the inpaint stage's plane texture takes them
+    parts = [thick_planar_parts(h, d, thin) if h.any() else None for h, d in zip(holes, depths)]
+    fitted, why = fit_hole_plane(cameras, depths, parts, sample, max_rms)
+    if fitted is None:
+        return None, why
+    plane, distance = fitted[:2]
     extent = float(np.ptp(plane.inliers - np.outer(plane.distance(plane.inliers), plane.normal), axis=0).max())
     vcam = plane_camera(plane, distance, 2.0 * extent / resolution, 4 * resolution, 0.5)
     top = 0.5 * distance

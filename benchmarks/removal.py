@@ -289,9 +289,14 @@ INSERTED: dict[str, tuple[str, int, int]] = {
 SYNTHETIC_SCENES: dict[str, dict[str, Any]] = {
     "synthetic": {},  # the demo: a sphere on the rug; about 3 % of its mask pixels no other view sees
     "synthetic-box": {"object_kind": "box"},  # a box on the rug: about 29 % no other view sees
+    # the same box darkening the floor in the photos (not in the truth): its ambient occlusion, and
+    # that plus its key-light shadow; what ``remove.under_object`` is for
+    "synthetic-box-contact": {"object_kind": "box", "object_shadow": "contact"},
+    "synthetic-box-cast": {"object_kind": "box", "object_shadow": "cast"},
 }
 GT_SCENES = (*SYNTHETIC_SCENES, *INSERTED)
-PREFIX = {"synthetic": "synthetic", "synthetic-box": "synthetic_box", "lund": "lund_inserted",
+PREFIX = {"synthetic": "synthetic", "synthetic-box": "synthetic_box", "synthetic-box-contact": "synthetic_box_contact",
+          "synthetic-box-cast": "synthetic_box_cast", "lund": "lund_inserted",
           "statue-box": "statue_inserted"}
 NOVEL_EVERY = 4  # --novel: every 4th view (from the third, in name order) is a held-out test view
 NOVEL_METRICS = ("psnr_mask", "psnr_bbox", "ssim_mask", "feat_mask")

@@ -469,7 +469,8 @@ class MetricsSection:
 @dataclass
 class PlaneSection:
     """The inpaint stage's texture of the plane under the object (``plane/``, inpaint.thick_reference =
-    plane): the views' colours rectified, and with its hole filled, side by side, and its numbers."""
+    plane): the views' colours rectified, and with its hole filled, side by side, and its numbers; with
+    inpaint.lift_shadow also the texture as seen and the contact shadow divided out of it."""
 
     title: str = "The plane under the object, as one texture"
 
@@ -478,7 +479,9 @@ class PlaneSection:
         if folder is None or not (folder / "plane" / "filled.png").is_file():
             return None
         figs = []
-        for name, caption in (("texture.png", "the views' colours, rectified (black: no view saw it)"),
+        for name, caption in (("texture_as_seen.png", "the views' colours, with the object's contact shadow"),
+                              ("shading.png", "the contact shadow found (inpaint.lift_shadow; white: none)"),
+                              ("texture.png", "the views' colours, rectified (black: no view saw it)"),
                               ("filled.png", "its hole filled, as every view takes it")):
             path = folder / "plane" / name
             if path.is_file():
@@ -488,7 +491,12 @@ class PlaneSection:
         info = _read_json(folder / "plane" / "plane.json")
         keys = ("width", "height", "texel", "hole_texels", "under_object_texels", "views_used", "rms_relative",
                 "seconds")
-        table = kv_table([(k, _fmt(info[k])) for k in keys if k in info]) if isinstance(info, dict) else ""
+        rows = [(k, _fmt(info[k])) for k in keys if k in info] if isinstance(info, dict) else []
+        shadow = info.get("shadow") if isinstance(info, dict) else None
+        if isinstance(shadow, dict):  # inpaint.lift_shadow: the strength found, or why none
+            found = _fmt(shadow["strength"]) if "strength" in shadow else shadow.get("reason", "")
+            rows.append(("contact shadow", found))
+        table = kv_table(rows) if rows else ""
         return "".join(figs) + table
 
 
@@ -551,7 +559,8 @@ REPORT_STAGES = ("fit", "masks", "remove", "inpaint", "refine") if SCENE_STAGE =
 
 class ReportExporter(Exporter):
     name = "report"
-    VERSION = 3  # 2: evaluate's metrics as tables (and metrics.json beside the report); 3: the plane texture
+    VERSION = 4  # 2: evaluate's metrics as tables (and metrics.json beside the report); 3: the plane texture;
+    # 4: its contact shadow (inpaint.lift_shadow)
     needs = ("ingest", CAMERAS_STAGE, SCENE_STAGE, *REPORT_STAGES)
     optional_needs = ("evaluate",)  # when the run has ground truth; its key then enters export's key
     description = ("report.html (+ report/ PNGs): inputs, masks, renders, training curve, metrics (with ground "

@@ -14,7 +14,10 @@ nearer than the background's (``mask == depth < depth_gt``). A pixel's colour is
 its first hit (texture lookup, Lambertian shading from a key and a fill directional light plus
 ambient, hard shadows cast by the background objects only), and the background colours are computed
 once and shared by both images, so ``images`` and ``images_gt`` are bit-identical outside the mask.
-The removable object casts no shadow (that is what keeps the property exact).
+The removable object casts no shadow (that is what keeps the property exact), unless
+``SceneParams.object_shadow`` asks for one: then ``images`` also carry the object's ambient occlusion
+on the background ("contact") and its key-light shadow ("cast"), and ``images_gt`` stay free of both, as in a real scene
+photographed before and after the object was taken away.
 
 :func:`insert_object` composites a synthetic textured object into real photos with known cameras
 (the untouched photos are then the ground truth of its removal).
@@ -36,6 +39,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .errors import PipelineError
+from .removal.plane import hemisphere
 from .scene import Camera, save_cameras
 
 if TYPE_CHECKING:
@@ -45,6 +49,7 @@ log = logging.getLogger(__name__)
 
 RIGS = ("inward", "forward")
 OBJECT_KINDS = ("box", "sphere", "cylinder")
+OBJECT_SHADOWS = ("none", "contact", "cast")
 
 # Colour photos: the removable object's texture is drawn from these (and never reused elsewhere).
 OBJECT_TEXTURES = ("astronaut", "chelsea", "coffee", "rocket")
@@ -75,6 +80,11 @@ class SceneParams:
     object_kind: str = "random"  # "box", "sphere", "cylinder" or "random"
     rug: bool = True  # a textured rug on the floor under the object (makes the hole non-trivial)
     shadows: bool = True  # hard shadows cast by the background objects (never by the object)
+    # How the object darkens the background in ``images`` (never in ``images_gt``), as in a real
+    # photo: "none"; "contact" (its ambient occlusion: the floor darkens where it stands); "cast"
+    # (that plus its hard key-light shadow). The images then differ outside the mask too, and a
+    # removal is judged on whether the darkening goes with the object.
+    object_shadow: str = "none"
     ambient: float = 0.3
     key_light: float = 0.65
     fill_light: float = 0.2
@@ -256,11 +266,13 @@ class _Lighting:
 
 
 def _shade(surfaces: Sequence[_Surface], gid: np.ndarray, t: np.ndarray, fn: np.ndarray,
-           origins: np.ndarray, dirs: np.ndarray, light: _Lighting, casters) -> np.ndarray:
+           origins: np.ndarray, dirs: np.ndarray, light: _Lighting, casters,
+           occluder: _Occluder | None = None) -> np.ndarray:
     """Colours [n,3] float32 of first hits (gid, t, face normal) of rays (origins, dirs).
 
     The result of each ray depends only on its own hit, so the same hit gives the same colour in any
-    image.
+    image. ``occluder`` (the object, for the background of the images with it) adds its key-light
+    shadow and its ambient occlusion.
     """
     import open3d as o3d
 
@@ -289,9 +301,62 @@ def _shade(surfaces: Sequence[_Surface], gid: np.ndarray, t: np.ndarray, fn: np.
             rays[:, 3:] = light.key
             occ = casters.test_occlusions(o3d.core.Tensor(rays), tnear=0.0, tfar=np.inf).numpy()
             key[lit[occ.astype(bool)]] = 0.0
-    shading = light.ambient + light.key_strength * key + light.fill_strength * fill
+    open_sky = np.ones(n)
+    if occluder is not None:
+        key, open_sky = occluder.darken(p, normal, key, light.key)
+    shading = open_sky * (light.ambient + light.fill_strength * fill) + light.key_strength * key
     out[:] = np.clip(albedo * shading[:, None].astype(np.float32), 0.0, 1.0)
     return out
+
+
+class _Occluder:
+    """The removable object as a shadow caster: ambient occlusion, plus its hard key-light shadow
+    when ``cast``.
+
+    Ambient occlusion is the cosine-weighted fraction of the hemisphere over a point that the object
+    hides within ``reach`` (its bounding radius): a fixed set of directions, so the same point always
+    gets the same value. It scales the ambient and fill terms, which is what darkens the floor where
+    the object stands on it.
+    """
+
+    def __init__(self, obj: _Surface, cast: bool, n_directions: int = 96):
+        self.scene = _raycasting_scene([obj])
+        self.cast = cast
+        lo, hi = np.asarray(obj.mesh.get_min_bound()), np.asarray(obj.mesh.get_max_bound())
+        self.lo, self.hi = lo, hi
+        self.reach = 0.5 * float(np.linalg.norm(hi - lo))
+        self.local = hemisphere(n_directions)  # cosine-weighted: the plain mean is the integral
+
+    def darken(self, p: np.ndarray, normal: np.ndarray, key: np.ndarray,
+               to_key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        import open3d as o3d
+
+        key = key.copy()
+        lit = np.flatnonzero(key > 0) if self.cast else []
+        if len(lit):
+            rays = np.empty((len(lit), 6), np.float32)
+            rays[:, :3] = p[lit] + 1e-3 * normal[lit]
+            rays[:, 3:] = to_key
+            occ = self.scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0, tfar=np.inf).numpy()
+            key[lit[occ.astype(bool)]] = 0.0
+        open_sky = np.ones(len(p))
+        near = np.flatnonzero(np.all((p > self.lo - self.reach) & (p < self.hi + self.reach), axis=1))
+        if len(near):
+            nn = normal[near]
+            # an orthonormal frame (t1, t2, n) per point
+            helper = np.where(np.abs(nn[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
+            t1 = np.cross(helper, nn)
+            t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+            t2 = np.cross(nn, t1)
+            d = (self.local[None, :, 0:1] * t1[:, None] + self.local[None, :, 1:2] * t2[:, None]
+                 + self.local[None, :, 2:3] * nn[:, None])
+            m = len(self.local)
+            rays = np.empty((len(near) * m, 6), np.float32)
+            rays[:, :3] = np.repeat(p[near] + 1e-3 * nn, m, axis=0)
+            rays[:, 3:] = d.reshape(-1, 3)
+            occ = self.scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0, tfar=self.reach).numpy()
+            open_sky[near] = 1.0 - occ.reshape(len(near), m).mean(axis=1)
+        return key, open_sky
 
 
 def _raycasting_scene(surfaces: Sequence[_Surface]):
@@ -500,6 +565,9 @@ def _validate(p: SceneParams) -> None:
     if p.object_kind not in (*OBJECT_KINDS, "random"):
         raise PipelineError(f"unknown object kind {p.object_kind!r}",
                             fix=f"use one of {', '.join(OBJECT_KINDS)} or random")
+    if p.object_shadow not in OBJECT_SHADOWS:
+        raise PipelineError(f"unknown object_shadow {p.object_shadow!r}",
+                            fix=f"use one of {', '.join(OBJECT_SHADOWS)}")
     if p.n_views < 1 or p.width < 8 or p.height < 8:
         raise PipelineError(f"synthetic scene needs n_views >= 1 and at least 8x8 pixels, got "
                             f"{p.n_views} views of {p.width}x{p.height}", fix="increase them")
@@ -612,6 +680,7 @@ def generate_scene(params: SceneParams | None = None) -> SyntheticScene:
     obj_scene = _raycasting_scene([obj])
     casters_list = [s for s in surfaces if s.caster]
     casters = _raycasting_scene(casters_list) if (p.shadows and casters_list) else None
+    occluder = _Occluder(obj, cast=p.object_shadow == "cast") if p.object_shadow != "none" else None
 
     N, H, W = len(cams), p.height, p.width
     images_gt = np.zeros((N, H, W, 3), np.float32)
@@ -630,6 +699,10 @@ def generate_scene(params: SceneParams | None = None) -> SyntheticScene:
                           origins[idx], dirs[idx], light, casters)
         m = ob["t"] < bg["t"]
         with_obj = col.copy()
+        if occluder is not None:
+            idx = np.flatnonzero(hit & ~m)
+            with_obj[idx] = _shade(surfaces, bg["gid"][idx], bg["t"][idx].astype(np.float64),
+                                   bg["normal"][idx], origins[idx], dirs[idx], light, casters, occluder)
         idx = np.flatnonzero(m)
         with_obj[idx] = _shade([obj], ob["gid"][idx], ob["t"][idx].astype(np.float64), ob["normal"][idx],
                                origins[idx], dirs[idx], light, casters)

@@ -281,13 +281,15 @@ class FinetuneStage(Stage):
         seed_ids = np.load(remove_dir / "seed_ids.npy")
         cameras = [c for c in load_cameras(remove_dir / "cameras.json") if c.image is not None]
         holes = [read_mask(remove_dir / "holes" / f"{c.image}.png") for c in cameras]
+        relit = [self._relit(ctx, c, h) for c, h in zip(cameras, holes)]
         hole_px = int(sum(h.sum() for h in holes))
         trainable = None
         if hole_px < p.min_hole_pixels:  # everything behind the object was seen: deletion is the answer
             skipped = (f"{hole_px} hole pixel(s) over {len(cameras)} views (< min_hole_pixels "
                        f"{p.min_hole_pixels}): nothing to re-fit")
         else:
-            trainable = trainable_gaussians(model, seed_ids, cameras, holes, p)
+            # the inpaint stage's relit pixels (inpaint.lift_shadow) are re-fitted too
+            trainable = trainable_gaussians(model, seed_ids, cameras, [h | r for h, r in zip(holes, relit)], p)
             skipped = "" if trainable.any() else "no hole Gaussians to train"
         if skipped:
             ctx.log.info(f"finetune: {skipped}; the scene after deletion is kept as it is")
@@ -295,7 +297,7 @@ class FinetuneStage(Stage):
                                                   "hole_gaussians": int(len(seed_ids)), "hole_pixels": hole_px,
                                                   "iterations": 0, "skipped": skipped})
             return
-        views = [self._view(ctx, c, h, p) for c, h in zip(cameras, holes)]
+        views = [self._view(ctx, c, h, p, r) for c, h, r in zip(cameras, holes, relit)]
         tp = TrainParams(iterations=p.iterations, sh_degree=model.max_sh_degree, sh_degree_every=0,
                          lambda_dssim=p.lambda_dssim, seed=p.seed, backend=p.backend, budget=len(model),
                          eval_every=0, checkpoint_every=200, device=str(device))
@@ -331,8 +333,16 @@ class FinetuneStage(Stage):
         self._write(ctx, trainer.model, cameras, trainer.curve, info)
 
     @staticmethod
-    def _view(ctx: StageContext, cam: Camera, hole: np.ndarray, p: FinetuneParams):
-        """One training view: target image and per-pixel weight (see ``targets``)."""
+    def _relit(ctx: StageContext, cam: Camera, hole: np.ndarray) -> np.ndarray:
+        """The view's pixels outside its hole whose colour the inpaint stage relit (``relit/``, with
+        inpaint.lift_shadow: the object's contact shadow lifted), else none."""
+        path = Path(ctx.inputs["refine"]) / "relit" / f"{cam.image}.png"
+        return read_mask(path) & ~hole if path.is_file() else np.zeros(hole.shape, bool)
+
+    @staticmethod
+    def _view(ctx: StageContext, cam: Camera, hole: np.ndarray, p: FinetuneParams, relit: np.ndarray | None = None):
+        """One training view: target image and per-pixel weight (see ``targets``). ``relit`` pixels
+        take the refine stage's image with full weight, inside the mask or out."""
         fill = read_rgb8(ctx.inputs["refine"] / "images" / f"{cam.image}.png")
         sfm_dir = ctx.inputs.get("sfm")  # (a caller may run the stage without the photos)
         photo_path = Path(sfm_dir or ".") / "images" / f"{cam.image}.png"
@@ -344,8 +354,9 @@ class FinetuneStage(Stage):
         if mask.shape != hole.shape or mask.shape != fill.shape[:2]:
             raise PipelineError(f"finetune: the mask and the inpainted image of {cam.image} differ in size",
                                 path=mask_path, fix="rerun from the remove stage (--force remove)")
+        relit = np.zeros(hole.shape, bool) if relit is None else relit
         band = within_margin(mask, p.mask_margin)  # where the target is the refine stage's image
-        seen = band & ~hole  # there that image is the render after deletion: weight seen_weight
+        seen = band & ~hole & ~relit  # there that image is the render after deletion: weight seen_weight
         weight = np.where(seen, p.seen_weight, 1.0).astype(np.float32) if p.seen_weight != 1 and seen.any() else None
         if not with_photo:
             return make_view(cam.image, fill, cam, p.max_size, weight)
@@ -353,7 +364,7 @@ class FinetuneStage(Stage):
         if photo.shape != fill.shape:
             raise PipelineError(f"finetune: the photo and the inpainted image of {cam.image} differ in size",
                                 path=photo_path, fix="rerun from the sfm stage (--force sfm)")
-        target = np.where((band | hole)[..., None], fill, photo)
+        target = np.where((band | hole | relit)[..., None], fill, photo)
         return make_view(cam.image, target, cam, p.max_size, weight)
 
     @staticmethod

@@ -90,7 +90,14 @@ from sgpor_pipeline.removal.multiview import (
     pinned_parts,
     planar_parts,
 )
-from sgpor_pipeline.removal.plane import PLANE_NAME, PlaneParams, plane_texture, sample_into_view
+from sgpor_pipeline.removal.plane import (
+    PLANE_NAME,
+    PlaneParams,
+    contact_shading,
+    plane_texture,
+    sample_into_view,
+    shading_into_view,
+)
 from sgpor_pipeline.removal.sbm import SBMParams, build_source_bank
 from sgpor_pipeline.scene import Camera
 
@@ -195,6 +202,10 @@ class InpaintParams:
     # 0.36 -> 0.48; the stage took 33 s instead of 68 s. With remove.under_object the texels under the
     # object's silhouette are filled too (its contact shadow: see that option).
     thick_reference: str = "plane"
+    # With the plane texture: lift the removed object's contact shadow from it (removal.plane
+    # contact_shading: the ambient occlusion of the object's visual hull, scaled by one fitted strength),
+    # so the fill does not continue the darkened rim.
+    lift_shadow: bool = added_param(False)
     depth_tol: float = 0.02
     seed: int = 0
     # diffusion backend (see sgpor_pipeline.removal.diffusion); "" = $SGPOR_DIFFUSION_MODEL
@@ -222,7 +233,7 @@ class InpaintParams:
         return self.block_size if self.carry_max_rim < 0 else self.carry_max_rim
 
     def plane(self) -> PlaneParams:
-        return PlaneParams()
+        return PlaneParams(lift_shadow=self.lift_shadow)
 
     def diffusion(self) -> sd.DiffusionParams:
         return sd.DiffusionParams(prompt=self.diffusion_prompt, negative_prompt=self.diffusion_negative_prompt,
@@ -405,6 +416,27 @@ class InpaintStage(Stage):
             return gather_from_views(loaded, view.camera, depth, planar_parts(holes[i], depth, p.carry_max_misfit),
                                      p.projection, p.depth_tol)
 
+        def relight_view(out: Path, i: int, factor: np.ndarray) -> int:
+            """Divide the contact shadow out of view i's image on the plane: outside its hole, and in the
+            part of its hole that did not take the (already relit) plane texture. The pixels changed
+            outside the hole go to ``relit/<view>.png`` (the finetune supervises them). Returns their count."""
+            view, tex = data.views[i], state["plane"]
+            depth = view.depth()
+            gain, relit = shading_into_view(factor, tex["camera"], tex["depth"], view.camera, depth, p.depth_tol)
+            from_plane = np.zeros(relit.shape, bool)
+            if names[i] in items:
+                _, from_plane = carried(i, [PLANE_SOURCE])
+            change = relit & ~(from_plane & holes[i])
+            if change.any():
+                path = out / "images" / f"{names[i]}.png"
+                img = read_image(path)
+                img[change] = np.clip(img[change] * gain[change, None], 0.0, 1.0)
+                path.unlink()  # (it may be a link into the item cache)
+                write_png(path, img)
+            outside = change & ~holes[i]
+            write_mask01(out / "relit" / f"{names[i]}.png", outside)
+            return int(outside.sum())
+
         def build(folder: Path, i: int, sources: list[int], thick_only: bool = False) -> None:
             t0 = time.perf_counter()
             view = data.views[i]
@@ -445,6 +477,15 @@ class InpaintStage(Stage):
                                      p.plane(), p.depth_tol, under=under)
             info: dict[str, Any] = {"built": tex is not None, "reason": why}
             if tex is not None:
+                if p.lift_shadow:
+                    shading, why_not = contact_shading(tex, [v.camera for v in data.views],
+                                                       [v.mask() for v in data.views], p.plane())
+                    info["shadow"] = shading.info if shading is not None else {"reason": why_not}
+                    if shading is not None:
+                        write_png(folder / "texture_as_seen.png", tex.image)
+                        write_png(folder / "shading.png", np.repeat(shading.factor[..., None], 3, axis=2))
+                        np.save(folder / "shading.npy", shading.factor)
+                        tex.image = np.clip(tex.image / shading.factor[..., None], 0.0, 1.0).astype(np.float32)
                 img = tex.image
                 if tex.hole.any():
                     tb = build_source_bank([PLANE_NAME], [tex.image], [~tex.seen], [tex.hole], sbm)
@@ -466,6 +507,8 @@ class InpaintStage(Stage):
             under = data.under_object()
             pkey = {"role": PLANE_NAME, "all": bank_key, "under": None if under is None else hash_obj(
                 [under[0].to_dict(), np.packbits(under[1]).tolist()])}
+            if p.lift_shadow:  # (absent otherwise: the keys of earlier runs stay)
+                pkey["lift_shadow"] = True
             pfolder = ctx.cached_item(pkey, build_plane)
             plane_info = json.loads((pfolder / "plane.json").read_text())
             if plane_info["built"]:
@@ -473,10 +516,13 @@ class InpaintStage(Stage):
                     plane_info["camera"]), "normal": np.asarray(plane_info["normal"]),
                     "depth": np.full((plane_info["height"], plane_info["width"]), plane_info["height_above_plane"],
                                      np.float32)}
+                if (pfolder / "shading.npy").is_file():
+                    state["plane"]["shading"] = np.load(pfolder / "shading.npy")
                 digests_done.append(hash_obj([ctx.file_digest(pfolder / "filled.png"), plane_info["camera"]]))
                 (ctx.out_dir / PLANE_NAME).mkdir()
-                for f in ("texture.png", "filled.png", "plane.json"):
-                    _link_or_copy(pfolder / f, ctx.out_dir / PLANE_NAME / f)
+                for f in ("texture.png", "filled.png", "plane.json", "texture_as_seen.png", "shading.png"):
+                    if (pfolder / f).is_file():  # (the last two: with lift_shadow)
+                        _link_or_copy(pfolder / f, ctx.out_dir / PLANE_NAME / f)
                 ctx.log.info(f"inpaint: the plane under the object as one texture, {plane_info['width']}x"
                              f"{plane_info['height']} texels ({plane_info['hole_texels']} to fill)")
             else:
@@ -525,6 +571,10 @@ class InpaintStage(Stage):
                     filled_from[from_others] = FILLED_PROJECTED
                     fused[names[i]] = (img, filled_from)
         summary: dict[str, dict] = {}
+        shading = state.get("plane", {}).get("shading")
+        if shading is not None:
+            (ctx.out_dir / "relit").mkdir()
+        relit_pixels = 0
         for i, v in enumerate(data.views):
             name = v.name
             if name in items:
@@ -545,7 +595,14 @@ class InpaintStage(Stage):
                 write_mask01(ctx.out_dir / "filled_from" / f"{name}.png", np.zeros(holes[i].shape, bool))
                 np.savez_compressed(ctx.out_dir / "source" / f"{name}.npz", **_empty_sources(names, p.top_k))
                 summary[name] = {"hole_pixels": 0, "projected": 0, "inpainted": 0, "seconds": 0.0}
+            if shading is not None:  # lift the contact shadow everywhere on the plane, not only in the hole
+                relit = relight_view(ctx.out_dir, i, shading)
+                summary[name]["relit"] = relit
+                relit_pixels += relit
         bank_obj = state.get("bank")
+        if shading is not None:
+            ctx.log.info(f"inpaint: the object's contact shadow lifted from {relit_pixels} pixels outside the "
+                         f"holes (strength {plane_info['shadow'].get('strength', 0.0):.2f})")
         report = {
             "backend": backend,
             "backend_requested": p.backend,

@@ -22,6 +22,7 @@ consistent; then each view refines its own SBM blocks.
 from __future__ import annotations
 
 import json
+import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -148,6 +149,8 @@ class RefineStage(Stage):
                 summary[name] = json.loads((item / "info.json").read_text())
             else:
                 (ctx.out_dir / "images" / f"{name}.png").write_bytes((inp / "images" / f"{name}.png").read_bytes())
+        if (inp / "relit").is_dir():  # inpaint.lift_shadow: the pixels relit outside the holes, for the finetune
+            shutil.copytree(inp / "relit", ctx.out_dir / "relit")
         report = {
             "ratio": p.ratio, "max_rounds": p.max_rounds, "reference": ref_name, "views": summary,
             "refined_blocks": sum(s["refined_blocks"] for s in summary.values()),

@@ -643,3 +643,9 @@ def test_report_shows_the_plane_texture_when_the_inpaint_stage_made_one(tmp_path
     html = PlaneSection().render(rc)
     assert html.count("<img") == 2 and "hole_texels" in html and "123" in html
     assert len(list((tmp_path / "export" / "report").glob("plane_*.png"))) == 2
+    # with inpaint.lift_shadow: the texture as seen and the shadow found, and its strength
+    for name in ("texture_as_seen.png", "shading.png"):
+        write_png(inpaint / "plane" / name, rng.uniform(0, 1, (40, 60, 3)).astype(np.float32))
+    (inpaint / "plane" / "plane.json").write_text(json.dumps({"built": True, "shadow": {"strength": 0.42}}))
+    html = PlaneSection().render(rc)
+    assert html.count("<img") == 4 and "contact shadow" in html and "0.42" in html

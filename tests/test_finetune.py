@@ -17,7 +17,7 @@ from sgpor_pipeline.gaussians.model import GaussianModel, rgb_to_sh
 from sgpor_pipeline.gaussians.ply import read_ply, write_ply
 from sgpor_pipeline.gaussians.train import render_view
 from sgpor_pipeline.imageio import read_rgb8, write_mask01, write_png
-from sgpor_pipeline.scene import Camera, save_cameras
+from sgpor_pipeline.scene import Camera, load_cameras, save_cameras
 from sgpor_pipeline.stages.finetune import FinetuneParams, FinetuneStage
 
 
@@ -61,7 +61,7 @@ def plane_inputs(root: Path, side: int = 30, w: int = 64, h: int = 48, seed: int
 
 
 def run_finetune(root: Path, inputs: dict[str, Path], **kw) -> tuple[dict, GaussianModel, Path]:
-    ctx = StageContext.standalone(root, "finetune", FinetuneParams(iterations=60, max_size=0, **kw), inputs)
+    ctx = StageContext.standalone(root, "finetune", FinetuneParams(**{"iterations": 60, "max_size": 0, **kw}), inputs)
     FinetuneStage().run(ctx)
     return json.loads((ctx.out_dir / "finetune.json").read_text()), read_ply(ctx.out_dir / "gaussians.ply"), \
         ctx.out_dir
@@ -152,3 +152,31 @@ def test_focus_strategy_keeps_frozen_gaussians_through_a_rollback(tmp_path):
     after = trainer.model
     assert untouched(before, after, trainable)
     assert changed(before, after)[trainable].mean() > 0.9
+
+
+def test_finetune_refits_the_pixels_the_inpaint_stage_relit(tmp_path):
+    """``refine/relit/<view>.png`` (inpaint.lift_shadow: a contact shadow lifted outside the holes):
+    the Gaussians seen there are trained too, towards the relit colours; without it they keep their
+    values bit for bit."""
+    inputs = plane_inputs(tmp_path / "in")
+    before = read_ply(inputs["remove"] / "gaussians.ply")
+    cams = load_cameras(inputs["remove"] / "cameras.json")
+    _, plain, _ = run_finetune(tmp_path / "plain", inputs, iterations=200)
+    (inputs["refine"] / "relit").mkdir()
+    for cam in cams:
+        img = read_rgb8(inputs["refine"] / "images" / f"{cam.image}.png").astype(np.float32) / 255
+        relit = np.zeros(img.shape[:2], bool)
+        relit[2:12, 2:20] = True  # a corner far from the hole
+        img[relit] = np.clip(img[relit] * 1.4, 0, 1)
+        write_png(inputs["refine"] / "images" / f"{cam.image}.png", img)
+        write_mask01(inputs["refine"] / "relit" / f"{cam.image}.png", relit)
+    info, after, out = run_finetune(tmp_path / "relit", inputs, iterations=200)  # (Adam's first steps wander)
+    corner = render_view(before, cams[0], backend="torch").numpy()[2:12, 2:20]
+    now = read_rgb8(out / "renders" / f"{cams[0].image}.png")[2:12, 2:20] / 255
+    assert now.mean() > corner.mean() + 0.05  # brighter, towards the relit target
+    moved, moved_plain = changed(before, after), changed(before, plain)
+    assert moved.sum() > moved_plain.sum()
+    xyz = before.params["means"].detach().numpy()
+    uv, _ = cams[0].project(xyz)
+    in_corner = (uv[:, 0] > 4) & (uv[:, 0] < 18) & (uv[:, 1] > 4) & (uv[:, 1] < 10)
+    assert moved[in_corner].mean() > 0.9 and not moved_plain[in_corner].any()

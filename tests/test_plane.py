@@ -211,3 +211,121 @@ def test_under_object_finds_the_floor_under_a_standing_object_only(views):
     hovering = [cylinder_mask(c, FLOOR_Z + 0.5, FLOOR_Z + 0.9) for c in cams]
     none, why = under_object(cams, hovering, hovering, depths, thin=3)
     assert none is None and "stand" in why
+
+
+def _wall_hull(height: float, top: float = 1.0, levels: int = 48, size: int = 100):
+    """A wall filling the half x >= 1 m of a 2 x 4 m grid (2 cm texels), ``height`` m tall, as hull
+    columns."""
+    from sgpor_pipeline.removal.plane import StandingHull
+
+    cols = np.zeros((levels, 2 * size, size), bool)
+    cols[: int(round(height / top * levels)), :, size // 2:] = True
+    return StandingHull(cols, cols.any(0), top, height, 1.0)
+
+
+@pytest.mark.parametrize("height", [0.5, 0.96])
+def test_ambient_occlusion_of_a_wall_is_its_view_factor(height):
+    """Against the closed form: a floor point at distance d from a wall of height h (infinitely wide)
+    has (1 - d / sqrt(d^2 + h^2)) / 2 of its cosine-weighted sky hidden; none under the wall."""
+    from sgpor_pipeline.removal.plane import ambient_occlusion
+
+    hull = _wall_hull(height)
+    ao = ambient_occlusion(hull, texel=0.02, reach=2.0, directions=128)
+    row = ao[100]  # the grid's middle row, far from its ends
+    assert (ao[:, 50:] == 0).all()  # under the wall
+    for x in (49, 45, 37, 25):  # d = 0.01 .. 0.49 m (the reach cuts rays at > 76 degrees from the normal)
+        d = (50 - (x + 0.5)) * 0.02
+        expected = 0.5 * (1 - d / np.hypot(d, height))
+        assert abs(row[x] - expected) < 0.04, (x, row[x], expected)
+    assert np.all(np.diff(row[:50]) >= -1e-6)  # nearer the wall, darker
+
+
+def _box_texture(shadow: str, seed: int = 2, n_views: int = 12, width: int = 128, height: int = 96):
+    """A synthetic box scene's floor texture around the box (the exact depths; the box's masks as the
+    holes), and the scene."""
+    from sgpor_pipeline.synthetic import SceneParams, generate_scene
+
+    sc = generate_scene(SceneParams(seed=seed, object_kind="box", object_shadow=shadow, n_views=n_views, width=width,
+                                    height=height))
+    cams, depths = sc.cameras, list(sc.depth_gt)
+    centre = sc.object_bounds.mean(0)
+    floor = []  # as the thick planar parts: the mask pixels on the floor near the box
+    for cam, d, m in zip(cams, depths, sc.masks):
+        ys, xs = np.mgrid[0:cam.height, 0:cam.width]
+        p = cam.unproject(ys.ravel(), xs.ravel(), d.ravel()).reshape(*d.shape, 3)
+        floor.append(m & (np.abs(p[..., 2]) < 0.01) & (np.hypot(*(p[..., :2] - centre[:2]).transpose(2, 0, 1)) < 0.6))
+    holes = list(sc.masks)
+
+    def texture(images):
+        tex, why = plane_texture(cams, list(images), [~h for h in holes], depths, floor, PlaneParams(), 0.01)
+        assert tex is not None, why
+        return tex
+
+    return sc, texture
+
+
+def test_contact_shading_finds_the_objects_contact_shadow_and_only_it():
+    """On the synthetic box scene whose photos carry the box's ambient occlusion ("contact"), the
+    fitted strength is near the scene's ambient share of the light, and the texture divided by the
+    factor is closer to the truth's texture around the box; without a shadow there is none, although
+    the rug under the box is darker than the floor around it."""
+    from sgpor_pipeline.removal.plane import contact_shading
+
+    for shadow in ("none", "contact"):
+        sc, texture = _box_texture(shadow)
+        tex = texture(sc.images)
+        shading, why = contact_shading(tex, sc.cameras, list(sc.masks), PlaneParams())
+        if shadow == "none":
+            assert shading is None and "no contact shadow" in why, shading and shading.info
+            continue
+        assert shading is not None, why
+        # the floor's light: ambient 0.3 and fill 0.2 x 0.6 under the occlusion, of about 0.95 in all
+        assert 0.25 < shading.info["strength"] < 0.6, shading.info
+        truth = texture(sc.images_gt).image
+        band = tex.seen & (shading.factor < 0.95)
+        assert band.sum() > 100
+        before = np.abs(tex.image - truth)[band].mean()
+        after = np.abs(tex.image / shading.factor[..., None] - truth)[band].mean()
+        assert after < 0.6 * before, (before, after)
+
+
+def test_inpaint_stage_lifts_the_contact_shadow_in_every_view(tmp_path):
+    """inpaint.lift_shadow on the box scene with its contact shadow (holes: what no view sees; the
+    rest of the masks shows the floor as another view saw it, shadow included): the plane texture is
+    relit before its fill, every view's pixels on the floor near the box are relit (closer to the
+    truth), the pixels relit outside the holes are listed in relit/ and the refine stage passes them
+    on."""
+    import json
+
+    from sgpor_pipeline.dag import StageContext
+    from sgpor_pipeline.imageio import read_image, read_mask
+    from sgpor_pipeline.removal.multiview import write_remove_fixture
+    from sgpor_pipeline.stages.inpaint import InpaintParams, InpaintStage
+    from sgpor_pipeline.stages.refine import RefineParams, RefineStage
+    from sgpor_pipeline.synthetic import SceneParams, generate_scene
+
+    sc = generate_scene(SceneParams(seed=2, object_kind="box", object_shadow="contact", n_views=8, width=256,
+                                    height=192))
+    remove = write_remove_fixture(sc, tmp_path / "remove", holes="unseen")
+    holes = [read_mask(remove / "holes" / f"{c.name}.png") for c in sc.cameras]
+    ctx = StageContext.standalone(tmp_path / "lift", "inpaint", InpaintParams(lift_shadow=True), {"remove": remove})
+    InpaintStage().run(ctx)
+    report = json.loads((ctx.out_dir / "inpaint.json").read_text())
+    shadow = report["plane"]["shadow"]
+    assert 0.2 < shadow["strength"] < 0.6, shadow
+    assert (ctx.out_dir / "plane" / "shading.png").is_file()
+    assert sum(v["relit"] for v in report["views"].values()) > 500
+    err_before, err_after = [], []
+    for i, cam in enumerate(sc.cameras):
+        relit = read_mask(ctx.out_dir / "relit" / f"{cam.name}.png")
+        assert not (relit & holes[i]).any()  # outside the holes
+        img = read_image(ctx.out_dir / "images" / f"{cam.name}.png")
+        err_before.append(np.abs(sc.images[i] - sc.images_gt[i])[relit])
+        err_after.append(np.abs(img - sc.images_gt[i])[relit])
+    before, after = np.concatenate(err_before).mean(), np.concatenate(err_after).mean()
+    assert after < 0.6 * before, (before, after)
+    refine = StageContext.standalone(tmp_path / "lift", "refine", RefineParams(),
+                                     {"inpaint": ctx.out_dir, "remove": remove})
+    RefineStage().run(refine)
+    assert sorted(p.name for p in (refine.out_dir / "relit").iterdir()) == sorted(
+        p.name for p in (ctx.out_dir / "relit").iterdir())

@@ -99,9 +99,42 @@ def test_meshes(scene):
     assert np.allclose(scene.object_mesh.get_max_bound(), hi)
 
 
+def test_object_shadow_darkens_only_the_photos_near_the_object():
+    """With ``object_shadow`` the object darkens the background of ``images`` (never brighter, never
+    ``images_gt``, never the object itself): "contact" only near the object, "cast" more."""
+    params = dict(seed=2, object_kind="box", n_views=6, width=96, height=72)
+    plain = generate_scene(SceneParams(**params))
+    darker = {}
+    for kind in ("contact", "cast"):
+        sc = generate_scene(SceneParams(**params, object_shadow=kind))
+        assert np.array_equal(sc.images_gt, plain.images_gt)
+        assert np.array_equal(sc.masks, plain.masks)
+        assert np.array_equal(sc.images[sc.masks], plain.images[plain.masks])
+        drop = (plain.images - sc.images).max(axis=-1)
+        assert drop.min() >= -1e-6  # a shadow only takes light away
+        darker[kind] = drop > 0.01
+        assert darker[kind].sum() > 200, kind
+        # where the background got darker, its point is near the object (within the object's size)
+        lo, hi = sc.object_bounds
+        reach = np.linalg.norm(hi - lo)
+        for i, cam in enumerate(sc.cameras):
+            v, u = np.nonzero(darker[kind][i])
+            if not len(u):
+                continue
+            rays = np.linalg.inv(cam.K) @ np.stack([u + 0.5, v + 0.5, np.ones_like(u, float)])
+            pc = rays * sc.depth_gt[i, v, u]
+            pw = (np.linalg.inv(cam.cam_from_world) @ np.vstack([pc, np.ones(len(u))]))[:3].T
+            gap = np.linalg.norm(np.maximum(np.maximum(lo - pw, pw - hi), 0), axis=1)
+            if kind == "contact":
+                assert gap.max() < reach
+    assert darker["cast"].sum() > darker["contact"].sum()
+
+
 def test_bad_params():
     with pytest.raises(PipelineError, match="rig"):
         generate_scene(SceneParams(rig="sideways"))
+    with pytest.raises(PipelineError, match="object_shadow"):
+        generate_scene(SceneParams(object_shadow="soft"))
 
 
 def test_default_scene_is_fast():

@@ -390,9 +390,10 @@ def write_remove_fixture(scene, folder: str | Path, holes: str = "mask", erode: 
 
     ``holes``: "mask" (the whole object mask: nothing recovered from other views) or "unseen" (the
     part no other view sees, :func:`unseen_holes`); ``erode``: erode the holes by this many pixels
-    (emulates background recovered at the rim). Renders = the object-free truth with the hole
-    pixels ``fill``-ed: "black" or "object" (the with-object image; both must be ignored by a
-    correct inpainter). Depth = the object-free depth (a perfectly completed depth).
+    (emulates background recovered at the rim). Renders = the photo outside the object mask (with
+    the object's shadow, if the scene has one), the object-free truth inside it, with the hole pixels
+    ``fill``-ed: "black" or "object" (the with-object image; both must be ignored by a correct
+    inpainter). Depth = the object-free depth (a perfectly completed depth).
     """
     folder = Path(folder)
     for sub in ("renders", "holes", "masks", "depth"):
@@ -404,7 +405,7 @@ def write_remove_fixture(scene, folder: str | Path, holes: str = "mask", erode: 
         hs = [cv2.erode(h.astype(np.uint8), kernel).astype(bool) for h in hs]
     for i in idx:
         name = scene.cameras[i].name
-        render = scene.images_gt[i].copy()
+        render = np.where(scene.masks[i][..., None], scene.images_gt[i], scene.images[i])
         render[hs[i]] = 0.0 if fill == "black" else scene.images[i][hs[i]]
         write_png(folder / "renders" / f"{name}.png", render)
         write_mask01(folder / "holes" / f"{name}.png", hs[i])

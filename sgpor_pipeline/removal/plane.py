@@ -53,6 +53,13 @@ class PlaneParams:
     votes: int = 5  # a texel's colour: the median of at most this many views that see it, finest first
     vote_ratio: float = 2.0  # ... whose pixel footprint there is at most this x the finest one's
     shadow_grow: float = 0.02  # the object's silhouette on the plane is grown by this x the texture's side
+    # the object's contact shadow (:func:`contact_shading`): lifted when ``lift_shadow``
+    lift_shadow: bool = False
+    shading_grid: int = 160  # the hull's grid for the occlusion: at most this many texels across
+    shading_reach: float = 2.0  # the occlusion is computed within this x the object's height of it
+    shading_max: float = 0.9  # the largest share of the light the object may have taken (k)
+    shading_chroma: float = 0.02  # texels are grouped by chromaticity (r, g over r + g + b) in bins this wide
+    shading_evidence: float = 0.01  # k must explain at least this share of the luminance scatter, else none
 
 
 @dataclass
@@ -326,6 +333,210 @@ def hull_columns(plane: Plane, vcam: Camera, cameras: list[Camera], masks: list[
     return out.reshape(levels, h, w)
 
 
+@dataclass
+class StandingHull:
+    """The object's visual hull over a plane it stands on (:func:`standing_hull`)."""
+
+    columns: np.ndarray  # [levels, H, W] bool: :func:`hull_columns`, kept to the silhouette
+    silhouette: np.ndarray  # [H, W] bool: the object seen straight down the normal
+    top: float  # world height of the columns' top (level ``levels`` - 0.5 is just below it)
+    height: float  # world height of the object (95th percentile of its columns' tops)
+    standing: float  # fraction of the silhouette where the hull reaches down to the plane
+
+
+def standing_hull(cols: np.ndarray, top: float, max_lift: float = 0.1, min_part: float = 0.1
+                  ) -> tuple[StandingHull | None, str]:
+    """The hull columns' silhouette, kept to parts of at least ``min_part`` x the largest (not specks
+    of hull where few views' masks meet, at the edges of the views), if the object stands on the
+    plane: in at least half of the silhouette the hull reaches down to within ``max_lift`` x its
+    height. Returns (hull, "") or (None, why not)."""
+    sil = cols.any(0)
+    if not sil.any():
+        return None, "no view's mask covers the plane over the holes"
+    _, labels, st, _ = cv2.connectedComponentsWithStats(sil.astype(np.uint8), connectivity=8)
+    area = st[1:, cv2.CC_STAT_AREA]
+    sil = np.isin(labels, 1 + np.nonzero(area >= min_part * area.max())[0])
+    cols = cols & sil[None]
+    lowest = np.argmax(cols, axis=0)[sil] + 0.5  # in levels
+    highest = cols.shape[0] - np.argmax(cols[::-1], axis=0)[sil]
+    height = float(np.percentile(highest, 95))
+    standing = float(np.mean(lowest <= max(1.0, max_lift * height)))
+    if standing < 0.5:
+        return None, (f"the object does not stand on the plane of the holes (its visual hull reaches the plane "
+                      f"in {100 * standing:.0f} % of its silhouette)")
+    return StandingHull(cols, sil, top, height / cols.shape[0] * top, standing), ""
+
+
+def hemisphere(n: int) -> np.ndarray:
+    """[n, 3] directions over a plane (z up), cosine-weighted: Fibonacci points on the unit disc lifted
+    onto the hemisphere (Malley), so their plain mean is the cosine-weighted integral."""
+    k = np.arange(n) + 0.5
+    r = np.sqrt(k / n)
+    phi = k * np.pi * (3.0 - np.sqrt(5.0))
+    return np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(1.0 - r * r)], axis=1)
+
+
+def ambient_occlusion(hull: StandingHull, texel: float, reach: float, directions: int = 64) -> np.ndarray:
+    """[H, W] float32: the cosine-weighted fraction of the sky over each texel of the plane (outside the
+    silhouette, within ``reach`` of it; world units) that the object's hull hides. The hull grid is
+    the columns' (``texel`` world units per texel, ``hull.top`` / levels per level); each direction
+    is marched a texel or a level at a time until it passes over the object or leaves ``reach``."""
+    cols = hull.columns
+    levels, h, w = cols.shape
+    dz = hull.top / levels
+    outside = (~hull.silhouette).astype(np.uint8)
+    near = cv2.distanceTransform(outside, cv2.DIST_L2, 5) * texel <= reach
+    ys, xs = np.nonzero(near & ~hull.silhouette)
+    ao = np.zeros((h, w), np.float32)
+    if not len(ys):
+        return ao
+    hit = np.zeros(len(ys), np.float32)
+    for a, b, c in hemisphere(directions):
+        horiz = float(np.hypot(a, b))
+        t_max = min(hull.height / max(c, 1e-6), reach / max(horiz, 1e-6))
+        dt = min(texel / max(horiz, 1e-6), dz / max(c, 1e-6))
+        t = dt * (np.arange(int(np.ceil(t_max / dt))) + 1.0)
+        if not len(t):
+            continue
+        u = np.rint(xs[:, None] + (t * a / texel)[None]).astype(np.int64)
+        v = np.rint(ys[:, None] + (t * b / texel)[None]).astype(np.int64)
+        lev = np.minimum((t * c / dz).astype(np.int64), levels - 1)[None].repeat(len(ys), 0)
+        ok = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        blocked = np.zeros(u.shape, bool)
+        blocked[ok] = cols[lev[ok], v[ok], u[ok]]
+        hit += blocked.any(1)
+    ao[ys, xs] = hit / directions
+    return ao
+
+
+@dataclass
+class ContactShading:
+    """How the removed object darkened the plane around it (:func:`contact_shading`)."""
+
+    factor: np.ndarray  # [H, W] float32 in (0, 1]: the texture = albedo x factor (1 away from the object)
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+def _grid_camera(cam: Camera, max_size: int) -> Camera:
+    """``cam`` (looking straight down at the plane) with coarser texels if its image is more than
+    ``max_size`` across."""
+    scale = max(cam.width, cam.height) / max_size
+    if scale <= 1.0:
+        return cam
+    w, h = max(1, int(round(cam.width / scale))), max(1, int(round(cam.height / scale)))
+    K = np.array([[cam.K[0, 0] / scale, 0.0, w / 2.0], [0.0, cam.K[1, 1] / scale, h / 2.0], [0.0, 0.0, 1.0]])
+    return Camera(cam.name, w, h, K, cam.cam_from_world)
+
+
+def _window_camera(cam: Camera, centre: np.ndarray, half: float, height: float) -> Camera:
+    """A camera like ``cam`` (looking straight down at the plane from ``height``) over the square of
+    half-side ``half`` (world units) around ``centre`` (on the plane), at ``cam``'s texel."""
+    R = cam.cam_from_world[:3, :3]
+    eye = centre - R[2] * height  # R[2]: the viewing direction, minus the plane's normal
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = -R @ eye
+    side = max(1, int(np.ceil(2.0 * half * cam.K[0, 0] / height)))
+    K = np.array([[cam.K[0, 0], 0.0, side / 2.0], [0.0, cam.K[1, 1], side / 2.0], [0.0, 0.0, 1.0]])
+    return Camera(cam.name, side, side, K, T)
+
+
+def contact_shading(texture: PlaneTexture, cameras: list[Camera], masks: list[np.ndarray],
+                    params: PlaneParams) -> tuple[ContactShading | None, str]:
+    """The object's contact shadow on the plane texture, from geometry and one fitted strength.
+
+    The object's visual hull over the plane (:func:`hull_columns` of the views' object ``masks``, on a
+    grid of at most ``shading_grid`` texels across) gives each texel its ambient occlusion ``ao`` by
+    the object (:func:`ambient_occlusion`, within ``shading_reach`` x the object's height). A real
+    object takes away the share ``k`` of the light that comes from all around: the texture is albedo x
+    (1 - k ao). ``k`` is fitted on the seen texels within that reach: the texels are grouped by
+    chromaticity (bins of ``shading_chroma``; a shadow dims a colour without changing its hue, while a
+    rug and the floor around it differ in hue), each group gets its own albedo (the median), and ``k``
+    is the one that leaves the least L1 scatter of log luminance around them. An albedo that only
+    happens to be darker near the object (the rug under it) is then not taken for a shadow. ``k`` is
+    0 unless it explains at least ``shading_evidence`` of the scatter. Returns (shading, "") or (None,
+    why not)."""
+    h, w = texture.image.shape[:2]
+    height = float(texture.depth.flat[0])
+    top = 0.5 * height
+    # first over the whole texture, coarsely, to find the object; then over a window around it (its
+    # silhouette plus the reach), so that a small object on a large texture is resolved as well
+    grid = _grid_camera(texture.camera, params.shading_grid)
+    hull, why = standing_hull(hull_columns(texture.plane, grid, cameras, masks, top), top)
+    if hull is None:
+        return None, why
+    ys, xs = np.nonzero(hull.silhouette)
+    centre = grid.unproject(np.array([(ys.min() + ys.max()) / 2.0]), np.array([(xs.min() + xs.max()) / 2.0]),
+                            np.array([height]))[0]
+    half = height / grid.K[0, 0] * (max(ys.max() - ys.min(), xs.max() - xs.min()) + 1) / 2.0
+    half += params.shading_reach * hull.height
+    grid = _grid_camera(_window_camera(texture.camera, centre, half, height), params.shading_grid)
+    hull, why = standing_hull(hull_columns(texture.plane, grid, cameras, masks, top), top)
+    if hull is None:
+        return None, why
+    reach = params.shading_reach * hull.height
+    grid_texel = height / grid.K[0, 0]
+    ao_grid = ambient_occlusion(hull, grid_texel, reach)
+    near_grid = cv2.distanceTransform((~hull.silhouette).astype(np.uint8), cv2.DIST_L2, 5) * grid_texel <= reach
+    # onto the texture's texels (the cameras share their axes and height)
+    ty, tx = np.mgrid[0:h, 0:w]
+    uv, _ = grid.project(texture.camera.unproject(ty.ravel(), tx.ravel(), np.full(h * w, height)))
+    mx = (uv[:, 0] - 0.5).reshape(h, w).astype(np.float32)
+    my = (uv[:, 1] - 0.5).reshape(h, w).astype(np.float32)
+    ao = cv2.remap(ao_grid, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+
+    def on_texture(mask: np.ndarray) -> np.ndarray:
+        return cv2.remap(mask.astype(np.uint8), mx, my, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT) > 0
+
+    under = on_texture(hull.silhouette)
+    ao[under] = 0.0  # under the object: not a shadow to lift (remove.under_object's business)
+    fit = texture.seen & ~under & on_texture(near_grid)
+    info: dict[str, Any] = {"grid": [grid.width, grid.height], "grid_texel": grid_texel, "object_height": hull.height,
+                            "texels": int(fit.sum()),
+                            "max_occlusion": float(ao.max()), "strength": 0.0}
+    if (fit & (ao > 0.05)).sum() < 50:
+        return None, f"the object's occlusion reaches only {int((fit & (ao > 0.05)).sum())} seen texels"
+    img = np.clip(texture.image[fit], 1.0 / 255.0, None).astype(np.float64)
+    total = img.sum(axis=1)
+    bins = np.floor(img[:, :2] / total[:, None] / params.shading_chroma).astype(np.int64)
+    group = np.unique(bins[:, 0] * 100_000 + bins[:, 1], return_inverse=True)[1].ravel()
+    starts = np.searchsorted(np.sort(group), np.arange(group.max() + 1))
+    ends = np.searchsorted(np.sort(group), np.arange(group.max() + 1), side="right")
+    middle = (starts + ends - 1) // 2
+    lum, occ = np.log(total / 3.0), ao[fit].astype(np.float64)
+
+    def scatter(k: float) -> float:
+        r = lum - np.log(1.0 - k * occ)
+        order = np.lexsort((r, group))
+        return float(np.abs(r - r[order][middle][group]).sum())
+
+    ks = np.linspace(0.0, params.shading_max, 91)
+    cost = np.array([scatter(k) for k in ks])
+    k = float(ks[int(np.argmin(cost))])
+    explained = 1.0 - float(cost.min() / max(cost[0], 1e-12))
+    info.update(groups=int(group.max() + 1), explained=explained)
+    if explained < params.shading_evidence:
+        return None, (f"no contact shadow: the object's occlusion explains {100 * explained:.1f} % of the "
+                      f"luminance around it (< {100 * params.shading_evidence:.0f} %)")
+    factor = (1.0 - k * ao).astype(np.float32)
+    info.update(strength=k, mean_gain=float(np.mean(1.0 / factor[fit & (ao > 0.05)])),
+                max_gain=float(1.0 / factor.min()))
+    return ContactShading(factor, info), ""
+
+
+def shading_into_view(factor: np.ndarray, vcam: Camera, vdepth: np.ndarray, cam: Camera, depth: np.ndarray,
+                      depth_tol: float = 0.02, min_gain: float = 1.002) -> tuple[np.ndarray, np.ndarray]:
+    """The gain that lifts the contact shadow (1 / :class:`ContactShading`'s factor) at ``cam``'s pixels
+    whose completed ``depth`` puts them on the plane within the texture. Returns (gain HxW float32, 1
+    elsewhere; relit bool HxW: where the gain exceeds ``min_gain``)."""
+    f3 = np.repeat(np.asarray(factor, np.float32)[..., None], 3, axis=2)
+    cols, got = warp_from_reference(f3, vcam, vdepth, np.ones(vdepth.shape, bool), cam, depth,
+                                    np.ones(depth.shape, bool), "backward", depth_tol)
+    gain = np.ones(depth.shape, np.float32)
+    gain[got] = 1.0 / np.maximum(cols[got, 0], 1e-3)
+    return gain, gain > min_gain
+
+
 def under_object(cameras: list[Camera], masks: list[np.ndarray], holes: list[np.ndarray], depths: list[np.ndarray],
                  grow: float = 0.02, depth_tol: float = 0.02, thin: int = 15, max_rms: float = 0.02,
                  max_lift: float = 0.1, sample: int = 4000, resolution: int = 256) -> tuple[UnderObject | None, str]:
@@ -351,22 +562,10 @@ def under_object(cameras: list[Camera], masks: list[np.ndarray], holes: list[np.
     extent = float(np.ptp(plane.inliers - np.outer(plane.distance(plane.inliers), plane.normal), axis=0).max())
     vcam = plane_camera(plane, distance, 2.0 * extent / resolution, 4 * resolution, 0.5)
     top = 0.5 * distance
-    cols = hull_columns(plane, vcam, cameras, masks, top)
-    sil = cols.any(0)
-    if not sil.any():
-        return None, "no view's mask covers the plane over the holes"
-    # the object's parts, not specks of hull where few views' masks meet (at the edges of the views)
-    n, labels, st, _ = cv2.connectedComponentsWithStats(sil.astype(np.uint8), connectivity=8)
-    area = st[1:, cv2.CC_STAT_AREA]
-    sil = np.isin(labels, 1 + np.nonzero(area >= 0.1 * area.max())[0])
-    cols &= sil[None]
-    lowest = np.argmax(cols, axis=0)[sil] + 0.5  # in levels
-    highest = cols.shape[0] - np.argmax(cols[::-1], axis=0)[sil]
-    height = float(np.percentile(highest, 95))
-    standing = float(np.mean(lowest <= max(1.0, max_lift * height)))
-    if standing < 0.5:
-        return None, (f"the object does not stand on the plane of the holes (its visual hull reaches the plane "
-                      f"in {100 * standing:.0f} % of its silhouette)")
+    hull, why = standing_hull(hull_columns(plane, vcam, cameras, masks, top), top, max_lift)
+    if hull is None:
+        return None, why
+    sil, height, standing = hull.silhouette, hull.height, hull.standing
     r = int(round(grow * max(vcam.width, vcam.height)))
     if r > 0:
         sil = cv2.dilate(sil.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2)) > 0
@@ -383,6 +582,6 @@ def under_object(cameras: list[Camera], masks: list[np.ndarray], holes: list[np.
             hit[hit] = sil[px[hit, 1], px[hit, 0]]
             out[ys[hit], xs[hit]] = True
         pixels.append(out)
-    info = {"rms_relative": plane.rms / distance, "object_height": height / cols.shape[0] * top,
-            "standing": standing, "silhouette_texels": int(sil.sum()), "pixels": int(sum(int(u.sum()) for u in pixels))}
+    info = {"rms_relative": plane.rms / distance, "object_height": height, "standing": standing,
+            "silhouette_texels": int(sil.sum()), "pixels": int(sum(int(u.sum()) for u in pixels))}
     return UnderObject(pixels, plane, sil, vcam, info), ""

@@ -212,7 +212,9 @@ class InpaintParams:
     # 24.32 (SBM's fill of the floor under the box moves by +-0.5 dB with any change of its source),
     # no-sbm 24.36 -> 24.66. No shadow is found, and nothing changes, on synthetic-box (no shadow:
     # the rug under the box is darker than the floor, but in another hue), mip360 kitchen and room.
-    lift_shadow: bool = True
+    # "cast" (opt-in) also looks for the object's hard shadow under one light (its direction and share
+    # searched; removal.plane._fit_cast): synthetic-box-cast ... "none": neither.
+    lift_shadow: str = "contact"
     depth_tol: float = 0.02
     seed: int = 0
     # diffusion backend (see sgpor_pipeline.removal.diffusion); "" = $SGPOR_DIFFUSION_MODEL
@@ -240,7 +242,7 @@ class InpaintParams:
         return self.block_size if self.carry_max_rim < 0 else self.carry_max_rim
 
     def plane(self) -> PlaneParams:
-        return PlaneParams(lift_shadow=self.lift_shadow)
+        return PlaneParams(lift_shadow=self.lift_shadow != "none", lift_cast=self.lift_shadow == "cast")
 
     def diffusion(self) -> sd.DiffusionParams:
         return sd.DiffusionParams(prompt=self.diffusion_prompt, negative_prompt=self.diffusion_negative_prompt,
@@ -249,6 +251,7 @@ class InpaintParams:
                                   context=self.diffusion_context, blend=self.diffusion_blend, seed=self.seed)
 
 
+LIFT_SHADOW = ("none", "contact", "cast")
 PLANE_SOURCE = -2  # thick_reference = "plane": the thick planar parts take the plane texture's fill
 
 
@@ -357,6 +360,9 @@ class InpaintStage(Stage):
             ref = choose_reference(holes, [v.camera for v in data.views], p.reference, names)
         elif p.multiview and len(with_hole) > 1 and not data.has_geometry:
             ctx.log.warning("the remove folder has no cameras/depth: views are inpainted independently")
+        if p.lift_shadow not in LIFT_SHADOW:
+            raise PipelineError(f"unknown inpaint.lift_shadow {p.lift_shadow!r}",
+                                fix=f"use one of {', '.join(LIFT_SHADOW)}")
         if p.thick_reference not in ("none", PLANE_NAME) + REFERENCE_MODES and p.thick_reference not in names:
             raise PipelineError(f"unknown inpaint.thick_reference {p.thick_reference!r}",
                                 fix=f"use none, {PLANE_NAME}, {', '.join(REFERENCE_MODES)} or a view name")
@@ -484,7 +490,7 @@ class InpaintStage(Stage):
                                      p.plane(), p.depth_tol, under=under)
             info: dict[str, Any] = {"built": tex is not None, "reason": why}
             if tex is not None:
-                if p.lift_shadow:
+                if p.plane().lift_shadow:
                     shading, why_not = contact_shading(tex, [v.camera for v in data.views],
                                                        [v.mask() for v in data.views], p.plane())
                     info["shadow"] = shading.info if shading is not None else {"reason": why_not}
@@ -514,8 +520,8 @@ class InpaintStage(Stage):
             under = data.under_object()
             pkey = {"role": PLANE_NAME, "all": bank_key, "under": None if under is None else hash_obj(
                 [under[0].to_dict(), np.packbits(under[1]).tolist()])}
-            if p.lift_shadow:  # (absent otherwise: the keys of earlier runs stay)
-                pkey["lift_shadow"] = True
+            if p.lift_shadow != "none":  # (absent otherwise: the keys of earlier runs stay)
+                pkey["lift_shadow"] = p.lift_shadow
             pfolder = ctx.cached_item(pkey, build_plane)
             plane_info = json.loads((pfolder / "plane.json").read_text())
             if plane_info["built"]:

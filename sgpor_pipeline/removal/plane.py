@@ -60,6 +60,10 @@ class PlaneParams:
     shading_max: float = 0.9  # the largest share of the light the object may have taken (k)
     shading_chroma: float = 0.02  # texels are grouped by chromaticity (r, g over r + g + b) in bins this wide
     shading_evidence: float = 0.01  # k must explain at least this share of the luminance scatter, else none
+    # also the object's hard shadow under one light (direction and share searched; :func:`_fit_cast`)
+    lift_cast: bool = False
+    cast_grid: int = 64  # the direction search runs on the hull at most this many texels across
+    cast_evidence: float = 0.05  # the shadow must lower the scatter by this share of it, else none
 
 
 @dataclass
@@ -409,6 +413,33 @@ def ambient_occlusion(hull: StandingHull, texel: float, reach: float, directions
     return ao
 
 
+def hull_shadow(hull: StandingHull, texel: float, reach: float, direction: np.ndarray) -> np.ndarray:
+    """[H, W] bool: the texels of the plane (outside the silhouette, within ``reach`` of it) from which
+    ``direction`` (unit, in the grid's frame: x, y along its image axes, z up the normal) meets the
+    object's hull: its hard shadow under a light that way."""
+    cols = hull.columns
+    levels, h, w = cols.shape
+    dz = hull.top / levels
+    a, b, c = (float(v) for v in direction)
+    near = cv2.distanceTransform((~hull.silhouette).astype(np.uint8), cv2.DIST_L2, 5) * texel <= reach
+    ys, xs = np.nonzero(near & ~hull.silhouette)
+    out = np.zeros((h, w), bool)
+    horiz = float(np.hypot(a, b))
+    if not len(ys) or c <= 0:
+        return out
+    t_max = min(hull.height / c, reach / max(horiz, 1e-6))
+    dt = min(texel / max(horiz, 1e-6), dz / c)
+    t = dt * (np.arange(int(np.ceil(t_max / dt))) + 1.0)
+    u = np.rint(xs[:, None] + (t * a / texel)[None]).astype(np.int64)
+    v = np.rint(ys[:, None] + (t * b / texel)[None]).astype(np.int64)
+    lev = np.broadcast_to(np.minimum((t * c / dz).astype(np.int64), levels - 1)[None], u.shape)
+    ok = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    blocked = np.zeros(u.shape, bool)
+    blocked[ok] = cols[lev[ok], v[ok], u[ok]]
+    out[ys, xs] = blocked.any(1)
+    return out
+
+
 @dataclass
 class ContactShading:
     """How the removed object darkened the plane around it (:func:`contact_shading`)."""
@@ -515,13 +546,84 @@ def contact_shading(texture: PlaneTexture, cameras: list[Camera], masks: list[np
     k = float(ks[int(np.argmin(cost))])
     explained = 1.0 - float(cost.min() / max(cost[0], 1e-12))
     info.update(groups=int(group.max() + 1), explained=explained)
+    cast = None
+    if params.lift_cast:
+        cast = _fit_cast(hull, grid_texel, reach, params, k, occ, lum, group, middle, mx, my, fit, float(cost.min()))
+        if cast is not None:
+            info["cast"] = {kk: v for kk, v in cast.items() if kk != "map"}
+            explained = 1.0 - cast["cost"] / max(cost[0], 1e-12)
+            k = cast["ambient"]
     if explained < params.shading_evidence:
         return None, (f"no contact shadow: the object's occlusion explains {100 * explained:.1f} % of the "
                       f"luminance around it (< {100 * params.shading_evidence:.0f} %)")
     factor = (1.0 - k * ao).astype(np.float32)
+    if cast is not None:
+        factor = np.clip(factor - cast["strength"] * cast["map"], 0.05, 1.0).astype(np.float32)
+        info["explained"] = explained
     info.update(strength=k, mean_gain=float(np.mean(1.0 / factor[fit & (ao > 0.05)])),
                 max_gain=float(1.0 / factor.min()))
     return ContactShading(factor, info), ""
+
+
+def _fit_cast(hull: StandingHull, texel: float, reach: float, params: PlaneParams, k_ambient: float,
+              occ: np.ndarray, lum: np.ndarray, group: np.ndarray, middle: np.ndarray, mx: np.ndarray,
+              my: np.ndarray, fit: np.ndarray, ambient_cost: float) -> dict[str, Any] | None:
+    """The object's hard shadow under one light (:func:`hull_shadow`): its direction searched over a
+    grid of azimuths and elevations, on a coarse copy of the hull, and its share of the light, by the
+    same grouped L1 scatter as the occlusion; then both shares refined together. None unless the
+    shadow lowers the scatter by ``cast_evidence`` of it."""
+    step = max(1, int(np.ceil(max(hull.columns.shape[1:]) / params.cast_grid)))
+    small = StandingHull(hull.columns[:, ::step, ::step], hull.silhouette[::step, ::step], hull.top, hull.height,
+                         hull.standing)
+    # the small grid's texel centres on the texture: (x + 0.5) / step - 0.5 in its pixels
+    sx, sy = (mx + 0.5) / step - 0.5, (my + 0.5) / step - 0.5
+
+    def on_fit(shadow: np.ndarray, sub_x: np.ndarray, sub_y: np.ndarray) -> np.ndarray:
+        soft = cv2.remap(shadow.astype(np.float32), sub_x, sub_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        return soft[fit].astype(np.float64)
+
+    def scatter(ka: float, ks: float, sh: np.ndarray) -> float:
+        r = lum - np.log(np.clip(1.0 - ka * occ - ks * sh, 0.05, None))
+        order = np.lexsort((r, group))
+        return float(np.abs(r - r[order][middle][group]).sum())
+
+    best: tuple[float, float, float, float] | None = None  # cost, azimuth, elevation, share
+    shares = np.linspace(0.1, params.shading_max, 9)
+    for el in np.radians(np.arange(20.0, 81.0, 10.0)):
+        for az in np.radians(np.arange(0.0, 360.0, 10.0)):
+            d = np.array([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), np.sin(el)])
+            sh = on_fit(hull_shadow(small, texel * step, reach, d), sx, sy)
+            if sh.sum() < 20:
+                continue
+            for ks in shares:
+                c = scatter(k_ambient, float(ks), sh)
+                if best is None or c < best[0]:
+                    best = (c, float(az), float(el), float(ks))
+    if best is None or best[0] > (1.0 - params.cast_evidence) * ambient_cost:
+        return None
+    _, az, el, _ = best
+    d = np.array([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), np.sin(el)])
+    full = hull_shadow(hull, texel, reach, d)
+    sh = on_fit(full, mx, my)
+    grid = [(scatter(ka, ks, sh), ka, ks) for ka in np.linspace(0.0, params.shading_max, 19)
+            for ks in np.linspace(0.0, params.shading_max, 19) if ka + ks <= 1.0]
+    c, ka, ks = min(grid)
+    if c > (1.0 - params.cast_evidence) * ambient_cost or ks <= 0.0:
+        return None
+    shadow_map = cv2.remap(full.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    # The hull is larger than the object, and so is its shadow: on the seen texels keep it only where
+    # the texel is darker than its colour group by at least half the shadow's drop
+    r = lum - np.log(np.clip(1.0 - ka * occ - ks * sh, 0.05, None))
+    order = np.lexsort((r, group))
+    albedo = r[order][middle][group]
+    drop = lum - np.log(np.clip(1.0 - ka * occ, 0.05, None)) - albedo
+    seen_map = shadow_map[fit]
+    seen_map[drop > 0.5 * np.log(1.0 - ks)] = 0.0
+    shadow_map[fit] = seen_map
+    shadow_map = cv2.medianBlur(shadow_map, 3)
+    return {"map": shadow_map, "cost": c, "ambient": float(ka), "strength": float(ks),
+            "azimuth_deg": float(np.degrees(az)), "elevation_deg": float(np.degrees(el)),
+            "texels": int((shadow_map > 0.5).sum())}
 
 
 def shading_into_view(factor: np.ndarray, vcam: Camera, vdepth: np.ndarray, cam: Camera, depth: np.ndarray,

@@ -202,19 +202,21 @@ class InpaintParams:
     # 0.36 -> 0.48; the stage took 33 s instead of 68 s. With remove.under_object the texels under the
     # object's silhouette are filled too (its contact shadow: see that option).
     thick_reference: str = "plane"
-    # With the plane texture: lift the removed object's contact shadow (removal.plane contact_shading:
-    # the ambient occlusion of the object's visual hull over the plane, scaled by one strength fitted to
-    # the texture; none unless it explains the luminance around the object) from the texture before
-    # its fill and from every view's pixels on the plane, the photos' outside the masks included
-    # (relit/: the finetune trains them). benchmarks/removal.py, the box whose photos carry its
-    # ambient occlusion (synthetic-box-contact, fit seed 0), mask PSNR of the background other views
-    # saw 29.31 -> 30.43, bbox / full PSNR 24.63 / 30.59 -> 24.73 / 30.87; the whole mask: ours 24.49 ->
-    # 24.32 (SBM's fill of the floor under the box moves by +-0.5 dB with any change of its source),
-    # no-sbm 24.36 -> 24.66. No shadow is found, and nothing changes, on synthetic-box (no shadow:
-    # the rug under the box is darker than the floor, but in another hue), mip360 kitchen and room.
-    # "cast" (opt-in) also looks for the object's hard shadow under one light (its direction and share
-    # searched; removal.plane._fit_cast): synthetic-box-cast ... "none": neither.
-    lift_shadow: str = "contact"
+    # With the plane texture, lift the removed object's shadow (removal.plane contact_shading) from the
+    # texture before its fill and from every view's pixels on the plane, the photos' outside the masks
+    # included (relit/: the finetune trains them). "contact": its ambient occlusion (that of the
+    # object's visual hull over the plane, scaled by one strength fitted to the texture; none unless it
+    # explains the luminance around the object); "cast" (default): also its hard shadow under one light,
+    # whose direction and share are searched (kept only when it explains 5 % more); "none".
+    # benchmarks/removal.py, fit seed 0, mask PSNR ours / no-sbm [the background other views saw]:
+    #   box with its ambient occlusion (synthetic-box-contact): none 24.49 / 24.36 [29.31], contact
+    #   24.32 / 24.66 [30.43] (cast finds no hard shadow there); SBM's fill of the floor under the box
+    #   moves by +-0.5 dB with any change of its sources;
+    #   plus its key-light shadow (synthetic-box-cast): none 20.21 / 20.54, contact 20.46 / 20.43, cast
+    #   21.30 / 22.00 (bbox 19.77 -> 21.43, full 25.93 -> 27.87); with remove.under_object 23.51 / 24.53.
+    # No shadow is found, and nothing changes, on synthetic-box (whose rug under the box is darker than
+    # the floor, but in another hue), mip360 kitchen and room.
+    lift_shadow: str = "cast"
     depth_tol: float = 0.02
     seed: int = 0
     # diffusion backend (see sgpor_pipeline.removal.diffusion); "" = $SGPOR_DIFFUSION_MODEL

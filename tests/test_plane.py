@@ -289,12 +289,13 @@ def test_contact_shading_finds_the_objects_contact_shadow_and_only_it():
         assert after < 0.6 * before, (before, after)
 
 
-def test_inpaint_stage_lifts_the_contact_shadow_in_every_view(tmp_path):
-    """inpaint.lift_shadow on the box scene with its contact shadow (holes: what no view sees; the
-    rest of the masks shows the floor as another view saw it, shadow included): the plane texture is
-    relit before its fill, every view's pixels on the floor near the box are relit (closer to the
-    truth), the pixels relit outside the holes are listed in relit/ and the refine stage passes them
-    on."""
+@pytest.mark.parametrize("shadow", ["contact", "cast"])
+def test_inpaint_stage_lifts_the_objects_shadow_in_every_view(tmp_path, shadow):
+    """inpaint.lift_shadow (default "cast") on the box scene whose photos carry its shadow (holes: what
+    no view sees; the rest of the masks shows the floor as another view saw it, shadow included): the
+    plane texture is relit before its fill, every view's pixels on the floor near the box are relit
+    (closer to the truth), the pixels relit outside the holes are listed in relit/ and the refine
+    stage passes them on. With a hard shadow found, what the box stood on is refilled too."""
     import json
 
     from sgpor_pipeline.dag import StageContext
@@ -305,17 +306,18 @@ def test_inpaint_stage_lifts_the_contact_shadow_in_every_view(tmp_path):
     from sgpor_pipeline.stages.refine import RefineParams, RefineStage
     from sgpor_pipeline.synthetic import SceneParams, generate_scene
 
-    sc = generate_scene(SceneParams(seed=2, object_kind="box", object_shadow="contact", n_views=8, width=256,
-                                    height=192))
+    sc = generate_scene(SceneParams(seed=0 if shadow == "cast" else 2, object_kind="box", object_shadow=shadow,
+                                    n_views=8, width=256, height=192))
     remove = write_remove_fixture(sc, tmp_path / "remove", holes="unseen")
     holes = [read_mask(remove / "holes" / f"{c.name}.png") for c in sc.cameras]
-    ctx = StageContext.standalone(tmp_path / "lift", "inpaint", InpaintParams(lift_shadow="contact"),
-                                  {"remove": remove})
+    ctx = StageContext.standalone(tmp_path / "lift", "inpaint", InpaintParams(), {"remove": remove})
     InpaintStage().run(ctx)
     report = json.loads((ctx.out_dir / "inpaint.json").read_text())
-    shadow = report["plane"]["shadow"]
-    assert 0.2 < shadow["strength"] < 0.6, shadow
+    found = report["plane"]["shadow"]
+    assert 0.2 < found["strength"] < 0.7, found
     assert (ctx.out_dir / "plane" / "shading.png").is_file()
+    assert ("cast" in found) == (shadow == "cast"), found
+    assert (ctx.out_dir / "plane" / "under.png").is_file() == (shadow == "cast")
     assert sum(v["relit"] for v in report["views"].values()) > 500
     err_before, err_after = [], []
     for i, cam in enumerate(sc.cameras):
@@ -331,9 +333,10 @@ def test_inpaint_stage_lifts_the_contact_shadow_in_every_view(tmp_path):
     RefineStage().run(refine)
     assert sorted(p.name for p in (refine.out_dir / "relit").iterdir()) == sorted(
         p.name for p in (ctx.out_dir / "relit").iterdir())
-    with pytest.raises(PipelineError, match="lift_shadow"):
-        InpaintStage().run(StageContext.standalone(tmp_path / "bad", "inpaint", InpaintParams(lift_shadow="soft"),
-                                                   {"remove": remove}))
+    if shadow == "contact":
+        with pytest.raises(PipelineError, match="lift_shadow"):
+            InpaintStage().run(StageContext.standalone(tmp_path / "bad", "inpaint",
+                                                       InpaintParams(lift_shadow="soft"), {"remove": remove}))
 
 
 def test_contact_shading_finds_the_objects_cast_shadow_when_asked():

@@ -445,6 +445,7 @@ class ContactShading:
     """How the removed object darkened the plane around it (:func:`contact_shading`)."""
 
     factor: np.ndarray  # [H, W] float32 in (0, 1]: the texture = albedo x factor (1 away from the object)
+    under: np.ndarray  # [H, W] bool: the object's silhouette on the texture (its hull seen straight down)
     info: dict[str, Any] = field(default_factory=dict)
 
 
@@ -562,7 +563,7 @@ def contact_shading(texture: PlaneTexture, cameras: list[Camera], masks: list[np
         info["explained"] = explained
     info.update(strength=k, mean_gain=float(np.mean(1.0 / factor[fit & (ao > 0.05)])),
                 max_gain=float(1.0 / factor.min()))
-    return ContactShading(factor, info), ""
+    return ContactShading(factor, under, info), ""
 
 
 def _fit_cast(hull: StandingHull, texel: float, reach: float, params: PlaneParams, k_ambient: float,

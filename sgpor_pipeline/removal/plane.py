@@ -548,7 +548,8 @@ def contact_shading(texture: PlaneTexture, cameras: list[Camera], masks: list[np
     explained = 1.0 - float(cost.min() / max(cost[0], 1e-12))
     info.update(groups=int(group.max() + 1), explained=explained)
     cast = None
-    if params.lift_cast:
+    # (a hard shadow next to the object darkens where its occlusion does too: without that, no search)
+    if params.lift_cast and explained >= params.shading_evidence:
         cast = _fit_cast(hull, grid_texel, reach, params, k, occ, lum, group, middle, mx, my, fit, float(cost.min()))
         if cast is not None:
             info["cast"] = {kk: v for kk, v in cast.items() if kk != "map"}

@@ -23,6 +23,12 @@ filled once, in its own frame:
    true scale) and :func:`sample_into_view` carries the filled texture into each view's hole
    pixels that lie on the plane (depths within ``depth_tol``), low-pass filtered to the view's
    footprint so far views do not alias.
+5. :func:`contact_shading` (the inpaint stage's ``lift_shadow``): how the object darkened the plane
+   around it, from its visual hull over the plane (:func:`hull_columns`): its ambient occlusion
+   (:func:`ambient_occlusion`) and, optionally, its hard shadow under one light (:func:`hull_shadow`,
+   direction searched), each scaled by a share of the light fitted to the texture's colour groups.
+   The caller divides it out of the texture before the fill and out of every view's pixels on the
+   plane (:func:`shading_into_view`).
 """
 
 from __future__ import annotations

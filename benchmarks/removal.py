@@ -196,10 +196,12 @@ Protocols:
     (without a shadow, synthetic-box: 28.77 / 28.67, as before: no shadow is found there). The occlusion's share
     of the light is fitted at 0.52 on both with ``contact``; ``cast`` finds 0.45 of ambient and 0.55 of
     key light at 50 degrees elevation (the floor's ambient and fill light are about 0.45 of its light).
-    Fit seeds 0 / 1 / 2 on contact, ``contact``: ours 24.32 / 25.80 / 24.89, no-sbm 24.66 / 26.23 /
-    24.82. The fill of the floor under the box
-    (34 % of the mask) is what separates the scenes: SBM's moves by +-0.5 dB with any change of its
-    sources, so the whole-mask differences of ours within a column are mostly that.
+    Fit seeds 0 / 1 / 2: contact, lifted: ours 24.32 / 25.80 / 24.89 (mean 25.01), no-sbm 24.66 / 26.23
+    / 24.82 (25.23); left in: ours 24.49 / 25.65 / 25.06 (25.07), no-sbm 24.36 / 25.89 / 24.86 (25.04).
+    cast, lifted (default): ours 23.68 / 23.26 / 24.33 (23.75), no-sbm 25.15 / 25.02 / 24.43 (24.87);
+    left in: ours 20.21 / 20.21 / 20.28 (20.23), no-sbm 20.54 / 20.42 / 20.55 (20.51). The fill of the
+    floor under the box (34 % of the mask) is what separates the scenes: SBM's moves by +-0.5 dB with
+    any change of its sources, so the whole-mask differences of ours within a column are mostly that.
 (b) ``lund``: a synthetic object inserted into the real lund photos. First our SfM runs on the
     untouched photos at full size (pipeline until ``sfm``; with ``ingest.max_size`` 160 only 2, with
     640 only 15 of the 29 photos register); its undistorted PINHOLE images are then downscaled to 320 px (240 px

@@ -264,6 +264,16 @@ def _box_texture(shadow: str, seed: int = 2, n_views: int = 12, width: int = 128
     return sc, texture
 
 
+def assert_relit_closer(tex, factor: np.ndarray, truth: np.ndarray, below: float, texels: int, ratio: float):
+    """On the seen texels whose factor is under ``below`` (at least ``texels`` of them), the texture
+    divided by the factor is closer to the truth's texture than ``ratio`` x the texture as seen."""
+    band = tex.seen & (factor < below)
+    assert band.sum() > texels
+    before = np.abs(tex.image - truth)[band].mean()
+    after = np.abs(tex.image / factor[..., None] - truth)[band].mean()
+    assert after < ratio * before, (before, after)
+
+
 def test_contact_shading_finds_the_objects_contact_shadow_and_only_it():
     """On the synthetic box scene whose photos carry the box's ambient occlusion ("contact"), the
     fitted strength is near the scene's ambient share of the light, and the texture divided by the
@@ -281,12 +291,7 @@ def test_contact_shading_finds_the_objects_contact_shadow_and_only_it():
         assert shading is not None, why
         # the floor's light: ambient 0.3 and fill 0.2 x 0.6 under the occlusion, of about 0.95 in all
         assert 0.25 < shading.info["strength"] < 0.6, shading.info
-        truth = texture(sc.images_gt).image
-        band = tex.seen & (shading.factor < 0.95)
-        assert band.sum() > 100
-        before = np.abs(tex.image - truth)[band].mean()
-        after = np.abs(tex.image / shading.factor[..., None] - truth)[band].mean()
-        assert after < 0.6 * before, (before, after)
+        assert_relit_closer(tex, shading.factor, texture(sc.images_gt).image, below=0.95, texels=100, ratio=0.6)
 
 
 @pytest.mark.parametrize("shadow", ["contact", "cast"])
@@ -353,12 +358,7 @@ def test_contact_shading_finds_the_objects_cast_shadow_when_asked():
     assert shading is not None and "cast" in shading.info, (why, shading and shading.info)
     cast = shading.info["cast"]
     assert 0.35 < cast["strength"] < 0.75 and 0.2 < cast["ambient"] < 0.65, cast
-    truth = texture(sc.images_gt).image
-    band = tex.seen & (shading.factor < 0.8)
-    assert band.sum() > 30
-    before = np.abs(tex.image - truth)[band].mean()
-    after = np.abs(tex.image / shading.factor[..., None] - truth)[band].mean()
-    assert after < 0.5 * before, (before, after)
+    assert_relit_closer(tex, shading.factor, texture(sc.images_gt).image, below=0.8, texels=30, ratio=0.5)
     sc, texture = _box_texture("contact", seed=0)
     shading, _ = contact_shading(texture(sc.images), sc.cameras, list(sc.masks), params)
     assert shading is not None and "cast" not in shading.info, shading.info

@@ -71,7 +71,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-import cv2
 import numpy as np
 
 from sgpor_pipeline.config import added_param
@@ -100,6 +99,7 @@ from sgpor_pipeline.removal.plane import (
     PLANE_NAME,
     PlaneParams,
     contact_shading,
+    grown,
     plane_texture,
     sample_into_view,
     shading_into_view,
@@ -504,14 +504,15 @@ class InpaintStage(Stage):
             """The plane under the thick planar parts as one texture, its hole filled (see
             :mod:`sgpor_pipeline.removal.plane`); plane.json says why not when the parts are not one plane."""
             t0 = time.perf_counter()
+            pp = p.plane()
             tex, why = plane_texture([v.camera for v in data.views], [v.context() for v in data.views],
                                      [~h for h in holes], [v.depth() for v in data.views], thick,
-                                     p.plane(), p.depth_tol, under=under)
+                                     pp, p.depth_tol, under=under)
             info: dict[str, Any] = {"built": tex is not None, "reason": why}
             if tex is not None:
-                if p.plane().lift_shadow:
+                if pp.lift_shadow:
                     shading, why_not = contact_shading(tex, [v.camera for v in data.views],
-                                                       [v.mask() for v in data.views], p.plane())
+                                                       [v.mask() for v in data.views], pp)
                     info["shadow"] = shading.info if shading is not None else {"reason": why_not}
                     if shading is not None:
                         write_png(folder / "texture_as_seen.png", tex.image)
@@ -523,9 +524,7 @@ class InpaintStage(Stage):
                         # occlusion alone it is kept: synthetic-box-contact ours 24.32 -> 23.95 refilled
                         # (no-sbm 24.66 -> 26.04); synthetic-box-cast ours 21.30 -> 23.68, no-sbm 22.00 -> 25.15
                         if under is None and "cast" in shading.info:
-                            r = int(round(p.plane().shadow_grow * max(tex.image.shape[:2])))
-                            k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2)
-                            below = cv2.dilate(shading.under.astype(np.uint8), k) > 0
+                            below = grown(shading.under, pp.shadow_grow)
                             write_mask01(folder / "under.png", below)
                             info["shadow"]["under_texels"] = int((below & tex.seen).sum())
                             tex.hole |= below

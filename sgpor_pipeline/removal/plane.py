@@ -196,6 +196,16 @@ def fit_hole_plane(cameras: list[Camera], depths: list[np.ndarray], parts: list[
     return (plane, distance, pts, pview), ""
 
 
+def grown(mask: np.ndarray, grow: float) -> np.ndarray:
+    """``mask`` (HxW) as bool, dilated by a disc of radius ``grow`` x its longer side (rounded to pixels):
+    the object's silhouette on the plane with a margin for its contact shadow."""
+    r = int(round(grow * max(mask.shape)))
+    if r <= 0:
+        return np.asarray(mask, bool)
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2)
+    return cv2.dilate(np.asarray(mask, np.uint8), k) > 0
+
+
 def plane_texture(cameras: list[Camera], images: list[np.ndarray], knowns: list[np.ndarray],
                   depths: list[np.ndarray], parts: list[np.ndarray], params: PlaneParams,
                   depth_tol: float = 0.02, under: tuple[Camera, np.ndarray] | None = None
@@ -265,11 +275,7 @@ def plane_texture(cameras: list[Camera], images: list[np.ndarray], knowns: list[
         upx, _, uin = ucam.pixels(world)
         flat = np.zeros(h * w, bool)
         flat[uin] = np.asarray(sil, bool)[upx[uin, 1], upx[uin, 0]]
-        blocked = flat.reshape(h, w)
-        r = int(round(params.shadow_grow * max(h, w)))
-        if r > 0:
-            k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2)
-            blocked = cv2.dilate(blocked.astype(np.uint8), k) > 0
+        blocked = grown(flat.reshape(h, w), params.shadow_grow)
         seen &= ~blocked
         best_view[blocked.ravel()] = -1
     # the holes' footprint: the lifted hole points, splatted and closed over the gaps between them
@@ -676,9 +682,7 @@ def under_object(cameras: list[Camera], masks: list[np.ndarray], holes: list[np.
     if hull is None:
         return None, why
     sil, height, standing = hull.silhouette, hull.height, hull.standing
-    r = int(round(grow * max(vcam.width, vcam.height)))
-    if r > 0:
-        sil = cv2.dilate(sil.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2)) > 0
+    sil = grown(sil, grow)
     pixels = []
     for cam, mask, hole, depth in zip(cameras, masks, holes, depths):
         out = np.zeros(mask.shape, bool)

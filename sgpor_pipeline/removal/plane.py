@@ -540,29 +540,17 @@ def contact_shading(texture: PlaneTexture, cameras: list[Camera], masks: list[np
                             "max_occlusion": float(ao.max()), "strength": 0.0}
     if (fit & (ao > 0.05)).sum() < 50:
         return None, f"the object's occlusion reaches only {int((fit & (ao > 0.05)).sum())} seen texels"
-    img = np.clip(texture.image[fit], 1.0 / 255.0, None).astype(np.float64)
-    total = img.sum(axis=1)
-    bins = np.floor(img[:, :2] / total[:, None] / params.shading_chroma).astype(np.int64)
-    group = np.unique(bins[:, 0] * 100_000 + bins[:, 1], return_inverse=True)[1].ravel()
-    starts = np.searchsorted(np.sort(group), np.arange(group.max() + 1))
-    ends = np.searchsorted(np.sort(group), np.arange(group.max() + 1), side="right")
-    middle = (starts + ends - 1) // 2
-    lum, occ = np.log(total / 3.0), ao[fit].astype(np.float64)
-
-    def scatter(k: float) -> float:
-        r = lum - np.log(1.0 - k * occ)
-        order = np.lexsort((r, group))
-        return float(np.abs(r - r[order][middle][group]).sum())
-
+    groups = _ColourGroups(texture.image[fit], params.shading_chroma)
+    occ = ao[fit].astype(np.float64)
     ks = np.linspace(0.0, params.shading_max, 91)
-    cost = np.array([scatter(k) for k in ks])
+    cost = np.array([groups.scatter(1.0 - k * occ) for k in ks])
     k = float(ks[int(np.argmin(cost))])
     explained = 1.0 - float(cost.min() / max(cost[0], 1e-12))
-    info.update(groups=int(group.max() + 1), explained=explained)
+    info.update(groups=groups.count, explained=explained)
     cast = None
     # (a hard shadow next to the object darkens where its occlusion does too: without that, no search)
     if params.lift_cast and explained >= params.shading_evidence:
-        cast = _fit_cast(hull, grid_texel, reach, params, k, occ, lum, group, middle, mx, my, fit, float(cost.min()))
+        cast = _fit_cast(hull, grid_texel, reach, params, k, occ, groups, mx, my, fit, float(cost.min()))
         if cast is not None:
             info["cast"] = {kk: v for kk, v in cast.items() if kk != "map"}
             explained = 1.0 - cast["cost"] / max(cost[0], 1e-12)
@@ -579,9 +567,37 @@ def contact_shading(texture: PlaneTexture, cameras: list[Camera], masks: list[np
     return ContactShading(factor, under, info), ""
 
 
+class _ColourGroups:
+    """Texels grouped by chromaticity (r, g over r + g + b, in bins ``chroma`` wide): a shadow dims a
+    colour without changing its hue, so each group has one albedo, its median."""
+
+    def __init__(self, colours: np.ndarray, chroma: float):
+        img = np.clip(colours, 1.0 / 255.0, None).astype(np.float64)
+        total = img.sum(axis=1)
+        bins = np.floor(img[:, :2] / total[:, None] / chroma).astype(np.int64)
+        self.group = np.unique(bins[:, 0] * 100_000 + bins[:, 1], return_inverse=True)[1].ravel()
+        self.count = int(self.group.max() + 1)
+        ordered = np.sort(self.group)
+        starts = np.searchsorted(ordered, np.arange(self.count))
+        ends = np.searchsorted(ordered, np.arange(self.count), side="right")
+        self.middle = (starts + ends - 1) // 2  # each group's median, in (group, value) order
+        self.lum = np.log(total / 3.0)
+
+    def albedo(self, factor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(log luminance with the shading ``factor`` divided out, its group's median) per texel."""
+        r = self.lum - np.log(factor)
+        order = np.lexsort((r, self.group))
+        return r, r[order][self.middle][self.group]
+
+    def scatter(self, factor: np.ndarray) -> float:
+        """The L1 scatter of the log luminance, ``factor`` divided out, around the groups' medians."""
+        r, median = self.albedo(factor)
+        return float(np.abs(r - median).sum())
+
+
 def _fit_cast(hull: StandingHull, texel: float, reach: float, params: PlaneParams, k_ambient: float,
-              occ: np.ndarray, lum: np.ndarray, group: np.ndarray, middle: np.ndarray, mx: np.ndarray,
-              my: np.ndarray, fit: np.ndarray, ambient_cost: float) -> dict[str, Any] | None:
+              occ: np.ndarray, groups: _ColourGroups, mx: np.ndarray, my: np.ndarray, fit: np.ndarray,
+              ambient_cost: float) -> dict[str, Any] | None:
     """The object's hard shadow under one light (:func:`hull_shadow`): its direction searched over a
     grid of azimuths and elevations, on a coarse copy of the hull, and its share of the light, by the
     same grouped L1 scatter as the occlusion; then both shares refined together. None unless the
@@ -597,9 +613,7 @@ def _fit_cast(hull: StandingHull, texel: float, reach: float, params: PlaneParam
         return soft[fit].astype(np.float64)
 
     def scatter(ka: float, ks: float, sh: np.ndarray) -> float:
-        r = lum - np.log(np.clip(1.0 - ka * occ - ks * sh, 0.05, None))
-        order = np.lexsort((r, group))
-        return float(np.abs(r - r[order][middle][group]).sum())
+        return groups.scatter(np.clip(1.0 - ka * occ - ks * sh, 0.05, None))
 
     best: tuple[float, float, float, float] | None = None  # cost, azimuth, elevation, share
     shares = np.linspace(0.1, params.shading_max, 9)
@@ -627,10 +641,8 @@ def _fit_cast(hull: StandingHull, texel: float, reach: float, params: PlaneParam
     shadow_map = cv2.remap(full.astype(np.float32), mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
     # The hull is larger than the object, and so is its shadow: on the seen texels keep it only where
     # the texel is darker than its colour group by at least half the shadow's drop
-    r = lum - np.log(np.clip(1.0 - ka * occ - ks * sh, 0.05, None))
-    order = np.lexsort((r, group))
-    albedo = r[order][middle][group]
-    drop = lum - np.log(np.clip(1.0 - ka * occ, 0.05, None)) - albedo
+    albedo = groups.albedo(np.clip(1.0 - ka * occ - ks * sh, 0.05, None))[1]
+    drop = groups.lum - np.log(np.clip(1.0 - ka * occ, 0.05, None)) - albedo
     seen_map = shadow_map[fit]
     seen_map[drop > 0.5 * np.log(1.0 - ks)] = 0.0
     shadow_map[fit] = seen_map

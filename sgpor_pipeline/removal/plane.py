@@ -392,35 +392,47 @@ def hemisphere(n: int) -> np.ndarray:
     return np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(1.0 - r * r)], axis=1)
 
 
+def _around(hull: StandingHull, texel: float, reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, columns) of the grid's texels outside the silhouette within ``reach`` (world units) of it."""
+    outside = ~hull.silhouette
+    near = cv2.distanceTransform(outside.astype(np.uint8), cv2.DIST_L2, 5) * texel <= reach
+    return np.nonzero(near & outside)
+
+
+def _meets_hull(hull: StandingHull, texel: float, reach: float, ys: np.ndarray, xs: np.ndarray,
+                direction: np.ndarray) -> np.ndarray:
+    """[n] bool: whether ``direction`` (unit, z up the normal, c > 0), marched from the texels (``ys``,
+    ``xs``) on the plane a texel or a level at a time, meets the hull before it passes over the object
+    or leaves ``reach``."""
+    cols = hull.columns
+    levels, h, w = cols.shape
+    dz = hull.top / levels
+    a, b, c = (float(v) for v in direction)
+    horiz = float(np.hypot(a, b))
+    t_max = min(hull.height / max(c, 1e-6), reach / max(horiz, 1e-6))
+    dt = min(texel / max(horiz, 1e-6), dz / max(c, 1e-6))
+    t = dt * (np.arange(int(np.ceil(t_max / dt))) + 1.0)
+    u = np.rint(xs[:, None] + (t * a / texel)[None]).astype(np.int64)
+    v = np.rint(ys[:, None] + (t * b / texel)[None]).astype(np.int64)
+    lev = np.broadcast_to(np.minimum((t * c / dz).astype(np.int64), levels - 1)[None], u.shape)
+    ok = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    blocked = np.zeros(u.shape, bool)
+    blocked[ok] = cols[lev[ok], v[ok], u[ok]]
+    return blocked.any(1)
+
+
 def ambient_occlusion(hull: StandingHull, texel: float, reach: float, directions: int = 64) -> np.ndarray:
     """[H, W] float32: the cosine-weighted fraction of the sky over each texel of the plane (outside the
     silhouette, within ``reach`` of it; world units) that the object's hull hides. The hull grid is
     the columns' (``texel`` world units per texel, ``hull.top`` / levels per level); each direction
     is marched a texel or a level at a time until it passes over the object or leaves ``reach``."""
-    cols = hull.columns
-    levels, h, w = cols.shape
-    dz = hull.top / levels
-    outside = (~hull.silhouette).astype(np.uint8)
-    near = cv2.distanceTransform(outside, cv2.DIST_L2, 5) * texel <= reach
-    ys, xs = np.nonzero(near & ~hull.silhouette)
-    ao = np.zeros((h, w), np.float32)
+    ao = np.zeros(hull.silhouette.shape, np.float32)
+    ys, xs = _around(hull, texel, reach)
     if not len(ys):
         return ao
     hit = np.zeros(len(ys), np.float32)
-    for a, b, c in hemisphere(directions):
-        horiz = float(np.hypot(a, b))
-        t_max = min(hull.height / max(c, 1e-6), reach / max(horiz, 1e-6))
-        dt = min(texel / max(horiz, 1e-6), dz / max(c, 1e-6))
-        t = dt * (np.arange(int(np.ceil(t_max / dt))) + 1.0)
-        if not len(t):
-            continue
-        u = np.rint(xs[:, None] + (t * a / texel)[None]).astype(np.int64)
-        v = np.rint(ys[:, None] + (t * b / texel)[None]).astype(np.int64)
-        lev = np.minimum((t * c / dz).astype(np.int64), levels - 1)[None].repeat(len(ys), 0)
-        ok = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        blocked = np.zeros(u.shape, bool)
-        blocked[ok] = cols[lev[ok], v[ok], u[ok]]
-        hit += blocked.any(1)
+    for d in hemisphere(directions):
+        hit += _meets_hull(hull, texel, reach, ys, xs, d)
     ao[ys, xs] = hit / directions
     return ao
 
@@ -429,26 +441,10 @@ def hull_shadow(hull: StandingHull, texel: float, reach: float, direction: np.nd
     """[H, W] bool: the texels of the plane (outside the silhouette, within ``reach`` of it) from which
     ``direction`` (unit, in the grid's frame: x, y along its image axes, z up the normal) meets the
     object's hull: its hard shadow under a light that way."""
-    cols = hull.columns
-    levels, h, w = cols.shape
-    dz = hull.top / levels
-    a, b, c = (float(v) for v in direction)
-    near = cv2.distanceTransform((~hull.silhouette).astype(np.uint8), cv2.DIST_L2, 5) * texel <= reach
-    ys, xs = np.nonzero(near & ~hull.silhouette)
-    out = np.zeros((h, w), bool)
-    horiz = float(np.hypot(a, b))
-    if not len(ys) or c <= 0:
-        return out
-    t_max = min(hull.height / c, reach / max(horiz, 1e-6))
-    dt = min(texel / max(horiz, 1e-6), dz / c)
-    t = dt * (np.arange(int(np.ceil(t_max / dt))) + 1.0)
-    u = np.rint(xs[:, None] + (t * a / texel)[None]).astype(np.int64)
-    v = np.rint(ys[:, None] + (t * b / texel)[None]).astype(np.int64)
-    lev = np.broadcast_to(np.minimum((t * c / dz).astype(np.int64), levels - 1)[None], u.shape)
-    ok = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    blocked = np.zeros(u.shape, bool)
-    blocked[ok] = cols[lev[ok], v[ok], u[ok]]
-    out[ys, xs] = blocked.any(1)
+    out = np.zeros(hull.silhouette.shape, bool)
+    ys, xs = _around(hull, texel, reach)
+    if len(ys) and direction[2] > 0:
+        out[ys, xs] = _meets_hull(hull, texel, reach, ys, xs, direction)
     return out
 
 
@@ -521,7 +517,8 @@ def contact_shading(texture: PlaneTexture, cameras: list[Camera], masks: list[np
     reach = params.shading_reach * hull.height
     grid_texel = height / grid.K[0, 0]
     ao_grid = ambient_occlusion(hull, grid_texel, reach)
-    near_grid = cv2.distanceTransform((~hull.silhouette).astype(np.uint8), cv2.DIST_L2, 5) * grid_texel <= reach
+    near_grid = np.zeros(hull.silhouette.shape, bool)
+    near_grid[_around(hull, grid_texel, reach)] = True
     # onto the texture's texels (the cameras share their axes and height)
     ty, tx = np.mgrid[0:h, 0:w]
     uv, _ = grid.project(texture.camera.unproject(ty.ravel(), tx.ravel(), np.full(h * w, height)))

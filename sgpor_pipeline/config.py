@@ -159,13 +159,21 @@ def resolve_config(
     config_file: Path | None = None,
     overrides: list[str] | tuple[str, ...] = (),
 ) -> dict[str, Any]:
-    """Defaults, then the TOML file, then ``stage.field=value`` overrides."""
+    """Defaults, then the TOML file, then ``stage.field=value`` overrides. A file value that an
+    override replaces is never read, so ``--set`` can repair a bad value in a saved config."""
     config = {name: tp() for name, tp in param_types.items()}
     valid_stages = ", ".join(sorted(param_types))
 
     def check_stage(stage: str, source: str) -> None:
         if stage not in config:
             raise PipelineError(f"unknown stage '{stage}'", path=source, fix=f"valid stages: {valid_stages}")
+
+    overridden = set()
+    for item in overrides:
+        key, sep, _ = item.partition("=")
+        stage, dot, field = key.strip().partition(".")
+        if sep and dot:
+            overridden.add((stage.strip(), field.strip()))
 
     if config_file is not None:
         config_file = Path(config_file)
@@ -182,10 +190,12 @@ def resolve_config(
             if not isinstance(table, dict):
                 raise PipelineError(f"'{stage}' must be a table ([{stage}])", path=config_file,
                                     fix=f"write the parameters under a [{stage}] header")
+            table = {k: v for k, v in table.items() if (stage, k) not in overridden}
             config[stage] = _apply(config[stage], stage, table, str(config_file))
     for item in overrides:
         key, sep, text = item.partition("=")
         stage, dot, field = key.strip().partition(".")
+        stage = stage.strip()
         if not sep or not dot:
             raise PipelineError(f"--set expects STAGE.PARAM=VALUE, got '{item}'",
                                 fix="for example --set fit.iterations=3000")

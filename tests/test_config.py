@@ -81,3 +81,14 @@ def test_bad_files(tmp_path):
         resolve_config(TYPES, bad)
     with pytest.raises(PipelineError, match="not found"):
         resolve_config(TYPES, tmp_path / "missing.toml")
+
+
+def test_set_repairs_a_bad_value_in_a_saved_file(tmp_path):
+    saved = tmp_path / "config.toml"
+    saved.write_text('[fit]\niterations = 3000\nmode = true\n')  # a value of the wrong type
+    with pytest.raises(PipelineError, match="fit.mode"):
+        resolve_config(TYPES, saved)
+    f = resolve_config(TYPES, saved, ["fit.mode=classic"])["fit"]
+    assert (f.mode, f.iterations) == ("classic", 3000)  # the override replaces it; the rest is read
+    with pytest.raises(PipelineError, match="fit.iterations"):  # a bad override is still refused
+        resolve_config(TYPES, saved, ["fit.mode=classic", "fit.iterations=lots"])

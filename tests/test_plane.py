@@ -171,6 +171,41 @@ def test_plane_texture_fills_what_lay_under_the_object(views):
     assert shadowed.info["under_object_texels"] > 0 and plain.info["under_object_texels"] == 0
 
 
+def test_the_texture_fill_is_not_continued_from_texels_no_view_saw(views):
+    """A ring of the floor around the common hole is hidden in every view but lies in no view's hole (as
+    the table around an object whose masks are dilated in every view). Those texels are only smoothed
+    context; filled with the hole (``fill_region``), their colour no longer leaks into the hole's fill."""
+    from sgpor_pipeline.removal.multiview import fill_view
+    from sgpor_pipeline.removal.sbm import SBMParams, build_source_bank
+
+    cams = [v[0] for v in views]
+    depths = [v[2] for v in views]
+    common = [disc_in_view(c, d, (0.0, 0.0), 0.25) for c, d in zip(cams, depths)]
+    hidden = [disc_in_view(c, d, (0.0, 0.0), 0.55) & ~h for c, d, h in zip(cams, depths, common)]
+    tex, why = plane_texture(cams, [v[1] for v in views], [~(h | r) for h, r in zip(common, hidden)], depths,
+                             common, PlaneParams(margin=2.0), depth_tol=0.01)
+    assert tex is not None, why
+    other = ~tex.seen & ~tex.hole
+    region = tex.fill_region(30)
+    assert (region >= tex.hole).all() and not (region & tex.seen).any()
+    assert (region & other).sum() > 0.3 * tex.hole.sum()  # the hidden ring next to the hole
+    assert tex.fill_region(0).sum() == tex.hole.sum()
+    far = tex.fill_region(3)
+    assert far.sum() < region.sum()  # only within the band
+    # the unseen texels' colour set to black: the hole's fill follows it only when they are its rim
+    image = tex.image.copy()
+    image[other] = 0.0
+    params = SBMParams()
+    hy, hx = np.nonzero(tex.hole)
+    truth = floor_colour(tex.camera.unproject(hy, hx, tex.depth[hy, hx]))
+    errors = []
+    for fill in (tex.hole, region):
+        bank = build_source_bank(["plane"], [image], [~tex.seen], [fill], params)
+        out = fill_view(image, fill, "sbm", bank, params)[0]
+        errors.append(float(np.abs(out[hy, hx] - truth).mean()))
+    assert errors[0] > 0.3 and errors[1] < 0.15, errors  # black from its rim / the floor's colours
+
+
 def cylinder_mask(cam: Camera, z0: float, z1: float, radius: float = 0.2) -> np.ndarray:
     """The pixels of a vertical cylinder (axis through the floor's origin, from z0 to z1) in a view:
     a dense sample of its surface splatted and closed."""

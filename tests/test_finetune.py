@@ -154,14 +154,16 @@ def test_focus_strategy_keeps_frozen_gaussians_through_a_rollback(tmp_path):
     assert changed(before, after)[trainable].mean() > 0.9
 
 
-def test_finetune_refits_the_pixels_the_inpaint_stage_relit(tmp_path):
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="needs a CUDA device"))])
+def test_finetune_refits_the_pixels_the_inpaint_stage_relit(tmp_path, device):
     """``refine/relit/<view>.png`` (inpaint.lift_shadow: a contact shadow lifted outside the holes):
     the Gaussians seen there are trained too, towards the relit colours; without it they keep their
-    values bit for bit."""
+    values bit for bit. On the CPU and, where there is one, on CUDA."""
     inputs = plane_inputs(tmp_path / "in")
     before = read_ply(inputs["remove"] / "gaussians.ply")
     cams = load_cameras(inputs["remove"] / "cameras.json")
-    _, plain, _ = run_finetune(tmp_path / "plain", inputs, iterations=200)
+    _, plain, _ = run_finetune(tmp_path / "plain", inputs, iterations=200, device=device)
     (inputs["refine"] / "relit").mkdir()
     for cam in cams:
         img = read_rgb8(inputs["refine"] / "images" / f"{cam.image}.png").astype(np.float32) / 255
@@ -170,7 +172,8 @@ def test_finetune_refits_the_pixels_the_inpaint_stage_relit(tmp_path):
         img[relit] = np.clip(img[relit] * 1.4, 0, 1)
         write_png(inputs["refine"] / "images" / f"{cam.image}.png", img)
         write_mask01(inputs["refine"] / "relit" / f"{cam.image}.png", relit)
-    info, after, out = run_finetune(tmp_path / "relit", inputs, iterations=200)  # (Adam's first steps wander)
+    info, after, out = run_finetune(tmp_path / "relit", inputs, iterations=200, device=device)  # (Adam wanders first)
+    assert info["device"].startswith(device)
     corner = render_view(before, cams[0], backend="torch").numpy()[2:12, 2:20]
     now = read_rgb8(out / "renders" / f"{cams[0].image}.png")[2:12, 2:20] / 255
     assert now.mean() > corner.mean() + 0.05  # brighter, towards the relit target

@@ -130,8 +130,13 @@ class RemoveStage(Stage):
         second_pass = p.min_views > 0 and p.hole_mode == "unseen"
         if second_pass:  # mask pixels that too few other views observed become holes too
             seen = [m & ~h for m, h in zip(masks, holes)]
-            counts = observing_views(cameras, masks, depths, seen, p)
+            photos = [self._photo(sfm, cam, p) for cam in cameras] if p.max_disagreement > 0 else None
+            counts, disagree = observing_views(cameras, masks, depths, seen, p, renders if photos else None, photos)
             unobserved = [s & (c < p.min_views) for s, c in zip(seen, counts)]
+            if disagree is not None:  # (NaN: no photo shows the point; compares False)
+                stats["disagreeing_pixels"] = int(sum(int((s & (d > p.max_disagreement)).sum())
+                                                      for s, d in zip(seen, disagree)))
+                unobserved = [u | (s & (d > p.max_disagreement)) for u, s, d in zip(unobserved, seen, disagree)]
             holes = [hole_mask(m, a, p, u) for m, a, u in zip(masks, alphas, unobserved)]
         observed = [(a >= p.hole_alpha) & ~h for a, h in zip(alphas, holes)]  # background each view saw
         if second_pass:

@@ -281,6 +281,29 @@ def test_hole_rim_outside_the_mask():
     assert (off == inside).all()
 
 
+def test_disagreement_flags_a_misplaced_background_only(scene_and_model):
+    """The render behind the object, checked against what the other views' photos show at its points:
+    the true background (images_gt) agrees with them; the same background shifted by 12 px (the fit's
+    geometry misplaced) does not. Without photos nothing is compared."""
+    scene, _, _ = scene_and_model
+    masks, depths = list(scene.masks), list(scene.depth_gt)
+    params = RemoveParams(min_views=1, view_mask_dilate=1)
+    photos = list(scene.images)
+    _, right = observing_views(scene.cameras, masks, depths, masks, params, list(scene.images_gt), photos)
+    shifted = [np.roll(im, 12, axis=1) for im in scene.images_gt]
+    _, wrong = observing_views(scene.cameras, masks, depths, masks, params, shifted, photos)
+    r = np.concatenate([d[m] for d, m in zip(right, masks)])
+    w = np.concatenate([d[m] for d, m in zip(wrong, masks)])
+    assert np.isnan(np.concatenate([d[~m] for d, m in zip(right, masks)])).all()
+    seen = ~np.isnan(r)
+    assert seen.sum() > 100 and (np.isnan(w) == ~seen).all()  # the same points are compared
+    assert np.median(r[seen]) < 0.03 and np.mean(r[seen] > 0.15) < 0.01, (np.median(r[seen]), np.mean(r[seen] > 0.15))
+    # (right: mean 0.027, 0.04 % above 0.15; shifted: mean 0.077, 21 % above 0.15)
+    assert np.mean(w[seen]) > 2 * np.mean(r[seen]) and np.mean(w[seen] > 0.15) > 0.1
+    counts, none = observing_views(scene.cameras, masks, depths, masks, params)
+    assert none is None and all((c[m] > 0).mean() > 0.3 for c, m in zip(counts, masks) if m.any())
+
+
 def test_observing_views_finds_the_background_no_other_view_saw(scene_and_model):
     """With the true background depths: mask pixels whose background point is the floor under the
     object (inside its footprint) are observed by no other view, the rest of the mask by some."""
@@ -289,7 +312,7 @@ def test_observing_views_finds_the_background_no_other_view_saw(scene_and_model)
     masks, depths = list(scene.masks), list(scene.depth_gt)
     params = RemoveParams(min_views=1, view_mask_dilate=1)
     under, elsewhere = [], []
-    counts = observing_views(scene.cameras, masks, depths, masks, params)
+    counts, _ = observing_views(scene.cameras, masks, depths, masks, params)
     for i, cam in enumerate(scene.cameras):
         ys, xs = np.nonzero(masks[i])
         if len(ys) == 0:

@@ -121,6 +121,13 @@ class RemoveParams:
     # tolerance 0.01 / 0.02 / 0.03 / 0.05: box recall 1.00 / 0.99 / 0.97 / 0.91, sphere precision
     # 0.22 / 0.27 / 0.30 / 0.31)
     view_depth_tol: float = 0.02
+    # A mask pixel whose background other views saw is a hole all the same when the render there
+    # disagrees with what those views' photos show at its point (lifted with the completed depth): the
+    # median over them of the mean absolute RGB difference, both blurred, above this (0 = off). The fit's
+    # background behind the object is only as good as its geometry: where it is misplaced or smeared,
+    # the views that saw the point show something else, and a fill pinned to the photo around the mask
+    # is better.
+    max_disagreement: float = added_param(0.0)
     view_mask_dilate: int = 2  # px: other views' object masks are dilated by this (their edge pixels mix)
     # Hole depths completed view by view, smallest hole first, each constrained by the hole surfaces
     # already completed (one surface for what no photo saw, so the views' fills and seeds agree; see
@@ -269,26 +276,44 @@ def hole_mask(object_mask: np.ndarray, alpha: np.ndarray, params: RemoveParams,
     return hole
 
 
+DISAGREEMENT_BLUR = 1.5  # px: renders are smoother than photos; compare both blurred
+
+
+def _blurred(img: np.ndarray | None) -> np.ndarray | None:
+    return None if img is None else cv2.GaussianBlur(np.asarray(img, np.float32), (0, 0), DISAGREEMENT_BLUR)
+
+
 def observing_views(cameras: list[Camera], masks: list[np.ndarray], depths: list[np.ndarray],
-                    pixels: list[np.ndarray], params: RemoveParams) -> list[np.ndarray]:
+                    pixels: list[np.ndarray], params: RemoveParams, renders: list[np.ndarray] | None = None,
+                    photos: list[np.ndarray | None] | None = None
+                    ) -> tuple[list[np.ndarray], list[np.ndarray] | None]:
     """Per view i, for its ``pixels[i]`` (HxW bool): how many OTHER views show the pixel's background
     point (lifted with ``depths[i]``): it projects inside their image, outside their (dilated) object
     mask, and not behind their own surface (``depths``: completed background z-depth of every view).
-    HxW int32 maps, 0 outside ``pixels``."""
+    Returns (HxW int32 maps, 0 outside ``pixels``; with ``renders`` and ``photos``, HxW float32 maps
+    of how far view i's render there is from what those views' photos show at the point: the median
+    over them of the mean absolute RGB difference, both blurred by ``DISAGREEMENT_BLUR`` px; NaN where
+    no view with a photo shows it, or outside ``pixels``)."""
     d = max(0, params.view_mask_dilate)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * d + 1, 2 * d + 1)) if d else None
     dilated = [m if kernel is None else cv2.dilate(m.astype(np.uint8), kernel) > 0 for m in masks]
-    counts = []
+    compare = renders is not None and photos is not None
+    blurred_photos = [_blurred(ph) for ph in photos] if compare else []
+    counts, disagreements = [], []
     for i, cam_i in enumerate(cameras):
         out = np.zeros(pixels[i].shape, np.int32)
         ys, xs = np.nonzero(pixels[i])
         counts.append(out)
+        dis = np.full(pixels[i].shape, np.nan, np.float32)
+        disagreements.append(dis)
         if len(ys) == 0:
             continue
         z = depths[i][ys, xs].astype(np.float64)
         good = np.isfinite(z) & (z > 0)
         X = cam_i.unproject(ys, xs, np.where(good, z, 1.0))
         count = np.zeros(len(ys), np.int32)
+        own = _blurred(renders[i])[ys, xs] if compare else None
+        diffs = []
         for j, cam in enumerate(cameras):
             if j == i:
                 continue
@@ -297,8 +322,16 @@ def observing_views(cameras: list[Camera], masks: list[np.ndarray], depths: list
             u, v = px[ok, 0], px[ok, 1]
             ok[ok] = ~dilated[j][v, u] & ~(zj[ok] > depths[j][v, u] * (1 + params.view_depth_tol))
             count += ok
+            if compare and blurred_photos[j] is not None and ok.any():
+                diff = np.full(len(ys), np.nan, np.float32)
+                diff[ok] = np.abs(blurred_photos[j][px[ok, 1], px[ok, 0]] - own[ok]).mean(axis=1)
+                diffs.append(diff)
         out[ys, xs] = count
-    return counts
+        if diffs:
+            stacked = np.stack(diffs)
+            seen_by = ~np.isnan(stacked).all(axis=0)
+            dis[ys[seen_by], xs[seen_by]] = np.nanmedian(stacked[:, seen_by], axis=0)
+    return counts, (disagreements if compare else None)
 
 
 def complete_depth(depth: np.ndarray, valid: np.ndarray, hole: np.ndarray,

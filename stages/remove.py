@@ -8,7 +8,9 @@ Out (the contract the inpaint and refine stages read):
   the photo outside the object mask dilated by ``context_margin`` px and the render inside, or the
   render alone,
 - ``holes/<view>.png``: 0/1, object pixels the remaining background does not cover (opacity below
-  ``hole_alpha``; with ``min_views`` > 0 also those fewer other views observed), and their rim: the
+  ``hole_alpha``; with ``min_views`` > 0 also those fewer other views observed, and, with
+  ``max_disagreement``, those whose render differs from what the views that observed them photographed
+  there), and their rim: the
   pixels within ``context_margin`` px outside the mask whose opacity is below ``rim_alpha``: what to
   inpaint,
 - ``masks/<view>.png``: 0/1 object mask of every view (from the masks stage); holes are inside it
@@ -22,8 +24,9 @@ Out (the contract the inpaint and refine stages read):
 - ``under_object/``, with ``under_object`` when it found the plane under the object: ``silhouette.png``,
   the object seen straight down that plane's normal by the camera in ``camera.json``,
 - ``remove.json``: counts (``hull_centres``: Gaussians deleted because no view shows their centre
-  outside its mask; with ``under_object``, ``under_object``: the mask pixels it made holes, or why
-  none) and per-view hole sizes (``hole_pixels_by_opacity``: before ``min_views``).
+  outside its mask; ``disagreeing_pixels``: the mask pixels ``max_disagreement`` made holes; with
+  ``under_object``, ``under_object``: the mask pixels it made holes, or why none) and per-view hole
+  sizes (``hole_pixels_by_opacity``: before ``min_views``).
 
 After a fit without the masked pixels (``fit.object_masks = "ignore"``) nothing is deleted by its object
 score: a Gaussian mostly inside the masks is then background that other views saw behind the object.
@@ -86,10 +89,11 @@ CONTEXTS = ("photos", "renders")
 
 class RemoveStage(Stage):
     name = "remove"
-    VERSION = 9  # 3: the hole-depth floor renders the object proper only (no floaters); 4: rim holes;
+    VERSION = 10  # 3: the hole-depth floor renders the object proper only (no floaters); 4: rim holes;
     # 5: rim holes with hole_mode mask too; 6: seeds behind the completed surface (seed_depth_offset 4);
     # 7: the median depth, and holes where no other view saw the background (min_views 1, tolerance 0.02);
-    # 8: DC colours clamped behind the masks (clamp_share); 9: seeds carved by the views that saw through them
+    # 8: DC colours clamped behind the masks (clamp_share); 9: seeds carved by the views that saw through them;
+    # 10: holes where the render disagrees with the photos that saw its point (max_disagreement)
     Params = RemoveStageParams
     inputs = ("sfm", "fit", "masks")
 

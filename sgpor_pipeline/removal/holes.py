@@ -133,7 +133,8 @@ class RemoveParams:
     # only 1.6 % of those pixels lie above 0.1. benchmarks/removal.py, mask PSNR of ours, fit.seed
     # 0 / 1 / 2 (x86_64_v4), off -> 0.15: lund + box 15.28 / 15.73 / 15.83 (mean 15.61) -> 15.61 / 16.02 /
     # 15.89 (15.84; fsr-refit 15.62 / 15.70 / 15.74, 15.69); synthetic-box 27.80 / 28.18 / 28.22 (28.07)
-    # -> 27.34 / 28.38 / 28.79 (28.17); synthetic (seed 0) 26.59 -> 26.60 (162 pixels flagged). At 0.1:
+    # -> 27.34 / 28.38 / 28.79 (28.17); synthetic (seed 0) 26.59 -> 26.60 (162 pixels flagged); statue +
+    # box (seed 0) 21.61 -> 21.58 (fsr-refit 20.40). At 0.1:
     # lund 15.81, synthetic-box 28.15, but synthetic 26.17.
     max_disagreement: float = 0.15
     view_mask_dilate: int = 2  # px: other views' object masks are dilated by this (their edge pixels mix)

@@ -304,8 +304,11 @@ def plane_texture(cameras: list[Camera], images: list[np.ndarray], knowns: list[
     image = colour.reshape(h, w, 3)
     other = ~seen & ~hole
     if other.any() and seen.any():  # harmless context (kept out of the source blocks by the caller)
+        # smoothed from the seen texels only: with the hole's texels (black) as known neighbours, the
+        # unseen texels beside it turned dark and the hole's fill continued them (mip360 kitchen)
         u8 = np.clip(image * 255 + 0.5, 0, 255).astype(np.uint8)
-        image = cv2.inpaint(u8, other.astype(np.uint8), 3, cv2.INPAINT_TELEA).astype(np.float32) / 255.0
+        image = cv2.inpaint(u8, (other | hole).astype(np.uint8), 3, cv2.INPAINT_TELEA).astype(np.float32) / 255.0
+        image[hole] = 0.0
     info = {"width": w, "height": h, "texel": height / vcam.K[0, 0], "height_above_plane": height,
             "rms_relative": plane.rms / height, "points": int(len(pts)), "inliers": int(len(plane.inliers)),
             "seen_texels": int(seen.sum()), "hole_texels": int(hole.sum()), "under_object_texels": int(blocked.sum()),

@@ -224,15 +224,6 @@ class InpaintParams:
     # No shadow is found, and nothing changes, on synthetic-box (whose rug under the box is darker than
     # the floor, but in another hue), mip360 kitchen and room.
     lift_shadow: str = "cast"
-    # The plane texture's fill also covers the unseen texels within this many texels of its hole
-    # (PlaneParams.fill_band; 0: the hole alone). Those texels are the seen ones' colours smoothed
-    # outwards, no view saw them. Where the object's dark footprint or parts of it lie beside the hole
-    # (mip360 kitchen, every view's mask given and dilated), they continue that darkness into the fill:
-    # 30 fills kitchen's table with the mats around it instead of a dark smear. On the synthetic boxes,
-    # whose smoothed texels are the floor's true colours, it costs (benchmarks/removal.py, fit.seed 0,
-    # mask PSNR ours 0 -> 30): synthetic-box 27.80 -> 27.50, -contact 25.13 -> 24.44, -cast 24.06 ->
-    # 23.32; no-sbm 29.03 -> 29.01, 24.78 -> 24.69, 24.75 -> 24.78. So it stays off.
-    plane_fill_band: int = added_param(0)
     depth_tol: float = 0.02
     seed: int = 0
     # diffusion backend (see sgpor_pipeline.removal.diffusion); "" = $SGPOR_DIFFUSION_MODEL
@@ -260,8 +251,7 @@ class InpaintParams:
         return self.block_size if self.carry_max_rim < 0 else self.carry_max_rim
 
     def plane(self) -> PlaneParams:
-        return PlaneParams(lift_shadow=self.lift_shadow != "none", lift_cast=self.lift_shadow == "cast",
-                           fill_band=self.plane_fill_band)
+        return PlaneParams(lift_shadow=self.lift_shadow != "none", lift_cast=self.lift_shadow == "cast")
 
     def diffusion(self) -> sd.DiffusionParams:
         return sd.DiffusionParams(prompt=self.diffusion_prompt, negative_prompt=self.diffusion_negative_prompt,
@@ -543,11 +533,9 @@ class InpaintStage(Stage):
                             tex.seen &= ~below
                 img = tex.image
                 if tex.hole.any():
-                    region = tex.fill_region(pp.fill_band)
-                    tb = build_source_bank([PLANE_NAME], [tex.image], [~tex.seen], [region], sbm)
-                    img = fill_view(tex.image, region, "sbm" if uses_sbm else backend, tb if uses_sbm else None,
+                    tb = build_source_bank([PLANE_NAME], [tex.image], [~tex.seen], [tex.hole], sbm)
+                    img = fill_view(tex.image, tex.hole, "sbm" if uses_sbm else backend, tb if uses_sbm else None,
                                     sbm)[0]
-                    info["filled_texels"] = int(region.sum())
                 write_png(folder / "texture.png", tex.image)
                 write_png(folder / "filled.png", img)
                 info.update(tex.info, camera=tex.camera.to_dict(), normal=tex.plane.normal.tolist(),

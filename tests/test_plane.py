@@ -171,13 +171,10 @@ def test_plane_texture_fills_what_lay_under_the_object(views):
     assert shadowed.info["under_object_texels"] > 0 and plain.info["under_object_texels"] == 0
 
 
-def test_the_texture_fill_is_not_continued_from_texels_no_view_saw(views):
+def test_unseen_texels_beside_the_hole_take_the_seen_texels_colours(views):
     """A ring of the floor around the common hole is hidden in every view but lies in no view's hole (as
-    the table around an object whose masks are dilated in every view). Those texels are only smoothed
-    context; filled with the hole (``fill_region``), their colour no longer leaks into the hole's fill."""
-    from sgpor_pipeline.removal.multiview import fill_view
-    from sgpor_pipeline.removal.sbm import SBMParams, build_source_bank
-
+    the table around an object whose masks are dilated in every view). Those texels are smoothed from
+    the seen ones, not from the (black) hole beside them, whose fill would continue them."""
     cams = [v[0] for v in views]
     depths = [v[2] for v in views]
     common = [disc_in_view(c, d, (0.0, 0.0), 0.25) for c, d in zip(cams, depths)]
@@ -186,28 +183,10 @@ def test_the_texture_fill_is_not_continued_from_texels_no_view_saw(views):
                              common, PlaneParams(margin=2.0), depth_tol=0.01)
     assert tex is not None, why
     other = ~tex.seen & ~tex.hole
-    # those texels are smoothed from the seen ones, not from the (black) hole beside them
     oy, ox = np.nonzero(other)
     smoothed = np.abs(tex.image[oy, ox] - floor_colour(tex.camera.unproject(oy, ox, tex.depth[oy, ox])))
-    assert other.sum() > 100 and smoothed.mean() < 0.1, (other.sum(), smoothed.mean())
-    region = tex.fill_region(30)
-    assert (region >= tex.hole).all() and not (region & tex.seen).any()
-    assert (region & other).sum() > 0.3 * tex.hole.sum()  # the hidden ring next to the hole
-    assert tex.fill_region(0).sum() == tex.hole.sum()
-    far = tex.fill_region(3)
-    assert far.sum() < region.sum()  # only within the band
-    # the unseen texels' colour set to black: the hole's fill follows it only when they are its rim
-    image = tex.image.copy()
-    image[other] = 0.0
-    params = SBMParams()
-    hy, hx = np.nonzero(tex.hole)
-    truth = floor_colour(tex.camera.unproject(hy, hx, tex.depth[hy, hx]))
-    errors = []
-    for fill in (tex.hole, region):
-        bank = build_source_bank(["plane"], [image], [~tex.seen], [fill], params)
-        out = fill_view(image, fill, "sbm", bank, params)[0]
-        errors.append(float(np.abs(out[hy, hx] - truth).mean()))
-    assert errors[0] > 0.3 and errors[1] < 0.15, errors  # black from its rim / the floor's colours
+    assert other.sum() > 100 and smoothed.mean() < 0.1, (other.sum(), smoothed.mean())  # (0.28 before)
+    assert (tex.image[tex.hole] == 0).all()  # the hole stays black: it is what SBM fills
 
 
 def cylinder_mask(cam: Camera, z0: float, z1: float, radius: float = 0.2) -> np.ndarray:

@@ -59,12 +59,6 @@ class PlaneParams:
     votes: int = 5  # a texel's colour: the median of at most this many views that see it, finest first
     vote_ratio: float = 2.0  # ... whose pixel footprint there is at most this x the finest one's
     shadow_grow: float = 0.02  # the object's silhouette on the plane is grown by this x the texture's side
-    # the unseen texels within this many texels of the hole are filled with it (0: the hole alone). They
-    # are only smoothed context (no view saw them); as the fill's rim they pull it to their colours:
-    # mip360 kitchen's table, whose texture hole borders texels the dilated masks hid in every view,
-    # got a dark smear at 0 and the mats around it at 30. Off: the synthetic boxes lose by it (see
-    # InpaintParams.plane_fill_band)
-    fill_band: int = 0
     # the object's contact shadow (:func:`contact_shading`): lifted when ``lift_shadow``
     lift_shadow: bool = False
     shading_grid: int = 160  # the hull's grid for the occlusion: at most this many texels across
@@ -163,14 +157,6 @@ class PlaneTexture:
     best_view: np.ndarray  # HxW int16: the view each seen texel came from (-1: none)
     plane: Plane
     info: dict[str, Any] = field(default_factory=dict)
-
-    def fill_region(self, band: int) -> np.ndarray:
-        """The texels to fill: the hole and the unseen texels within ``band`` texels of it."""
-        if band <= 0 or not self.hole.any():
-            return self.hole.copy()
-        k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * band + 1, 2 * band + 1))
-        near = cv2.dilate(self.hole.astype(np.uint8), k) > 0
-        return self.hole | (near & ~self.seen)
 
 
 def lift_parts(cameras: list[Camera], depths: list[np.ndarray], parts: list[np.ndarray], sample: int

@@ -10,9 +10,8 @@ Out (the contract the inpaint and refine stages read):
 - ``holes/<view>.png``: 0/1, object pixels the remaining background does not cover (opacity below
   ``hole_alpha``; with ``min_views`` > 0 also those fewer other views observed, and, with
   ``max_disagreement``, those whose render differs from what the views that observed them photographed
-  there), and their rim: the
-  pixels within ``context_margin`` px outside the mask whose opacity is below ``rim_alpha``: what to
-  inpaint,
+  there), and their rim: the pixels within ``context_margin`` px outside the mask whose opacity is
+  below ``rim_alpha``: what to inpaint,
 - ``masks/<view>.png``: 0/1 object mask of every view (from the masks stage); holes are inside it
   but for their rim,
 - ``depth/<view>.npy``: float32 z-depth of the background with the hole completed from its surroundings
@@ -132,9 +131,11 @@ class RemoveStage(Stage):
         floors = [object_depth(front, cam, p.backend) for cam in cameras] if p.behind_object else None
         depths = complete_hole_depths(cameras, raw_depths, [a >= p.hole_alpha for a in alphas], holes, p, floors)
         second_pass = p.min_views > 0 and p.hole_mode == "unseen"
+        photos: list[np.ndarray | None] | None = None  # (read here only when compared with the renders)
         if second_pass:  # mask pixels that too few other views observed become holes too
             seen = [m & ~h for m, h in zip(masks, holes)]
-            photos = [self._photo(sfm, cam, p) for cam in cameras] if p.max_disagreement > 0 else None
+            if p.max_disagreement > 0:
+                photos = [self._photo(sfm, cam, p) for cam in cameras]
             counts, disagree = observing_views(cameras, masks, depths, seen, p, renders if photos else None, photos)
             unobserved = [s & (c < p.min_views) for s, c in zip(seen, counts)]
             if disagree is not None:  # (NaN: no photo shows the point; compares False)
@@ -161,10 +162,11 @@ class RemoveStage(Stage):
                 ctx.log.info(f"remove: {under.info['pixels']} mask pixels lay on the plane under the object: holes")
         colours = []
         per_view = {}
-        for cam, mask, rgb, alpha, hole, filled_depth in zip(cameras, masks, renders, alphas, holes, depths):
+        for i, (cam, mask, rgb, alpha, hole, filled_depth) in enumerate(zip(cameras, masks, renders, alphas, holes,
+                                                                            depths)):
+            photo = photos[i] if photos is not None else self._photo(sfm, cam, p)
             write_png(ctx.out_dir / "renders" / f"{cam.image}.png", rgb)
-            write_png(ctx.out_dir / "context" / f"{cam.image}.png",
-                      context_image(rgb, self._photo(sfm, cam, p), mask, p.context_margin))
+            write_png(ctx.out_dir / "context" / f"{cam.image}.png", context_image(rgb, photo, mask, p.context_margin))
             write_mask01(ctx.out_dir / "holes" / f"{cam.image}.png", hole)
             shutil.copyfile(masks_dir / f"{cam.image}.png", ctx.out_dir / "masks" / f"{cam.image}.png")
             np.save(ctx.out_dir / "depth" / f"{cam.image}.npy", filled_depth)

@@ -274,8 +274,6 @@ def _shade(surfaces: Sequence[_Surface], gid: np.ndarray, t: np.ndarray, fn: np.
     image. ``occluder`` (the object, for the background of the images with it) adds its key-light
     shadow and its ambient occlusion.
     """
-    import open3d as o3d
-
     n = len(gid)
     out = np.zeros((n, 3), np.float32)
     if n == 0:
@@ -294,19 +292,29 @@ def _shade(surfaces: Sequence[_Surface], gid: np.ndarray, t: np.ndarray, fn: np.
     key = np.clip(normal @ light.key, 0.0, None)
     fill = np.clip(normal @ light.fill, 0.0, None)
     if casters is not None:
-        lit = np.flatnonzero(key > 0)
-        if len(lit):
-            rays = np.empty((len(lit), 6), np.float32)
-            rays[:, :3] = p[lit] + 1e-3 * normal[lit]
-            rays[:, 3:] = light.key
-            occ = casters.test_occlusions(o3d.core.Tensor(rays), tnear=0.0, tfar=np.inf).numpy()
-            key[lit[occ.astype(bool)]] = 0.0
+        key = _key_shadowed(casters, p, normal, key, light.key)
     open_sky = np.ones(n)
     if occluder is not None:
         key, open_sky = occluder.darken(p, normal, key, light.key)
     shading = open_sky * (light.ambient + light.fill_strength * fill) + light.key_strength * key
     out[:] = np.clip(albedo * shading[:, None].astype(np.float32), 0.0, 1.0)
     return out
+
+
+def _key_shadowed(scene, p: np.ndarray, normal: np.ndarray, key: np.ndarray, to_key: np.ndarray) -> np.ndarray:
+    """``key`` (the key light's cosine at points ``p``) with 0 where a ray from the point towards the
+    light meets ``scene`` (an Open3D ray-casting scene): its hard shadow."""
+    import open3d as o3d
+
+    key = key.copy()
+    lit = np.flatnonzero(key > 0)
+    if len(lit):
+        rays = np.empty((len(lit), 6), np.float32)
+        rays[:, :3] = p[lit] + 1e-3 * normal[lit]
+        rays[:, 3:] = to_key
+        occ = scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0, tfar=np.inf).numpy()
+        key[lit[occ.astype(bool)]] = 0.0
+    return key
 
 
 class _Occluder:
@@ -331,14 +339,8 @@ class _Occluder:
                to_key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         import open3d as o3d
 
-        key = key.copy()
-        lit = np.flatnonzero(key > 0) if self.cast else []
-        if len(lit):
-            rays = np.empty((len(lit), 6), np.float32)
-            rays[:, :3] = p[lit] + 1e-3 * normal[lit]
-            rays[:, 3:] = to_key
-            occ = self.scene.test_occlusions(o3d.core.Tensor(rays), tnear=0.0, tfar=np.inf).numpy()
-            key[lit[occ.astype(bool)]] = 0.0
+        if self.cast:
+            key = _key_shadowed(self.scene, p, normal, key, to_key)
         open_sky = np.ones(len(p))
         near = np.flatnonzero(np.all((p > self.lo - self.reach) & (p < self.hi + self.reach), axis=1))
         if len(near):

@@ -44,7 +44,7 @@ import numpy as np
 from sgpor_pipeline.dag import Stage, StageContext
 from sgpor_pipeline.errors import PipelineError
 from sgpor_pipeline.gaussians.ply import read_ply, write_ply
-from sgpor_pipeline.imageio import read_image, read_mask, write_mask01, write_png
+from sgpor_pipeline.imageio import read_mask, read_rgb8, write_mask01, write_png
 from sgpor_pipeline.removal.holes import (
     RemoveParams,
     clamp_dc_colours,
@@ -88,11 +88,12 @@ CONTEXTS = ("photos", "renders")
 
 class RemoveStage(Stage):
     name = "remove"
-    VERSION = 10  # 3: the hole-depth floor renders the object proper only (no floaters); 4: rim holes;
+    VERSION = 11  # 3: the hole-depth floor renders the object proper only (no floaters); 4: rim holes;
     # 5: rim holes with hole_mode mask too; 6: seeds behind the completed surface (seed_depth_offset 4);
     # 7: the median depth, and holes where no other view saw the background (min_views 1, tolerance 0.02);
     # 8: DC colours clamped behind the masks (clamp_share); 9: seeds carved by the views that saw through them;
-    # 10: holes where the render disagrees with the photos that saw its point (max_disagreement)
+    # 10: holes where the render disagrees with the photos that saw its point (max_disagreement);
+    # 11: the photos are compared blurred in float16 (memory; the disagreement moves by < 0.001)
     Params = RemoveStageParams
     inputs = ("sfm", "fit", "masks")
 
@@ -165,6 +166,7 @@ class RemoveStage(Stage):
         for i, (cam, mask, rgb, alpha, hole, filled_depth) in enumerate(zip(cameras, masks, renders, alphas, holes,
                                                                             depths)):
             photo = photos[i] if photos is not None else self._photo(sfm, cam, p)
+            photo = None if photo is None else photo.astype(np.float32) / 255.0
             write_png(ctx.out_dir / "renders" / f"{cam.image}.png", rgb)
             write_png(ctx.out_dir / "context" / f"{cam.image}.png", context_image(rgb, photo, mask, p.context_margin))
             write_mask01(ctx.out_dir / "holes" / f"{cam.image}.png", hole)
@@ -192,11 +194,12 @@ class RemoveStage(Stage):
 
     @staticmethod
     def _photo(sfm, cam: Camera, p: RemoveStageParams) -> np.ndarray | None:
-        """The view's undistorted photo for ``context = photos`` (None: renders, or no photo on disk)."""
+        """The view's undistorted photo (uint8 RGB) for ``context = photos`` (None: renders, or no photo on
+        disk)."""
         path = sfm.image_path(cam.image)
         if p.context != "photos" or not path.is_file():
             return None
-        photo = read_image(path)
+        photo = read_rgb8(path)  # (uint8: a quarter of the float image's memory, held for every view)
         if photo.shape[:2] != (cam.height, cam.width):
             raise PipelineError(f"the photo of view {cam.image} is {photo.shape[1]}x{photo.shape[0]}, its camera "
                                 f"{cam.width}x{cam.height}", path=path, fix="rerun from the sfm stage (--force sfm)")

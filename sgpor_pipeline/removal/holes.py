@@ -289,7 +289,11 @@ DISAGREEMENT_BLUR = 1.5  # px: renders are smoother than photos; compare both bl
 
 
 def _blurred(img: np.ndarray | None) -> np.ndarray | None:
-    return None if img is None else cv2.GaussianBlur(np.asarray(img, np.float32), (0, 0), DISAGREEMENT_BLUR)
+    """``img`` (float in [0, 1], or uint8) blurred by ``DISAGREEMENT_BLUR`` px, float32."""
+    if img is None:
+        return None
+    img = img.astype(np.float32) / 255.0 if img.dtype == np.uint8 else np.asarray(img, np.float32)
+    return cv2.GaussianBlur(img, (0, 0), DISAGREEMENT_BLUR)
 
 
 def observing_views(cameras: list[Camera], masks: list[np.ndarray], depths: list[np.ndarray],
@@ -299,7 +303,8 @@ def observing_views(cameras: list[Camera], masks: list[np.ndarray], depths: list
     """Per view i, for its ``pixels[i]`` (HxW bool): how many OTHER views show the pixel's background
     point (lifted with ``depths[i]``): it projects inside their image, outside their (dilated) object
     mask, and not behind their own surface (``depths``: completed background z-depth of every view).
-    Returns (HxW int32 maps, 0 outside ``pixels``; with ``renders`` and ``photos``, HxW float32 maps
+    Returns (HxW int32 maps, 0 outside ``pixels``; with ``renders`` and ``photos`` (float in [0, 1] or
+    uint8), HxW float32 maps
     of how far view i's render there is from what those views' photos show at the point: the median
     over them of the mean absolute RGB difference, both blurred by ``DISAGREEMENT_BLUR`` px; NaN where
     no view with a photo shows it, or outside ``pixels``)."""
@@ -307,7 +312,9 @@ def observing_views(cameras: list[Camera], masks: list[np.ndarray], depths: list
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * d + 1, 2 * d + 1)) if d else None
     dilated = [m if kernel is None else cv2.dilate(m.astype(np.uint8), kernel) > 0 for m in masks]
     compare = renders is not None and photos is not None
-    blurred_photos = [_blurred(ph) for ph in photos] if compare else []
+    # float16: every view's is held at once (and the photos beside them); its rounding (< 0.001) is far
+    # below any useful max_disagreement
+    blurred_photos = [None if ph is None else _blurred(ph).astype(np.float16) for ph in photos] if compare else []
     counts, disagreements = [], []
     for i, cam_i in enumerate(cameras):
         out = np.zeros(pixels[i].shape, np.int32)
@@ -333,7 +340,7 @@ def observing_views(cameras: list[Camera], masks: list[np.ndarray], depths: list
             count += ok
             if compare and blurred_photos[j] is not None and ok.any():
                 diff = np.full(len(ys), np.nan, np.float32)
-                diff[ok] = np.abs(blurred_photos[j][px[ok, 1], px[ok, 0]] - own[ok]).mean(axis=1)
+                diff[ok] = np.abs(blurred_photos[j][px[ok, 1], px[ok, 0]].astype(np.float32) - own[ok]).mean(axis=1)
                 diffs.append(diff)
         out[ys, xs] = count
         if diffs:

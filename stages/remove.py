@@ -6,7 +6,8 @@ Out (the contract the inpaint and refine stages read):
 - ``renders/<view>.png``: RGB render of the scene after deletion (before any new Gaussian),
 - ``context/<view>.png``: what the inpainter completes and takes source blocks from (``context``):
   the photo outside the object mask dilated by ``context_margin`` px and the render inside, or the
-  render alone,
+  render alone; the render divided by its opacity (the deletion left the background beside the holes
+  partly transparent: over black it rendered darker than the surface it shows),
 - ``holes/<view>.png``: 0/1, object pixels the remaining background does not cover (opacity below
   ``hole_alpha``; with ``min_views`` > 0 also those fewer other views observed, and, with
   ``max_disagreement``, those whose render differs from what the views that observed them photographed
@@ -61,6 +62,7 @@ from sgpor_pipeline.removal.holes import (
     render_background,
     seed_hole_gaussians,
     subset,
+    unpremultiplied,
 )
 from sgpor_pipeline.removal.plane import under_object
 from sgpor_pipeline.scene import Camera, save_cameras
@@ -88,12 +90,13 @@ CONTEXTS = ("photos", "renders")
 
 class RemoveStage(Stage):
     name = "remove"
-    VERSION = 11  # 3: the hole-depth floor renders the object proper only (no floaters); 4: rim holes;
+    VERSION = 13  # 3: the hole-depth floor renders the object proper only (no floaters); 4: rim holes;
     # 5: rim holes with hole_mode mask too; 6: seeds behind the completed surface (seed_depth_offset 4);
     # 7: the median depth, and holes where no other view saw the background (min_views 1, tolerance 0.02);
     # 8: DC colours clamped behind the masks (clamp_share); 9: seeds carved by the views that saw through them;
     # 10: holes where the render disagrees with the photos that saw its point (max_disagreement);
-    # 11: the photos are compared blurred in float16 (memory; the disagreement moves by < 0.001)
+    # 11: the photos are compared blurred in float16 (memory; the disagreement moves by < 0.001);
+    # 13: the context's render is divided by its opacity (unpremultiplied)
     Params = RemoveStageParams
     inputs = ("sfm", "fit", "masks")
 
@@ -168,7 +171,8 @@ class RemoveStage(Stage):
             photo = photos[i] if photos is not None else self._photo(sfm, cam, p)
             photo = None if photo is None else photo.astype(np.float32) / 255.0
             write_png(ctx.out_dir / "renders" / f"{cam.image}.png", rgb)
-            write_png(ctx.out_dir / "context" / f"{cam.image}.png", context_image(rgb, photo, mask, p.context_margin))
+            write_png(ctx.out_dir / "context" / f"{cam.image}.png",
+                      context_image(unpremultiplied(rgb, alpha), photo, mask, p.context_margin))
             write_mask01(ctx.out_dir / "holes" / f"{cam.image}.png", hole)
             shutil.copyfile(masks_dir / f"{cam.image}.png", ctx.out_dir / "masks" / f"{cam.image}.png")
             np.save(ctx.out_dir / "depth" / f"{cam.image}.npy", filled_depth)

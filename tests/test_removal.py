@@ -23,6 +23,7 @@ from sgpor_pipeline.removal.holes import (
     render_background,
     seed_hole_gaussians,
     subset,
+    unpremultiplied,
 )
 from sgpor_pipeline.removal.selection import (
     SelectionParams,
@@ -624,6 +625,30 @@ def test_context_image_is_the_photo_outside_the_dilated_mask():
     assert (within_margin(mask, 2) == grown).all()
     same = within_margin(mask, 0)
     assert (same == mask).all() and same is not mask
+
+
+def test_the_context_shows_the_colour_of_a_partly_transparent_background(scene_and_model):
+    """After the deletion the background beside a hole is partly transparent, and its render (over
+    black) darker than the surface: the context shows the render divided by its opacity. Every
+    Gaussian of the fixture is grey 0.5; here they are made faint (opacity 0.2) so that many pixels
+    are partly covered."""
+    scene, model, truth = scene_and_model
+    background = subset(model, ~truth)
+    with torch.no_grad():
+        background.params["opacities"].fill_(float(np.log(0.2 / 0.8)))
+    thin = []
+    for cam in scene.cameras:
+        rgb, alpha, _ = render_background(background, cam)
+        shown = unpremultiplied(rgb, alpha)
+        assert shown.dtype == np.float32 and shown.shape == rgb.shape
+        partly = (alpha >= 0.5) & (alpha < 0.95)
+        thin.append((rgb[partly], shown[partly]))
+        faint = alpha < 0.5  # (too little of the surface to divide by: left as rendered)
+        assert np.array_equal(shown[faint], rgb[faint].astype(np.float32))
+    rendered = np.concatenate([t[0] for t in thin])
+    shown = np.concatenate([t[1] for t in thin])
+    assert len(rendered) > 100
+    assert rendered.mean() < 0.45 and np.abs(shown - 0.5).max() < 0.01, (rendered.mean(), np.abs(shown - 0.5).max())
 
 
 def test_finetune_views_leave_the_seen_background_unsupervised(tmp_path):

@@ -470,6 +470,14 @@ def complete_depths_jointly(cameras: list[Camera], depths: list[np.ndarray], val
     return out
 
 
+def unpremultiplied(rgb: np.ndarray, alpha: np.ndarray, min_alpha: float = 0.5) -> np.ndarray:
+    """The colour of what covers each pixel: the render (composited over black) divided by its opacity
+    where that is at least ``min_alpha``. Next to a hole the deletion left the background partly
+    transparent, and its render darker than the surface it shows."""
+    a = np.asarray(alpha, np.float32)[..., None]
+    return np.where(a >= min_alpha, np.clip(rgb / np.maximum(a, 1e-6), 0.0, 1.0), rgb).astype(np.float32)
+
+
 def context_image(render: np.ndarray, photo: np.ndarray | None, mask: np.ndarray, margin: int) -> np.ndarray:
     """The inpainter's image: ``photo`` outside ``mask`` dilated by ``margin`` px (its edge pixels mix
     object and background), ``render`` inside; the render alone when there is no photo."""

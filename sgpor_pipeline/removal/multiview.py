@@ -6,8 +6,8 @@ The ``remove`` folder (``ctx.inputs["remove"]`` of the inpaint and refine stages
   ``Camera.image`` is the view name; cameras whose image is None (novel views) are ignored;
 * ``renders/<view>.png``: RGB render of the scene after the object's Gaussians were deleted;
 * ``context/<view>.png``: what the inpainter sees around the hole and takes its source blocks from:
-  the photo outside the object mask (slightly dilated), the render inside it. Optional: without it
-  the render is the context (:meth:`RemovalView.context`);
+  the photo outside the object mask (slightly dilated), the render inside it (divided by its opacity).
+  Optional: without it the render is the context (:meth:`RemovalView.context`);
 * ``holes/<view>.png``: 0/1 mask of the truly unseen region (object pixels the remaining background
   does not cover): THE region to inpaint. Whatever the render shows there is ignored;
 * ``masks/<view>.png``: 0/1 object mask of every view (propagated); ``holes`` is a subset of it

@@ -96,7 +96,7 @@ class RemoveStage(Stage):
     # 8: DC colours clamped behind the masks (clamp_share); 9: seeds carved by the views that saw through them;
     # 10: holes where the render disagrees with the photos that saw its point (max_disagreement);
     # 11: the photos are compared blurred in float16 (memory; the disagreement moves by < 0.001);
-    # 13: the context's render is divided by its opacity (unpremultiplied)
+    # 13 (12 skipped): the context's render is divided by its opacity (unpremultiplied)
     Params = RemoveStageParams
     inputs = ("sfm", "fit", "masks")
 

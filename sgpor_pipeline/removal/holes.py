@@ -304,10 +304,9 @@ def observing_views(cameras: list[Camera], masks: list[np.ndarray], depths: list
     point (lifted with ``depths[i]``): it projects inside their image, outside their (dilated) object
     mask, and not behind their own surface (``depths``: completed background z-depth of every view).
     Returns (HxW int32 maps, 0 outside ``pixels``; with ``renders`` and ``photos`` (float in [0, 1] or
-    uint8), HxW float32 maps
-    of how far view i's render there is from what those views' photos show at the point: the median
-    over them of the mean absolute RGB difference, both blurred by ``DISAGREEMENT_BLUR`` px; NaN where
-    no view with a photo shows it, or outside ``pixels``)."""
+    uint8), HxW float32 maps of how far view i's render there is from what those views' photos show at
+    the point: the median over them of the mean absolute RGB difference, both blurred by
+    ``DISAGREEMENT_BLUR`` px; NaN where no view with a photo shows it, or outside ``pixels``)."""
     d = max(0, params.view_mask_dilate)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * d + 1, 2 * d + 1)) if d else None
     dilated = [m if kernel is None else cv2.dilate(m.astype(np.uint8), kernel) > 0 for m in masks]

@@ -63,6 +63,16 @@ def test_every_stage_runs_and_exports(finished_run):
     far = cv2.dilate(mask.astype(np.uint8), np.ones((7, 7), np.uint8)) == 0  # beyond the 2 px context margin
     inpainted = read_image(result.path("inpaint") / "images" / f"{name}.png")
     assert far.any() and np.array_equal(inpainted[far], photo[far])
+    # inside the grown mask the context is the render divided by its opacity: never darker than the
+    # render, and brighter where the deletion left the background partly transparent
+    brighter = 0
+    for rp in sorted((result.path("remove") / "renders").glob("*.png")):
+        render, context = read_image(rp), read_image(result.path("remove") / "context" / rp.name)
+        band = ~(cv2.dilate(read_mask(result.path("remove") / "masks" / rp.name).astype(np.uint8),
+                            np.ones((5, 5), np.uint8)) == 0)
+        assert (context[band] >= render[band] - 1.5 / 255).all(), rp.name
+        brighter += int((context[band] > render[band] + 2.5 / 255).any(axis=1).sum())
+    assert brighter > 0
     seconds = {s: json.loads((result.path(s) / "manifest.json").read_text())["seconds"] for s in STAGES}
     print("seconds per stage:", {k: round(v, 1) for k, v in seconds.items()})
 

@@ -168,12 +168,13 @@ def resolve_config(
         if stage not in config:
             raise PipelineError(f"unknown stage '{stage}'", path=source, fix=f"valid stages: {valid_stages}")
 
-    overridden = set()
+    # each override split once: (item, well formed, stage, field as written, value text)
+    split = []
     for item in overrides:
-        key, sep, _ = item.partition("=")
+        key, sep, text = item.partition("=")
         stage, dot, field = key.strip().partition(".")
-        if sep and dot:
-            overridden.add((stage.strip(), field.strip()))
+        split.append((item, bool(sep and dot), stage.strip(), field, text.strip()))
+    overridden = {(stage, field.strip()) for _, ok, stage, field, _ in split if ok}
 
     if config_file is not None:
         config_file = Path(config_file)
@@ -192,17 +193,14 @@ def resolve_config(
                                     fix=f"write the parameters under a [{stage}] header")
             table = {k: v for k, v in table.items() if (stage, k) not in overridden}
             config[stage] = _apply(config[stage], stage, table, str(config_file))
-    for item in overrides:
-        key, sep, text = item.partition("=")
-        stage, dot, field = key.strip().partition(".")
-        stage = stage.strip()
-        if not sep or not dot:
+    for item, ok, stage, field, text in split:
+        if not ok:
             raise PipelineError(f"--set expects STAGE.PARAM=VALUE, got '{item}'",
                                 fix="for example --set fit.iterations=3000")
         check_stage(stage, "--set")
-        value = parse_literal(text.strip())
+        value = parse_literal(text)
         if _is_text(get_type_hints(type(config[stage])).get(field.strip())) and not isinstance(value, str):
-            value = text.strip()  # a name that reads as a number (a view "24") is still a name
+            value = text  # a name that reads as a number (a view "24") is still a name
         config[stage] = _apply(config[stage], stage, {field: value}, "--set")
     return config
 

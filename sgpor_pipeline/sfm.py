@@ -85,6 +85,9 @@ class SfmParams:
     # more with relaxed thresholds (RELAXED_MAPPER) and the larger model is kept. Small or narrow-angle
     # images (mip-NeRF 360 room's 256 px crops) have pairs COLMAP classifies as planar/panoramic and
     # too few inliers for its default initialisation: 7 of 24 registered, 17 relaxed (direct pycolmap).
+    # A third mapping with the focal held (at the relaxed model's) registers all 24 of room, but their
+    # poses agree worse: the plane texture under the slippers came out blotched and the re-fit blurred
+    # (session 31). Only with the distortion held at 0 too did the others register.
     retry_relaxed: bool = True
     seed: int = 0  # pycolmap's random seed (RANSAC, mapper)
     num_threads: int = -1  # feature extraction, matching, undistortion; -1 = all cores
@@ -299,6 +302,13 @@ def undistort_array(image: np.ndarray, camera: Any, options: Any) -> tuple[np.nd
     """Undistort a uint8 HxW or HxWx3 array of a pycolmap camera; returns (array, PINHOLE camera)."""
     import pycolmap
 
+    if camera.is_undistorted():
+        # undistort_images copies such images unchanged, whereas undistort_image would still crop
+        # them by a pixel (256 -> 255): a mask would no longer match its image.
+        pinhole = pycolmap.Camera(model="PINHOLE", width=camera.width, height=camera.height,
+                                  params=[camera.focal_length_x, camera.focal_length_y,
+                                          camera.principal_point_x, camera.principal_point_y])
+        return np.array(image, copy=True), pinhole
     bitmap = pycolmap.Bitmap.from_array(np.ascontiguousarray(image))
     out, cam = pycolmap.undistort_image(options, bitmap, camera)
     arr = np.asarray(out.to_array())

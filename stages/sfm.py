@@ -59,7 +59,7 @@ class SfmStage(Stage):
         ctx.log.info(f"sfm: {registered}/{total} images registered, {summary['points']} points"
                      + (f", reprojection error {summary['mean_reprojection_error']:.2f} px"
                         if summary["mean_reprojection_error"] is not None else ""))
-        if registered < params.min_registered_fraction * total:
+        if missing and registered < params.min_registered_fraction * total:
             hint = "photos overlapping the registered ones help"
             if summary.get("matcher") == "sequential":
                 hint += "; for an unordered set use --set sfm.matcher=exhaustive"

@@ -378,6 +378,11 @@ def test_colmap_camera_conversion_and_mask_undistortion():
     mask[80:112, 110:146] = True  # near the centre, where radial distortion is small
     out = undistort_mask(mask, pc, undistort_options())
     assert out.dtype == bool and 0.8 < out.sum() / mask.sum() < 1.3
+    # a distortion model whose terms are all 0 (e.g. the distortion held in mapping): undistort_images
+    # copies such an image unchanged, so its mask must keep its size and pixels too
+    flat = to_colmap_camera(Camera("d", 256, 192, K, np.eye(4), "d", model="SIMPLE_RADIAL", distortion=[0.0]))
+    out = undistort_mask(mask, flat, undistort_options())
+    assert out.shape == mask.shape and np.array_equal(out, mask)
 
 
 def test_points_load_without_observations(tmp_path):

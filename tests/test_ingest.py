@@ -84,6 +84,31 @@ def test_downscale_and_masks(tmp_path):
     assert set(np.unique(raw)) == {0, 1}  # stored as 0/1
 
 
+def test_large_photos_are_downscaled_by_default(tmp_path, caplog):
+    """A phone-sized photo is brought to 1600 px (the removal stages' time and memory grow with the
+    pixels; the fit works at 640); a smaller one is left as it is; max_size 0 keeps every size."""
+    images, masks = tmp_path / "images", tmp_path / "masks"
+    images.mkdir()
+    masks.mkdir()
+    rng = np.random.default_rng(0)
+    for i, (w, h) in enumerate([(2000, 1500), (2000, 1500), (800, 600)]):
+        cv2.imwrite(str(images / f"v{i}.png"), rng.integers(0, 256, (h, w, 3), dtype=np.uint8))
+    mask = np.zeros((1500, 2000), np.uint8)
+    mask[500:1000, 800:1200] = 255
+    cv2.imwrite(str(masks / "v0.png"), mask)
+    with caplog.at_level(logging.INFO, logger="sgpor_pipeline"):
+        out = ingest(tmp_path, images, masks)
+    views = {v.name: v for v in load_views(out)}
+    assert [(v.width, v.height) for v in views.values()] == [(1600, 1200), (1600, 1200), (800, 600)]
+    assert (views["v0"].source_width, views["v0"].source_height) == (2000, 1500)
+    m = read_mask(out / views["v0"].mask)
+    assert m.shape == (1200, 1600) and m[400:800, 640:960].all() and m.sum() == 400 * 320
+    assert any("2 of 3 photos downscaled to at most 1600 px" in r.getMessage() for r in caplog.records)
+    full = run_pipeline(tmp_path / "full", RunInputs(images=images), overrides=["ingest.max_size=0"],
+                        stages=STAGES).path("ingest")
+    assert [(v.width, v.height) for v in load_views(full)] == [(2000, 1500), (2000, 1500), (800, 600)]
+
+
 def test_mask_of_another_aspect_is_an_error_naming_it(tmp_path):
     images = tmp_path / "images"
     make_images(images)

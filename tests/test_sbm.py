@@ -126,6 +126,10 @@ def test_self_retrieval_finds_the_exact_block():
     np.testing.assert_array_equal(found[:, 0], 0)
     np.testing.assert_array_equal(found[:, 1:], targets)
     assert np.all(score[:, 0] > 0.5) and np.all(score[:, 0] > score[:, 1])
+    # targets and sources in small chunks (a score matrix of at most 2 x 64 floats): the same ranking
+    idx_c, score_c = retrieve(bank, desc, k=5, chunk=64, max_elements=128)
+    np.testing.assert_array_equal(idx_c, idx)
+    np.testing.assert_allclose(score_c, score, rtol=1e-5)
     # and SBM (with re-ranking and blending) puts the original pixels back
     res = inpaint_view(cut, hole, bank, SBMParams(source_stride=3))
     assert psnr(res.image, src, hole) > 40.0

@@ -23,6 +23,7 @@ from ..config import added_param
 from ..errors import PipelineError
 from ..gaussians.model import GaussianModel, inverse_sigmoid, rgb_to_sh, sh_to_rgb
 from ..scene import Camera
+from . import linsolve
 from .multiview import nearest_per_pixel, pinned_parts
 from .selection import (
     contribution_scores,
@@ -396,7 +397,8 @@ def complete_depth(depth: np.ndarray, valid: np.ndarray, hole: np.ndarray,
     reg = 1e-6
     A = A + reg * coo_matrix((np.ones(n), (np.arange(n), np.arange(n))), shape=(n, n)).tocsr()
     rhs += reg * float(np.median(inv[good]))
-    sol = spsolve(A, rhs)
+    # (a direct solver's fill-in would take GBs on a large hole: removal/linsolve.py)
+    sol = linsolve.solve_spd_multigrid(A, rhs) if linsolve.large(n) else spsolve(A, rhs)
     sol = np.clip(sol, 1e-6, None)
     out[ys, xs] = 1.0 / sol
     return _apply_floor(out, hole, floor).astype(np.float32)

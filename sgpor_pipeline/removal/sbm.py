@@ -42,6 +42,7 @@ import numpy as np
 
 from sgpor_pipeline.errors import PipelineError
 
+from . import linsolve
 from .features import BlockFeatures, CellLayout, Descriptors, make_backend
 
 BLEND_MODES = ("poisson", "feather")
@@ -299,13 +300,16 @@ def _as_f32(img: np.ndarray) -> np.ndarray:
 
 
 def retrieve(bank: SourceBank, desc: Descriptors, k: int, metric: str = "cosine", chunk: int = 16384,
-             min_overlap: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
+             min_overlap: float = 0.3, max_elements: int = 1 << 24) -> tuple[np.ndarray, np.ndarray]:
     """Top-k source blocks per target by weighted cosine (or -L2) over cells, all by matrix products.
 
     sim(t, s) = sum_c wt_c ws_c <t_c, s_c> / sqrt(sum_c wt_c ws_c |t_c|^2 * sum_c wt_c ws_c |s_c|^2)
     (``l2``: -(the same weighted squared distance) / sum_c wt_c ws_c). Sources are processed in
-    chunks of ``chunk`` rows with torch matrix products and ``topk`` (no loop over blocks x blocks).
-    Candidates whose shared cell weight is below ``min_overlap`` of the target's are ranked last.
+    chunks of ``chunk`` rows with torch matrix products and ``topk`` (no loop over blocks x blocks),
+    and targets in chunks of ``max_elements // chunk`` rows: a score matrix holds at most
+    ``max_elements`` floats (a layer of a large hole has thousands of targets: 0.85 GB at lund's
+    960 px before). Candidates whose shared cell weight is below ``min_overlap`` of the target's are
+    ranked last.
     Returns (indices into the bank [Nt,k], scores [Nt,k]; higher is better), best first.
     """
     import torch
@@ -319,9 +323,10 @@ def retrieve(bank: SourceBank, desc: Descriptors, k: int, metric: str = "cosine"
     T = torch.from_numpy((desc.feats * wt_np[..., None]).reshape(nt, -1).astype(np.float32))
     TN = torch.from_numpy((wt_np * (desc.feats ** 2).sum(-1)).astype(np.float32))
     pool = min(len(bank), 2 * k)  # over-select, then drop low-overlap pairs
-    best_s = torch.full((nt, 0), -np.inf)
-    best_i = torch.zeros((nt, 0), dtype=torch.int64)
-    with torch.no_grad():
+
+    def top_sources(T: torch.Tensor, TN: torch.Tensor, wt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        best_s = torch.full((len(T), 0), -np.inf)
+        best_i = torch.zeros((len(T), 0), dtype=torch.int64)
         for a in range(0, len(bank), chunk):
             b = min(len(bank), a + chunk)
             sw = torch.from_numpy(bank.sw[a:b])
@@ -339,8 +344,13 @@ def retrieve(bank: SourceBank, desc: Descriptors, k: int, metric: str = "cosine"
             cat_i = torch.cat([best_i, pi + a], 1)
             top_s, top = torch.topk(cat_s, min(pool, cat_s.shape[1]), dim=1)
             best_s, best_i = top_s, torch.gather(cat_i, 1, top)
-    idx = best_i.numpy()
-    sc = best_s.numpy().astype(np.float32)
+        return best_s, best_i
+
+    rows = max(1, max_elements // chunk)
+    with torch.no_grad():
+        parts = [top_sources(T[t:t + rows], TN[t:t + rows], wt[t:t + rows]) for t in range(0, nt, rows)]
+    idx = torch.cat([i for _, i in parts]).numpy()
+    sc = torch.cat([s for s, _ in parts]).numpy().astype(np.float32)
     ov = np.einsum("nc,nkc->nk", wt_np, bank.ws[idx])
     sc = np.where(ov >= min_overlap * wt_np.sum(1, keepdims=True), sc, sc - 1e6)
     order = np.argsort(-sc, axis=1, kind="stable")[:, :k]
@@ -424,9 +434,12 @@ def poisson_blend(image: np.ndarray, guide: np.ndarray, region: np.ndarray) -> n
     cols_a = np.concatenate(cols + [np.arange(n)])
     vals = np.concatenate([-np.ones(sum(len(r) for r in rows)), diag])
     A = sp.csc_matrix((vals, (rows_a, cols_a)), shape=(n, n))
-    solve = factorized(A)
-    for ch in range(image.shape[2]):
-        out[ys, xs, ch] = solve(rhs[:, ch])
+    if linsolve.large(n):  # a direct solver's fill-in would take GBs (removal/linsolve.py)
+        out[ys, xs] = linsolve.solve_spd_multigrid(A, rhs)
+    else:
+        solve = factorized(A)
+        for ch in range(image.shape[2]):
+            out[ys, xs, ch] = solve(rhs[:, ch])
     return np.clip(out, 0.0, 1.0)
 
 

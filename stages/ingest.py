@@ -41,8 +41,10 @@ class IngestParams:
     # Longest image side after downscaling, in pixels; 0 keeps the original size. The Gaussians are
     # fitted and re-fitted at 640 px (fit / finetune max_size) and SIFT runs at most at 1600 px
     # (sfm.max_image_size), but masks, remove, inpaint and refine work at this size, in time and memory
-    # linear in the pixels: lund + box at 960x718 (28 views), remove 33 s, inpaint 102 s, peak memory
-    # 3.5 GB; a 12 MP phone photo is 17x those pixels (session 31). 1600 keeps SIFT's input as it was.
+    # about linear in the pixels. Session 31, lund + box (28 views): at 960x718 remove 31 s / 1.8 GB,
+    # inpaint 83 s / 2.3 GB peak; the same photos at 4032x3016, downscaled to 1600x1197: remove 89 s,
+    # inpaint 245 s, the whole run to inpaint 11 min and 4.4 GB. At 4032 px they would be 6x that.
+    # 1600 keeps SIFT's input as it was.
     max_size: int = 1600
 
 

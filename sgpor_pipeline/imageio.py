@@ -43,6 +43,14 @@ def to_uint8(img: np.ndarray) -> np.ndarray:
     return (scaled * 255.0 + 0.5).astype(np.uint8)
 
 
+def to_float32(img: np.ndarray) -> np.ndarray:
+    """uint8 -> float32 in [0, 1]; a float image as float32 (not copied when it is one already)."""
+    img = np.asarray(img)
+    if img.dtype == np.uint8:
+        return img.astype(np.float32) / 255.0
+    return img.astype(np.float32, copy=False)
+
+
 def read_rgb8(path: Path) -> np.ndarray:
     """An image file as uint8 RGB HxWx3, EXIF orientation applied, alpha dropped."""
     # ANYDEPTH|ANYCOLOR keeps 16 bits and grey, applies the EXIF orientation and drops alpha.
@@ -57,7 +65,7 @@ def read_rgb8(path: Path) -> np.ndarray:
 
 def read_image(path: Path) -> np.ndarray:
     """An image as float32 RGB in [0, 1], HxWx3."""
-    return read_rgb8(path).astype(np.float32) / 255.0
+    return to_float32(read_rgb8(path))
 
 
 def read_mask(path: Path) -> np.ndarray:

@@ -45,7 +45,7 @@ import numpy as np
 from sgpor_pipeline.dag import Stage, StageContext
 from sgpor_pipeline.errors import PipelineError
 from sgpor_pipeline.gaussians.ply import read_ply, write_ply
-from sgpor_pipeline.imageio import read_mask, read_rgb8, write_mask01, write_png
+from sgpor_pipeline.imageio import read_mask, read_rgb8, to_float32, write_mask01, write_png
 from sgpor_pipeline.removal.holes import (
     RemoveParams,
     clamp_dc_colours,
@@ -169,7 +169,7 @@ class RemoveStage(Stage):
         for i, (cam, mask, rgb, alpha, hole, filled_depth) in enumerate(zip(cameras, masks, renders, alphas, holes,
                                                                             depths)):
             photo = photos[i] if photos is not None else self._photo(sfm, cam, p)
-            photo = None if photo is None else photo.astype(np.float32) / 255.0
+            photo = None if photo is None else to_float32(photo)
             write_png(ctx.out_dir / "renders" / f"{cam.image}.png", rgb)
             write_png(ctx.out_dir / "context" / f"{cam.image}.png",
                       context_image(unpremultiplied(rgb, alpha), photo, mask, p.context_margin))

@@ -22,6 +22,7 @@ from scipy.spatial import cKDTree
 from ..config import added_param
 from ..errors import PipelineError
 from ..gaussians.model import GaussianModel, inverse_sigmoid, rgb_to_sh, sh_to_rgb
+from ..imageio import to_float32
 from ..scene import Camera
 from . import linsolve
 from .multiview import nearest_per_pixel, pinned_parts
@@ -291,10 +292,7 @@ DISAGREEMENT_BLUR = 1.5  # px: renders are smoother than photos; compare both bl
 
 def _blurred(img: np.ndarray | None) -> np.ndarray | None:
     """``img`` (float in [0, 1], or uint8) blurred by ``DISAGREEMENT_BLUR`` px, float32."""
-    if img is None:
-        return None
-    img = img.astype(np.float32) / 255.0 if img.dtype == np.uint8 else np.asarray(img, np.float32)
-    return cv2.GaussianBlur(img, (0, 0), DISAGREEMENT_BLUR)
+    return None if img is None else cv2.GaussianBlur(to_float32(img), (0, 0), DISAGREEMENT_BLUR)
 
 
 def observing_views(cameras: list[Camera], masks: list[np.ndarray], depths: list[np.ndarray],

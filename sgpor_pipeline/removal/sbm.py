@@ -41,6 +41,7 @@ import cv2
 import numpy as np
 
 from sgpor_pipeline.errors import PipelineError
+from sgpor_pipeline.imageio import to_float32
 
 from . import linsolve
 from .features import BlockFeatures, CellLayout, Descriptors, make_backend
@@ -236,7 +237,7 @@ def build_source_bank(names: list[str], images: list[np.ndarray], object_masks: 
     params.validate()
     features = features or make_features(params)
     s = params.block_size
-    imgs = [np.ascontiguousarray(_as_f32(im)) for im in images]
+    imgs = [np.ascontiguousarray(to_float32(im)) for im in images]
     free = [free_blocks(m, s) for m in object_masks]
     valid = [~np.asarray(h, bool) for h in holes]
     stride = params.source_stride or auto_source_stride(free, params.max_sources)
@@ -286,13 +287,6 @@ def _half_size(hw: tuple[int, int]) -> tuple[int, int]:
 def _shrink_any(mask: np.ndarray, wh: tuple[int, int]) -> np.ndarray:
     """A bool mask resized to (width, height): true where any covered pixel was true."""
     return cv2.resize(np.asarray(mask, np.float32), wh, interpolation=cv2.INTER_AREA) > 0
-
-
-def _as_f32(img: np.ndarray) -> np.ndarray:
-    img = np.asarray(img)
-    if img.dtype == np.uint8:
-        return img.astype(np.float32) / 255.0
-    return img.astype(np.float32, copy=False)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -627,7 +621,7 @@ def coarse_guide(image: np.ndarray, todo: np.ndarray, bank: SourceBank, params: 
         return None
     h, w = todo.shape
     wh = _half_size((h, w))
-    small = cv2.resize(_as_f32(image), wh, interpolation=cv2.INTER_AREA)
+    small = cv2.resize(to_float32(image), wh, interpolation=cv2.INTER_AREA)
     coarse = inpaint_view(small, _shrink_any(todo, wh), bank.coarser(params),
                           replace(params, levels=params.levels - 1))
     return cv2.resize(coarse.image, (w, h), interpolation=cv2.INTER_LINEAR)
@@ -677,7 +671,7 @@ def inpaint_view(image: np.ndarray, hole: np.ndarray, bank: SourceBank, params: 
     """
     t0 = time.perf_counter()
     params.validate()
-    img = _as_f32(image).copy()
+    img = to_float32(image).copy()
     hole = np.asarray(hole, bool)
     todo = hole.copy() if known is None else hole & ~np.asarray(known, bool)
     h, w = todo.shape
@@ -765,7 +759,7 @@ def fsr_inpaint(image: np.ndarray, hole: np.ndarray, quality: str = "fast") -> n
         raise PipelineError("OpenCV's xphoto module is missing (opencv-python without contrib?)",
                             fix="pip uninstall opencv-python opencv-python-headless && "
                                 "pip install --force-reinstall opencv-contrib-python-headless") from None
-    img = _as_f32(image)
+    img = to_float32(image)
     hole = np.asarray(hole, bool)
     if not hole.any():
         return img.copy()

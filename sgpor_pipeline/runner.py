@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from . import __version__
-from .cache import CHECKPOINT, ITEMS, RunLock, StageCache, folder_size, publish, read_manifest, verify
+from .cache import CHECKPOINT, ITEMS, SCRATCH, RunLock, StageCache, folder_size, publish, read_manifest, verify
 from .config import params_key, params_to_dict, resolve_config, save_config
 from .dag import (
     RunInputs,
@@ -34,6 +34,28 @@ RUN_FILE = "run.json"
 CONFIG_FILE = "config.toml"
 
 log = logging.getLogger("sgpor_pipeline")
+
+
+def reset_peak_memory() -> bool:
+    """Reset this process's peak resident memory (Linux: ``/proc/self/clear_refs``), so that what a
+    stage reaches can be read after it (:func:`peak_memory`). False where the system has no such reset."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+        return True
+    except OSError:
+        return False
+
+
+def peak_memory() -> int | None:
+    """This process's peak resident memory in bytes since the last :func:`reset_peak_memory` (Linux's
+    VmHWM), or None where it cannot be read."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
 
 
 def library_version(name: str) -> str | None:
@@ -218,14 +240,17 @@ def _run_stage(cls: type[Stage], name: str, key: str, config: dict[str, Any], ca
     ctx = StageContext(stage=name, params=params, out_dir=tmp, inputs=inputs, run_inputs=run_inputs,
                        log=logging.getLogger(f"sgpor_pipeline.{name}"), seed_key=key, debug=debug,
                        _item_cache=item_cache, _stage_config=config, _memo=memo)
+    measured = reset_peak_memory()
     t0 = time.perf_counter()
     try:
         cls().run(ctx)
     except BaseException:
         if not (tmp / CHECKPOINT).is_dir():  # keep a checkpoint for the next run to resume
             shutil.rmtree(tmp, ignore_errors=True)
+        shutil.rmtree(tmp / SCRATCH, ignore_errors=True)
         raise
     seconds = time.perf_counter() - t0
+    peak = peak_memory() if measured else None
     manifest = {
         "stage": name,
         "version": cls.VERSION,
@@ -237,6 +262,7 @@ def _run_stage(cls: type[Stage], name: str, key: str, config: dict[str, Any], ca
         "seconds": seconds,
         # the stage's cost from scratch: its run plus what the reused items once cost to build
         "seconds_from_scratch": seconds + reused_seconds[0],
+        "peak_memory_bytes": peak,  # the process's peak resident memory while the stage ran (Linux)
         "created": time.time(),
         "resumed_from_checkpoint": resumed,
         "versions": {"sgpor_pipeline": __version__, "python": platform.python_version(),
@@ -251,7 +277,8 @@ def _run_stage(cls: type[Stage], name: str, key: str, config: dict[str, Any], ca
     if force:
         extra.append("forced")
     note = f"  ({'; '.join(extra)})" if extra else ""
-    log.info(f"{name:<10} ran in {seconds:.1f} s  key {key[:10]}{note}")
+    memory = "" if peak is None else f", peak memory {peak / 1e9:.2f} GB"
+    log.info(f"{name:<10} ran in {seconds:.1f} s{memory}  key {key[:10]}{note}")
     return StageOutcome(name, key, final, False, seconds)
 
 
@@ -265,6 +292,7 @@ class StageStatus:
     seconds: float | None
     size: int
     detail: str = ""
+    peak_memory: int | None = None  # bytes, while it ran (manifests of older builds: None)
 
 
 def load_run(out: Path, stages: dict[str, type[Stage]]) -> tuple[RunInputs, dict[str, Any]]:
@@ -352,7 +380,8 @@ def pipeline_status(out: Path, stages: dict[str, type[Stage]] | None = None) -> 
             ok, why = verify(current[0].path, key)
             manifest = current[0].manifest or {}
             rows.append(StageStatus(name, "hit" if ok else "damaged", key, manifest.get("seconds"),
-                                    folder_size(current[0].path), "" if ok else why))
+                                    folder_size(current[0].path), "" if ok else why,
+                                    manifest.get("peak_memory_bytes")))
         elif others:
             last = others[-1]
             rows.append(StageStatus(name, "stale", key, (last.manifest or {}).get("seconds"),
@@ -393,12 +422,13 @@ def clean(out: Path, keep_last: int = 0, stages: dict[str, type[Stage]] | None =
 
 
 def format_status(rows: list[StageStatus]) -> str:
-    lines = [f"{'stage':<10} {'state':<8} {'time':>8} {'size':>9}  key"]
+    lines = [f"{'stage':<10} {'state':<8} {'time':>8} {'size':>9} {'memory':>9}  key"]
     for r in rows:
         t = "-" if r.seconds is None else f"{r.seconds:.1f} s"
         k = (r.key or "-")[:10]
         detail = f"  {r.detail}" if r.detail else ""
-        lines.append(f"{r.name:<10} {r.state:<8} {t:>8} {_format_size(r.size):>9}  {k}{detail}")
+        memory = "-" if r.peak_memory is None else _format_size(r.peak_memory)
+        lines.append(f"{r.name:<10} {r.state:<8} {t:>8} {_format_size(r.size):>9} {memory:>9}  {k}{detail}")
     return "\n".join(lines)
 
 

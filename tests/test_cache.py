@@ -257,3 +257,33 @@ def test_materialize_copies_a_republished_stage_again(tmp_path):
     (src / "manifest.json").write_text(json.dumps({"created": 2.0}))
     materialize(src, dst, "k1")
     assert (dst / "scene.ply").read_text() == "second" and (dst / STAMP).read_text() != stamp
+
+
+def test_each_stage_records_its_own_peak_memory(tmp_path, image_dir, toy_stages, caplog):
+    """The manifest and the log line give the peak resident memory of each stage on its own: the peak
+    is reset before a stage runs (Linux), so a later, small stage does not report an earlier one's."""
+    import mmap
+
+    import numpy as np
+
+    from sgpor_pipeline.runner import reset_peak_memory
+
+    if not reset_peak_memory():
+        pytest.skip("no peak-memory reset on this system (/proc/self/clear_refs)")
+
+    class Big(toy_stages["toy_slow"]):
+        def run(self, ctx):
+            # 400 MB written (resident), mapped and unmapped by hand: returned to the system whatever the
+            # allocator's settings (sgpor_pipeline.allocator keeps freed heap blocks)
+            block = mmap.mmap(-1, 400_000_000)
+            view = np.frombuffer(block, np.uint8)
+            view[:] = 1
+            del view
+            block.close()
+            super().run(ctx)
+
+    caplog.set_level(logging.INFO, logger="sgpor_pipeline")
+    result = run(tmp_path / "out", image_dir, dict(toy_stages, toy_slow=Big))
+    peak = {name: read_manifest(result.path(name))["peak_memory_bytes"] for name in ("toy_slow", "toy_report")}
+    assert peak["toy_slow"] >= peak["toy_report"] + 300e6, peak
+    assert f"peak memory {peak['toy_slow'] / 1e9:.2f} GB" in caplog.text

@@ -5,6 +5,7 @@ Layout under ``<out>/cache``::
     <stage>/<key>/                  a published result: artifact files + manifest.json (written last)
     <stage>/.tmp-<key>-<rand>/      a build in progress (or left by a killed run)
     <stage>/.tmp-<key>-<rand>/_checkpoint/   a long stage's checkpoint, adopted by the next build
+    <stage>/.tmp-<key>-<rand>/_scratch/      per-view arrays a stage keeps on disk while it runs (deleted)
     <stage>/items/<item key>/       per-item results (per view), each with its own manifest
 
 A result is a hit only when its manifest exists, parses, names this key and every file it lists
@@ -30,6 +31,7 @@ from .hashing import file_digest
 
 MANIFEST = "manifest.json"
 CHECKPOINT = "_checkpoint"
+SCRATCH = "_scratch"
 TMP_PREFIX = ".tmp-"
 OLD_PREFIX = ".old-"
 ITEMS = "items"
@@ -55,12 +57,13 @@ def _fsync_dir(path: Path) -> None:
 
 
 def list_files(folder: Path) -> list[str]:
-    """Relative POSIX names of the artifact files in a build folder (manifest and checkpoint excluded)."""
+    """Relative POSIX names of the artifact files in a build folder (manifest, checkpoint and scratch
+    excluded)."""
     out = []
     for root, dirs, files in os.walk(folder):
         rel_root = Path(root).relative_to(folder)
         if rel_root == Path("."):
-            dirs[:] = [d for d in dirs if d != CHECKPOINT]
+            dirs[:] = [d for d in dirs if d not in (CHECKPOINT, SCRATCH)]
         for name in files:
             rel = (rel_root / name).as_posix()
             if rel != MANIFEST:
@@ -102,6 +105,7 @@ def read_manifest(folder: Path) -> dict[str, Any] | None:
 def publish(tmp: Path, final: Path, manifest: dict[str, Any]) -> Path:
     """Digest the files of ``tmp``, write the manifest last and move the folder to ``final``."""
     shutil.rmtree(tmp / CHECKPOINT, ignore_errors=True)
+    shutil.rmtree(tmp / SCRATCH, ignore_errors=True)
     files = {}
     for rel in list_files(tmp):
         path = tmp / rel

@@ -26,6 +26,7 @@ from typing import Any, ClassVar
 
 from tqdm import tqdm
 
+from .cache import CHECKPOINT, SCRATCH
 from .config import NoParams
 from .errors import PipelineError
 from .hashing import DigestMemo
@@ -116,7 +117,15 @@ class StageContext:
     @property
     def checkpoint_dir(self) -> Path:
         """A folder inside the build folder that survives a killed run of the same configuration."""
-        path = self.out_dir / "_checkpoint"
+        path = self.out_dir / CHECKPOINT
+        path.mkdir(exist_ok=True)
+        return path
+
+    @property
+    def scratch_dir(self) -> Path:
+        """A folder inside the build folder for what the stage keeps on disk while it runs (see
+        :class:`~sgpor_pipeline.scratch.ArraysOnDisk`); deleted when the stage ends, never published."""
+        path = self.out_dir / SCRATCH
         path.mkdir(exist_ok=True)
         return path
 

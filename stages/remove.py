@@ -36,6 +36,7 @@ The floaters and hull centres (unsupervised there) still go.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import shutil
 from dataclasses import dataclass
@@ -66,6 +67,7 @@ from sgpor_pipeline.removal.holes import (
 )
 from sgpor_pipeline.removal.plane import under_object
 from sgpor_pipeline.scene import Camera, save_cameras
+from sgpor_pipeline.scratch import ArraysOnDisk, Keeper, in_memory, on_disk
 from sgpor_pipeline.sfm import load_sfm
 from sgpor_pipeline.stages.fit import fit_ignored_masks
 
@@ -77,12 +79,13 @@ class RemoveStageParams(RemoveParams):
 
 def complete_hole_depths(cameras: list[Camera], depths: list[np.ndarray], valids: list[np.ndarray],
                          holes: list[np.ndarray], p: RemoveParams,
-                         floors: list[np.ndarray] | None = None) -> list[np.ndarray]:
+                         floors: list[np.ndarray] | None = None, keep: Keeper = in_memory) -> list[np.ndarray]:
     """The holes' depths, jointly (one surface, ``consistent_depth``) or each view on its own; at least
-    ``floors`` (the deleted object's depth) where given."""
+    ``floors`` (the deleted object's depth) where given. ``keep`` holds them (:mod:`sgpor_pipeline.scratch`)."""
     if p.consistent_depth:
-        return complete_depths_jointly(cameras, depths, valids, holes, floors)
-    return [complete_depth(d, v, h, f) for d, v, h, f in zip(depths, valids, holes, floors or [None] * len(holes))]
+        return complete_depths_jointly(cameras, depths, valids, holes, floors, keep)
+    return keep("completed_depths", (complete_depth(d, v, h, f) for d, v, h, f in
+                                     zip(depths, valids, holes, floors or [None] * len(holes))))
 
 
 CONTEXTS = ("photos", "renders")
@@ -124,7 +127,11 @@ class RemoveStage(Stage):
         save_cameras(ctx.out_dir / "cameras.json", cameras)
         for sub in ("renders", "holes", "masks", "depth", "context"):
             (ctx.out_dir / sub).mkdir()
-        renders, alphas, raw_depths = [], [], []
+        # every view's float maps (renders, opacities, depths, ...) on disk while the stage runs, read back
+        # memory-mapped: held in memory they took ~60 bytes a pixel of every view (scratch.py); the bool
+        # masks stay in memory (1 byte a pixel each)
+        keep = functools.partial(on_disk, ctx.scratch_dir)
+        renders, alphas, raw_depths = (ArraysOnDisk(ctx.scratch_dir / n) for n in ("renders", "alphas", "raw_depths"))
         for cam in ctx.progress(cameras, total=len(cameras), desc="remove: render"):
             rgb, alpha, depth = render_background(background, cam, p.backend, p.depth)
             renders.append(rgb)
@@ -132,15 +139,17 @@ class RemoveStage(Stage):
             raw_depths.append(depth)
         holes = [hole_mask(m, a, p) for m, a in zip(masks, alphas)]
         front = subset(model, surface)
-        floors = [object_depth(front, cam, p.backend) for cam in cameras] if p.behind_object else None
-        depths = complete_hole_depths(cameras, raw_depths, [a >= p.hole_alpha for a in alphas], holes, p, floors)
+        floors = keep("floors", (object_depth(front, cam, p.backend) for cam in cameras)) if p.behind_object else None
+        depths = complete_hole_depths(cameras, raw_depths, [a >= p.hole_alpha for a in alphas], holes, p, floors,
+                                      keep)
         second_pass = p.min_views > 0 and p.hole_mode == "unseen"
-        photos: list[np.ndarray | None] | None = None  # (read here only when compared with the renders)
+        photos: ArraysOnDisk | None = None  # (read here only when compared with the renders)
         if second_pass:  # mask pixels that too few other views observed become holes too
             seen = [m & ~h for m, h in zip(masks, holes)]
             if p.max_disagreement > 0:
-                photos = [self._photo(sfm, cam, p) for cam in cameras]
-            counts, disagree = observing_views(cameras, masks, depths, seen, p, renders if photos else None, photos)
+                photos = keep("photos", (self._photo(sfm, cam, p) for cam in cameras))
+            counts, disagree = observing_views(cameras, masks, depths, seen, p,
+                                               renders if photos is not None else None, photos, keep)
             unobserved = [s & (c < p.min_views) for s, c in zip(seen, counts)]
             if disagree is not None:  # (NaN: no photo shows the point; compares False)
                 stats["disagreeing_pixels"] = int(sum(int((s & (d > p.max_disagreement)).sum())
@@ -149,7 +158,8 @@ class RemoveStage(Stage):
             holes = [hole_mask(m, a, p, u) for m, a, u in zip(masks, alphas, unobserved)]
         observed = [(a >= p.hole_alpha) & ~h for a, h in zip(alphas, holes)]  # background each view saw
         if second_pass:
-            depths = complete_hole_depths(cameras, raw_depths, observed, holes, p, floors)
+            depths = complete_hole_depths(cameras, raw_depths, observed, holes, p, floors,
+                                          functools.partial(on_disk, ctx.scratch_dir / "second_pass"))
         if p.under_object and p.hole_mode == "unseen":
             under, why = under_object(cameras, masks, holes, depths, depth_tol=p.view_depth_tol)
             if under is None:
@@ -164,7 +174,7 @@ class RemoveStage(Stage):
                 save_cameras(ctx.out_dir / "under_object" / "camera.json", [under.camera])
                 write_mask01(ctx.out_dir / "under_object" / "silhouette.png", under.silhouette)
                 ctx.log.info(f"remove: {under.info['pixels']} mask pixels lay on the plane under the object: holes")
-        colours = []
+        colours = ArraysOnDisk(ctx.scratch_dir / "colours")
         per_view = {}
         for i, (cam, mask, rgb, alpha, hole, filled_depth) in enumerate(zip(cameras, masks, renders, alphas, holes,
                                                                             depths)):

@@ -354,6 +354,33 @@ def test_depth_completion_is_exact_for_planes():
     assert np.abs(filled[hole] - depth[hole]).max() < 1e-4
 
 
+def test_observing_views_and_joint_depths_keep_their_maps_on_disk_bit_for_bit(scene_and_model, tmp_path):
+    """The remove stage keeps its per-view maps on disk (scratch.on_disk): the same results as in memory,
+    with the inputs themselves read back memory-mapped."""
+    import functools
+
+    from sgpor_pipeline.removal.holes import complete_depths_jointly
+    from sgpor_pipeline.scratch import on_disk
+
+    scene, _, _ = scene_and_model
+    keep = functools.partial(on_disk, tmp_path)
+    masks, params = list(scene.masks), RemoveParams(min_views=1, view_mask_dilate=1)
+    photos8 = [(im * 255 + 0.5).astype(np.uint8) for im in scene.images]
+    args = (scene.cameras, masks, list(scene.depth_gt), masks, params, list(scene.images_gt), photos8)
+    counts, dis = observing_views(*args)
+    disk = observing_views(scene.cameras, masks, keep("depths", scene.depth_gt), masks, params,
+                           keep("renders", scene.images_gt), keep("photos", photos8), keep)
+    assert all(np.array_equal(a, b) for a, b in zip(counts, disk[0]))
+    assert all(np.array_equal(a, b, equal_nan=True) for a, b in zip(dis, disk[1]))
+    assert (tmp_path / "blurred_photos").is_dir() and isinstance(disk[1][0], np.memmap)
+    holes = [m.copy() for m in masks]
+    depths = [np.where(h, np.inf, d).astype(np.float32) for h, d in zip(holes, scene.depth_gt)]
+    joint = complete_depths_jointly(scene.cameras, depths, [~h for h in holes], holes)
+    joint_disk = complete_depths_jointly(scene.cameras, keep("raw", depths), [~h for h in holes], holes,
+                                         keep=functools.partial(on_disk, tmp_path / "joint"))
+    assert all(np.array_equal(a, b) for a, b in zip(joint, joint_disk))
+
+
 def test_joint_depth_completion_gives_the_views_one_hole_surface():
     """Large holes (object masks grown to span the floor and what stands behind it): completed view by
     view, the hole surfaces disagree between views; completed jointly (smallest hole first), every

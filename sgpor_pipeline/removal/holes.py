@@ -24,6 +24,7 @@ from ..errors import PipelineError
 from ..gaussians.model import GaussianModel, inverse_sigmoid, rgb_to_sh, sh_to_rgb
 from ..imageio import to_float32
 from ..scene import Camera
+from ..scratch import Keeper, in_memory
 from . import linsolve
 from .multiview import nearest_per_pixel, pinned_parts
 from .selection import (
@@ -297,7 +298,7 @@ def _blurred(img: np.ndarray | None) -> np.ndarray | None:
 
 def observing_views(cameras: list[Camera], masks: list[np.ndarray], depths: list[np.ndarray],
                     pixels: list[np.ndarray], params: RemoveParams, renders: list[np.ndarray] | None = None,
-                    photos: list[np.ndarray | None] | None = None
+                    photos: list[np.ndarray | None] | None = None, keep: Keeper = in_memory
                     ) -> tuple[list[np.ndarray], list[np.ndarray] | None]:
     """Per view i, for its ``pixels[i]`` (HxW bool): how many OTHER views show the pixel's background
     point (lifted with ``depths[i]``): it projects inside their image, outside their (dilated) object
@@ -305,22 +306,26 @@ def observing_views(cameras: list[Camera], masks: list[np.ndarray], depths: list
     Returns (HxW int32 maps, 0 outside ``pixels``; with ``renders`` and ``photos`` (float in [0, 1] or
     uint8), HxW float32 maps of how far view i's render there is from what those views' photos show at
     the point: the median over them of the mean absolute RGB difference, both blurred by
-    ``DISAGREEMENT_BLUR`` px; NaN where no view with a photo shows it, or outside ``pixels``)."""
+    ``DISAGREEMENT_BLUR`` px; NaN where no view with a photo shows it, or outside ``pixels``). ``keep``
+    holds the per-view arrays (the blurred photos, the maps returned; see :mod:`sgpor_pipeline.scratch`)."""
     d = max(0, params.view_mask_dilate)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * d + 1, 2 * d + 1)) if d else None
     dilated = [m if kernel is None else cv2.dilate(m.astype(np.uint8), kernel) > 0 for m in masks]
     compare = renders is not None and photos is not None
     # float16: every view's is held at once (and the photos beside them); its rounding (< 0.001) is far
     # below any useful max_disagreement
-    blurred_photos = [None if ph is None else _blurred(ph).astype(np.float16) for ph in photos] if compare else []
-    counts, disagreements = [], []
+    blurred_photos = keep("blurred_photos", (None if ph is None else _blurred(ph).astype(np.float16)
+                                             for ph in photos)) if compare else []
+    counts = keep("counts", [None] * len(cameras))
+    disagreements = keep("disagreements", [None] * len(cameras)) if compare else None
     for i, cam_i in enumerate(cameras):
         out = np.zeros(pixels[i].shape, np.int32)
         ys, xs = np.nonzero(pixels[i])
-        counts.append(out)
         dis = np.full(pixels[i].shape, np.nan, np.float32)
-        disagreements.append(dis)
         if len(ys) == 0:
+            counts[i] = out
+            if compare:
+                disagreements[i] = dis
             continue
         z = depths[i][ys, xs].astype(np.float64)
         good = np.isfinite(z) & (z > 0)
@@ -341,11 +346,14 @@ def observing_views(cameras: list[Camera], masks: list[np.ndarray], depths: list
                 diff[ok] = np.abs(blurred_photos[j][px[ok, 1], px[ok, 0]].astype(np.float32) - own[ok]).mean(axis=1)
                 diffs.append(diff)
         out[ys, xs] = count
+        counts[i] = out
         if diffs:
             stacked = np.stack(diffs)
             seen_by = ~np.isnan(stacked).all(axis=0)
             dis[ys[seen_by], xs[seen_by]] = np.nanmedian(stacked[:, seen_by], axis=0)
-    return counts, (disagreements if compare else None)
+        if compare:
+            disagreements[i] = dis
+    return counts, disagreements
 
 
 def complete_depth(depth: np.ndarray, valid: np.ndarray, hole: np.ndarray,
@@ -420,7 +428,8 @@ def object_depth(obj: GaussianModel, camera: Camera, backend: str = "auto", min_
 
 
 def complete_depths_jointly(cameras: list[Camera], depths: list[np.ndarray], valids: list[np.ndarray],
-                            holes: list[np.ndarray], floors: list[np.ndarray] | None = None) -> list[np.ndarray]:
+                            holes: list[np.ndarray], floors: list[np.ndarray] | None = None,
+                            keep: Keeper = in_memory) -> list[np.ndarray]:
     """:func:`complete_depth` for every view, the smallest hole first; the hole surfaces completed so
     far are splatted into each later view's hole (nearest point per pixel) and fixed there, so the
     views complete one surface instead of one each, and the inpaint stage's reference fill can be
@@ -441,8 +450,9 @@ def complete_depths_jointly(cameras: list[Camera], depths: list[np.ndarray], val
     hole surface completed in one view can pass through space another view sees in front of the
     object (lund + box: the fitted background around the billboard renders 2-3x nearer than the
     billboard itself, so the holes were completed in front of it and one view's surface cut through
-    the next's: completed hole depths of 0.2 where the billboard stands at 1.9)."""
-    out: list[np.ndarray | None] = [None] * len(cameras)
+    the next's: completed hole depths of 0.2 where the billboard stands at 1.9). ``keep`` holds the
+    completed depths (:mod:`sgpor_pipeline.scratch`)."""
+    out = keep("completed_depths", [None] * len(cameras))
     done: list[np.ndarray] = []
     for i in sorted(range(len(cameras)), key=lambda k: int(holes[k].sum())):
         cam, hole = cameras[i], holes[i]
@@ -462,10 +472,11 @@ def complete_depths_jointly(cameras: list[Camera], depths: list[np.ndarray], val
                 depth.reshape(-1)[lin] = z[keep]
                 valid.reshape(-1)[lin] = True
                 free.reshape(-1)[lin] = False
-        out[i] = complete_depth(depth, valid, free, floor)
+        completed = complete_depth(depth, valid, free, floor)
+        out[i] = completed
         ys, xs = np.nonzero(hole)
         if len(ys):
-            done.append(cam.unproject(ys, xs, out[i][ys, xs]))
+            done.append(cam.unproject(ys, xs, completed[ys, xs]))
     return out
 
 

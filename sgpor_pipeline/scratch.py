@@ -1,0 +1,80 @@
+"""Per-view arrays a stage needs for all its views at once, kept on disk while it runs.
+
+The removal stages work at the photos' size (up to 1600 px), and some steps need every view's
+render, depth or opacity together (the joint depth completion, counting the views that saw a point).
+Held in memory they took tens of bytes a pixel of every view: over 10 GB for 100 photos of 1600 px.
+:class:`ArraysOnDisk` writes each array to one ``.npy`` file as it is made and gives it back
+memory-mapped, read-only: the operating system pages in what a step reads (a few rows of another
+view, where a point projects) and may drop it again, so the stage's memory no longer grows with
+views x pixels. The values are the same arrays, bit for bit.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from pathlib import Path
+
+import numpy as np
+
+
+class ArraysOnDisk(Sequence):
+    """A list of ``n`` arrays in ``folder`` (``<i>.npy``): ``append`` or set an item to write it, index
+    it to read it back memory-mapped (read-only). An item set to None, or never set, is None."""
+
+    def __init__(self, folder: Path, n: int = 0) -> None:
+        self.folder = Path(folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self._present = [False] * n  # (False: None)
+
+    def __len__(self) -> int:
+        return len(self._present)
+
+    def _path(self, i: int) -> Path:
+        return self.folder / f"{i}.npy"
+
+    def __setitem__(self, i: int, array: np.ndarray | None) -> None:
+        i = range(len(self))[i]  # (negative indices; IndexError past the end)
+        if array is None:
+            self._present[i] = False
+            self._path(i).unlink(missing_ok=True)
+            return
+        # (a new file, renamed over the old: an item read before stays mapped to what it was)
+        tmp = self.folder / f"{i}.tmp.npy"
+        np.save(tmp, np.ascontiguousarray(array))
+        os.replace(tmp, self._path(i))
+        self._present[i] = True
+
+    def append(self, array: np.ndarray | None) -> None:
+        self._present.append(False)
+        self[len(self) - 1] = array
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            return [self[k] for k in range(*i.indices(len(self)))]
+        i = range(len(self))[i]
+        if not self._present[i]:
+            return None
+        return np.load(self._path(i), mmap_mode="r")
+
+    def __iter__(self) -> Iterator[np.ndarray | None]:
+        return (self[i] for i in range(len(self)))
+
+
+#: Where a function keeps a list of per-view arrays: ``keep(name, arrays)`` takes them (a generator:
+#: one by one as they are made; ``[None] * n``: n places to set later) and returns the list to index.
+Keeper = Callable[[str, Iterable[np.ndarray | None]], Sequence[np.ndarray | None]]
+
+
+def in_memory(name: str, arrays: Iterable[np.ndarray | None]) -> list[np.ndarray | None]:
+    """The default :data:`Keeper`: a plain list."""
+    return list(arrays)
+
+
+def on_disk(folder: Path, name: str, arrays: Iterable[np.ndarray | None] = ()) -> ArraysOnDisk:
+    """A :data:`Keeper` (with ``functools.partial(on_disk, folder)``): a new :class:`ArraysOnDisk` in
+    ``folder/name`` holding ``arrays``, written one by one as a generator makes them."""
+    out = ArraysOnDisk(Path(folder) / name)
+    for a in arrays:
+        out.append(a)
+    return out

@@ -77,7 +77,7 @@ from sgpor_pipeline.config import added_param
 from sgpor_pipeline.dag import Stage, StageContext
 from sgpor_pipeline.errors import PipelineError
 from sgpor_pipeline.hashing import hash_obj
-from sgpor_pipeline.imageio import read_image, read_labels, read_mask, write_labels, write_mask01, write_png
+from sgpor_pipeline.imageio import read_image, read_labels, read_mask, read_rgb8, write_labels, write_mask01, write_png
 from sgpor_pipeline.removal import diffusion as sd
 from sgpor_pipeline.removal import multiview
 from sgpor_pipeline.removal.multiview import (
@@ -393,7 +393,7 @@ class InpaintStage(Stage):
         def bank():
             if "bank" not in state:
                 t = time.perf_counter()
-                state["bank"] = build_source_bank(names, [v.context() for v in data.views],
+                state["bank"] = build_source_bank(names, [v.context8() for v in data.views],
                                                   [v.mask() for v in data.views], holes, sbm)
                 state["bank_seconds"] = time.perf_counter() - t
             return state["bank"]
@@ -418,7 +418,8 @@ class InpaintStage(Stage):
                 depth = sv.depth()
                 parts = thick[j] if thick_only else carried_parts(holes[j], depth, p)
                 carry = (filled == FILLED_INPAINTED if progressive else filled > 0) & parts
-                carriers[j, thick_only] = (read_image(item / "image.png"), sv.camera, depth, carry) if carry.any() \
+                # (uint8: a carrier of every view with a hole is held for the consensus)
+                carriers[j, thick_only] = (read_rgb8(item / "image.png"), sv.camera, depth, carry) if carry.any() \
                     else None
             return carriers[j, thick_only]
 
@@ -507,8 +508,8 @@ class InpaintStage(Stage):
             :mod:`sgpor_pipeline.removal.plane`); plane.json says why not when the parts are not one plane."""
             t0 = time.perf_counter()
             pp = p.plane()
-            tex, why = plane_texture([v.camera for v in data.views], [v.context() for v in data.views],
-                                     [~h for h in holes], [v.depth() for v in data.views], thick,
+            tex, why = plane_texture([v.camera for v in data.views], data.contexts8(),
+                                     [~h for h in holes], data.depths(), thick,
                                      pp, p.depth_tol, under=under)
             info: dict[str, Any] = {"built": tex is not None, "reason": why}
             if tex is not None:
@@ -608,7 +609,8 @@ class InpaintStage(Stage):
                 digests_done.append(hash_obj([ctx.file_digest(items[name] / f) for f in files]))
         # consensus: every view's own fill, its carried pixels replaced by the median of all views' own
         # fills there; filled_from says "projected" where another view's fill took part
-        fused: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        # (written at once: every view's fused image held until the end took 13 bytes a pixel of every view)
+        fused: dict[str, dict[str, int]] = {}  # view -> its counts after the fusion
         if consensus:
             filled = [carrier(i) if names[i] in items else None for i in range(len(names))]
             for i, own in enumerate(filled):
@@ -616,7 +618,12 @@ class InpaintStage(Stage):
                     img, from_others, _ = consensus_fill(i, filled, p.projection, p.depth_tol, p.consensus_views)
                     filled_from = read_labels(items[names[i]] / "filled_from.png")
                     filled_from[from_others] = FILLED_PROJECTED
-                    fused[names[i]] = (img, filled_from)
+                    write_png(ctx.out_dir / "images" / f"{names[i]}.png", img)
+                    write_labels(ctx.out_dir / "filled_from" / f"{names[i]}.png", filled_from)
+                    fused[names[i]] = {"projected": int((filled_from == FILLED_PROJECTED).sum()),
+                                       "inpainted": int((filled_from == FILLED_INPAINTED).sum())}
+            del filled
+            carriers.clear()
         summary: dict[str, dict] = {}
         shading = state.get("plane", {}).get("shading")
         if shading is not None:
@@ -628,11 +635,7 @@ class InpaintStage(Stage):
                 item = items[name]
                 summary[name] = json.loads((item / "info.json").read_text())
                 if name in fused:
-                    img, filled_from = fused[name]
-                    write_png(ctx.out_dir / "images" / f"{name}.png", img)
-                    write_labels(ctx.out_dir / "filled_from" / f"{name}.png", filled_from)
-                    summary[name].update(projected=int((filled_from == FILLED_PROJECTED).sum()),
-                                         inpainted=int((filled_from == FILLED_INPAINTED).sum()))
+                    summary[name].update(fused[name])
                 else:
                     _link_or_copy(item / "image.png", ctx.out_dir / "images" / f"{name}.png")
                     _link_or_copy(item / "filled_from.png", ctx.out_dir / "filled_from" / f"{name}.png")

@@ -32,7 +32,7 @@ import numpy as np
 from sgpor_pipeline.dag import Stage, StageContext
 from sgpor_pipeline.errors import PipelineError
 from sgpor_pipeline.hashing import hash_obj
-from sgpor_pipeline.imageio import read_image, read_labels, write_png
+from sgpor_pipeline.imageio import read_image, read_labels, to_float32, write_png
 from sgpor_pipeline.removal.multiview import FILLED_PROJECTED, load_remove_folder, warp_from_reference
 from sgpor_pipeline.removal.rpr import RPRParams, hf_energy, refine_view, refined_overlay
 from sgpor_pipeline.removal.sbm import SBMParams, build_source_bank, match_blocks, target_positions
@@ -75,8 +75,8 @@ class RefineStage(Stage):
 
         def sources() -> tuple[list[np.ndarray], list[np.ndarray]]:
             if "src" not in state:
-                imgs = [v.context() for v in data.views]
-                state["src"] = (imgs, [hf_energy(im) for im in imgs])
+                imgs = [v.context8() for v in data.views]  # (uint8: held for every view)
+                state["src"] = (imgs, [hf_energy(to_float32(im)) for im in imgs])
             return state["src"]
 
         sbm = SBMParams(block_size=block, top_k=p.candidates, seed=p.seed)

@@ -39,6 +39,7 @@ agrees).
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -46,7 +47,7 @@ import cv2
 import numpy as np
 
 from sgpor_pipeline.errors import PipelineError
-from sgpor_pipeline.imageio import read_image, read_mask, write_mask01, write_png
+from sgpor_pipeline.imageio import read_image, read_mask, read_rgb8, to_float32, write_mask01, write_png
 from sgpor_pipeline.scene import Camera, load_cameras, save_cameras
 
 PROJECTION_MODES = ("backward", "splat")
@@ -57,6 +58,25 @@ CONSENSUS = "consensus"  # no reference: every view is filled on its own, then e
 
 # --------------------------------------------------------------------------------------------------
 # the remove folder
+
+
+class OnDemand(Sequence):
+    """A read-only list of per-view arrays, each read (``read(i)``) when it is indexed, every time: for
+    functions that go through the views one by one. Held at once, such arrays take bytes a pixel of
+    every view (a capture of 100 photos at 1600 px has 190 M pixels)."""
+
+    def __init__(self, n: int, read: Callable[[int], np.ndarray | None]) -> None:
+        self._n, self._read = n, read
+
+    def __len__(self) -> int:
+        return self._n
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            return [self._read(k) for k in range(*i.indices(self._n))]
+        if not -self._n <= i < self._n:
+            raise IndexError(i)
+        return self._read(i % self._n)
 
 
 @dataclass
@@ -82,6 +102,11 @@ class RemovalView:
     def context(self) -> np.ndarray:
         """The image to complete: its known pixels are the hole's context and the source blocks."""
         return read_image(self.context_file)
+
+    def context8(self) -> np.ndarray:
+        """:meth:`context` as stored, uint8 RGB: a quarter of the float image's memory, the same values
+        through :func:`~sgpor_pipeline.imageio.to_float32`."""
+        return read_rgb8(self.context_file)
 
     def hole(self) -> np.ndarray:
         return read_mask(self.hole_path)
@@ -113,6 +138,14 @@ class RemovalInputs:
             if v.name == name:
                 return v
         raise KeyError(name)
+
+    def contexts8(self) -> OnDemand:
+        """Every view's :meth:`RemovalView.context8`, read when indexed."""
+        return OnDemand(len(self.views), lambda i: self.views[i].context8())
+
+    def depths(self) -> OnDemand:
+        """Every view's completed depth (:meth:`RemovalView.depth`), read when indexed."""
+        return OnDemand(len(self.views), lambda i: self.views[i].depth())
 
     @property
     def has_geometry(self) -> bool:
@@ -208,7 +241,9 @@ def warp_from_reference(ref_image: np.ndarray, ref_cam: Camera, ref_depth: np.nd
 
     Returns (colours HxWx3 float32, got bool HxW); ``got`` is a subset of ``target``. A pixel is
     taken only where both completed depths agree within ``depth_tol`` (relative): the same surface.
+    ``ref_image``: float in [0, 1] or uint8.
     """
+    ref_image = to_float32(ref_image)
     h, w = target.shape
     out = np.zeros((h, w, 3), np.float32)
     got = np.zeros((h, w), bool)
@@ -307,9 +342,9 @@ def consensus_fill(i: int, filled: list[tuple[np.ndarray, Camera, np.ndarray, np
     reach most of view i's carried pixels (:func:`consensus_partners`), so a capture of hundreds of
     views costs N x max_views warps instead of N^2. Returns (image HxWx3 float32: view i's fill with
     those pixels replaced, fused bool HxW: pixels at least one other view contributed to, votes int32
-    HxW: fills that reached each carried pixel, its own included)."""
+    HxW: fills that reached each carried pixel, its own included). The images may be uint8."""
     image, cam, depth, carry = filled[i]
-    out = np.asarray(image, np.float32).copy()
+    out = np.array(to_float32(image), np.float32)  # (a copy)
     votes = np.zeros(carry.shape, np.int32)
     ys, xs = np.nonzero(carry)
     if len(ys) == 0:

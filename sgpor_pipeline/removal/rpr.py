@@ -30,6 +30,8 @@ from typing import Any
 import cv2
 import numpy as np
 
+from sgpor_pipeline.imageio import to_float32
+
 from .sbm import feather
 
 
@@ -123,7 +125,8 @@ def refine_view(image: np.ndarray, hole: np.ndarray, targets: np.ndarray, cand: 
 
     ``targets`` [T,2] block corners and ``cand`` [T,k,3] ranked (view, y, x) sources, as written by
     SBM (entry 0 is the one SBM used, unless ``first_used`` is False, e.g. for candidates retrieved
-    for another inpainter's fill; -1 = none); ``source_images`` are the views the candidates index.
+    for another inpainter's fill; -1 = none); ``source_images`` are the views the candidates index
+    (float in [0, 1], or uint8).
     """
     t0 = time.perf_counter()
     cur = np.asarray(image, np.float32).copy()
@@ -134,7 +137,7 @@ def refine_view(image: np.ndarray, hole: np.ndarray, targets: np.ndarray, cand: 
     cand = cand.reshape(len(targets), -1, 3) if len(targets) else np.zeros((0, 1, 3), np.int64)
     nt, k = cand.shape[:2]
     if source_energy is None:
-        source_energy = [hf_energy(im) for im in source_images]
+        source_energy = [hf_energy(to_float32(im)) for im in source_images]
     # mean HF energy of every candidate block (in its own view)
     cand_e = np.full((nt, k), np.nan, np.float32)
     for v in np.unique(cand[..., 0]):
@@ -179,7 +182,7 @@ def refine_view(image: np.ndarray, hole: np.ndarray, targets: np.ndarray, cand: 
             count[b] += 1
             v, sy, sx = (int(a) for a in cand[b, j])
             ty, tx = int(targets[b, 0]), int(targets[b, 1])
-            src = np.asarray(source_images[v], np.float32)[sy:sy + block, sx:sx + block]
+            src = to_float32(np.asarray(source_images[v])[sy:sy + block, sx:sx + block])
             acc[ty:ty + block, tx:tx + block] += fw[:, :, None] * src
             wsum[ty:ty + block, tx:tx + block] += fw
             changed += 1

@@ -174,7 +174,9 @@ class SourceBank:
     """All views' source blocks: positions and weighted descriptors in matrices ready for retrieval."""
 
     names: list[str]
-    images: list[np.ndarray]  # float32 RGB per view (the renders)
+    # RGB per view: uint8 as given (a quarter of the memory; the float32 values through to_float32 at
+    # use) or float32
+    images: list[np.ndarray]
     valid: list[np.ndarray]  # bool per view: pixels usable as context (outside the view's hole)
     free: list[np.ndarray]  # bool per view: free_blocks() of the view's object mask
     pos: np.ndarray  # [Ns,3] int32 (view, y, x) of each source block
@@ -198,7 +200,8 @@ class SourceBank:
         if self._coarser is None:
             half = [_half_size(im.shape[:2]) for im in self.images]
             self._coarser = build_source_bank(
-                self.names, [cv2.resize(im, wh, interpolation=cv2.INTER_AREA) for im, wh in zip(self.images, half)],
+                self.names, [cv2.resize(to_float32(im), wh, interpolation=cv2.INTER_AREA)
+                             for im, wh in zip(self.images, half)],
                 [_shrink_any(m, wh) for m, wh in zip(self.object_masks, half)],
                 [_shrink_any(~v, wh) for v, wh in zip(self.valid, half)], params)
         return self._coarser
@@ -214,7 +217,7 @@ class SourceBank:
         """The view's image with invalid pixels and a border of ``pad`` set to SENTINEL (cached)."""
         key = view * 100003 + pad
         if key not in self._padded:
-            img = self.images[view].copy()
+            img = np.array(to_float32(self.images[view]), np.float32)  # (a copy)
             img[~self.valid[view]] = SENTINEL
             self._padded[key] = cv2.copyMakeBorder(img, pad, pad, pad, pad, cv2.BORDER_CONSTANT,
                                                    value=(SENTINEL, SENTINEL, SENTINEL))
@@ -232,17 +235,18 @@ def auto_source_stride(free: list[np.ndarray], max_sources: int, minimum: int = 
 def build_source_bank(names: list[str], images: list[np.ndarray], object_masks: list[np.ndarray],
                       holes: list[np.ndarray], params: SBMParams,
                       features: BlockFeatures | None = None) -> SourceBank:
-    """Describe every object-free block of every view (renders ``images``, object masks, hole masks)."""
+    """Describe every object-free block of every view (``images``: float in [0, 1], or uint8, kept so;
+    object masks; hole masks)."""
     t0 = time.perf_counter()
     params.validate()
     features = features or make_features(params)
     s = params.block_size
-    imgs = [np.ascontiguousarray(to_float32(im)) for im in images]
+    imgs = [np.ascontiguousarray(im if np.asarray(im).dtype == np.uint8 else to_float32(im)) for im in images]
     free = [free_blocks(m, s) for m in object_masks]
     valid = [~np.asarray(h, bool) for h in holes]
     stride = params.source_stride or auto_source_stride(free, params.max_sources)
     if hasattr(features.backend, "prepare"):  # e.g. dinov2: PCA over all views' tokens
-        features.backend.prepare(imgs, params.seed)
+        features.backend.prepare((to_float32(im) for im in imgs), params.seed)
     pos_list, feats, wts = [], [], []
     for v, (im, fr, va) in enumerate(zip(imgs, free, valid)):
         ys = np.arange(0, fr.shape[0], stride)
@@ -256,7 +260,7 @@ def build_source_bank(names: list[str], images: list[np.ndarray], object_masks: 
         p = np.stack([yy[keep], xx[keep]], axis=1)
         if len(p) == 0:
             continue
-        maps = features.backend.maps(im)
+        maps = features.backend.maps(to_float32(im))
         f, w = features.raw(maps, va, p)
         pos_list.append(np.concatenate([np.full((len(p), 1), v), p], axis=1))
         feats.append(f)
@@ -657,7 +661,7 @@ def paste_block(bank: SourceBank, pos: np.ndarray, cost: np.ndarray, block: int,
     out = np.zeros((block, block, 3), np.float32)
     for q in np.nonzero(w)[0]:
         v, sy, sx = (int(a) for a in pos[q])
-        out += np.float32(w[q]) * bank.images[v][sy:sy + block, sx:sx + block]
+        out += np.float32(w[q]) * to_float32(bank.images[v][sy:sy + block, sx:sx + block])
     return out
 
 

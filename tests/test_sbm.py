@@ -252,6 +252,29 @@ def test_sbm_beats_delete_only_and_keeps_texture(scene):
         assert abs(np.log(e_sbm / e_gt)) < abs(np.log(e_fsr / e_gt)), (e_gt, e_sbm, e_fsr)
 
 
+def test_a_bank_of_uint8_images_fills_exactly_as_their_float_images(scene):
+    """The inpaint stage hands the bank its 8-bit context images (a quarter of the memory, held for every
+    view); converted at use, every fill and every ranking is the float bank's, bit for bit, at both levels,
+    and RPR reads its sources the same way."""
+    from sgpor_pipeline.imageio import to_float32, to_uint8
+    from sgpor_pipeline.removal.rpr import RPRParams, refine_view
+
+    names, renders, holes = scene_inputs(scene)
+    images8 = [to_uint8(r) for r in renders]
+    for p in (SBMParams(), SBMParams(levels=2)):
+        b8 = build_source_bank(names, images8, list(scene.masks), holes, p)
+        bf = build_source_bank(names, [to_float32(im) for im in images8], list(scene.masks), holes, p)
+        assert b8.images[0].dtype == np.uint8 and bf.images[0].dtype == np.float32
+        for i in (0, 3):
+            cur = to_float32(images8[i])
+            r8, rf = inpaint_view(cur, holes[i], b8, p), inpaint_view(cur, holes[i], bf, p)
+            assert np.array_equal(r8.image, rf.image) and np.array_equal(r8.cand, rf.cand)
+    rp = RPRParams(ratio=2.0)  # (every block counts as low: each is re-pasted from its next source)
+    a = refine_view(rf.image, holes[3], rf.targets, rf.cand, images8, rp)
+    b = refine_view(rf.image, holes[3], rf.targets, rf.cand, [to_float32(im) for im in images8], rp)
+    assert a.info["refined_blocks"] > 0 and np.array_equal(a.image, b.image)
+
+
 @pytest.mark.parametrize("kernel", [True, False], ids=["kernel", "opencv"])
 def test_reranking_threads_change_nothing(scene, kernel, monkeypatch):
     """The re-ranking runs its targets on threads (the kernel's OpenMP ones, or cv2.matchTemplate's

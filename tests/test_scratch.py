@@ -94,3 +94,14 @@ def test_the_scratch_folder_is_deleted_and_never_published(tmp_path, image_dir, 
     assert json.loads((folder / "result.json").read_text())["total"] == 64 * 64
     assert not (folder / "_scratch").exists()
     assert not any(f.startswith("_scratch") for f in json.loads((folder / "manifest.json").read_text())["files"])
+
+
+def test_on_demand_reads_an_item_each_time_it_is_indexed():
+    from sgpor_pipeline.removal.multiview import OnDemand
+
+    reads = []
+    views = OnDemand(3, lambda i: reads.append(i) or np.full(2, i))
+    assert len(views) == 3 and int(views[-1][0]) == 2 and [int(v[0]) for v in views] == [0, 1, 2]
+    assert [int(v[0]) for v in views[1:]] == [1, 2] and reads == [2, 0, 1, 2, 1, 2]
+    with pytest.raises(IndexError):
+        views[3]

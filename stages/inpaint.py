@@ -88,6 +88,7 @@ from sgpor_pipeline.removal.multiview import (
     REFERENCE_MODES,
     choose_reference,
     consensus_fill,
+    crop_view,
     fill_view,
     gather_from_views,
     load_remove_folder,
@@ -418,10 +419,20 @@ class InpaintStage(Stage):
                 depth = sv.depth()
                 parts = thick[j] if thick_only else carried_parts(holes[j], depth, p)
                 carry = (filled == FILLED_INPAINTED if progressive else filled > 0) & parts
-                # (uint8: a carrier of every view with a hole is held for the consensus)
-                carriers[j, thick_only] = (read_rgb8(item / "image.png"), sv.camera, depth, carry) if carry.any() \
-                    else None
+                # held for every view with a hole (the consensus): uint8, cut to the box of what it carries
+                carriers[j, thick_only] = crop_view(read_rgb8(item / "image.png"), sv.camera, depth, carry) \
+                    if carry.any() else None
             return carriers[j, thick_only]
+
+        def uncropped(j: int) -> tuple:
+            """Carrier j at full size (the consensus fills its whole image): read again, its mask
+            put back in place."""
+            _, cam, _, crop = carrier(j)
+            sv = data.views[j]
+            carry = np.zeros((sv.camera.height, sv.camera.width), bool)
+            y0, x0 = cam.origin
+            carry[y0:y0 + crop.shape[0], x0:x0 + crop.shape[1]] = crop
+            return read_rgb8(items[names[j]] / "image.png"), sv.camera, sv.depth(), carry
 
         def carried(i: int, sources: list[int], thick_only: bool = False):
             """What the already-filled ``sources`` views carry into view i (see :func:`carrier`), or the
@@ -615,7 +626,8 @@ class InpaintStage(Stage):
             filled = [carrier(i) if names[i] in items else None for i in range(len(names))]
             for i, own in enumerate(filled):
                 if own is not None:
-                    img, from_others, _ = consensus_fill(i, filled, p.projection, p.depth_tol, p.consensus_views)
+                    views = filled[:i] + [uncropped(i)] + filled[i + 1:]  # (the others as sources: their crops)
+                    img, from_others, _ = consensus_fill(i, views, p.projection, p.depth_tol, p.consensus_views)
                     filled_from = read_labels(items[names[i]] / "filled_from.png")
                     filled_from[from_others] = FILLED_PROJECTED
                     write_png(ctx.out_dir / "images" / f"{names[i]}.png", img)

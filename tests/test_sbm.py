@@ -252,6 +252,27 @@ def test_sbm_beats_delete_only_and_keeps_texture(scene):
         assert abs(np.log(e_sbm / e_gt)) < abs(np.log(e_fsr / e_gt)), (e_gt, e_sbm, e_fsr)
 
 
+def test_the_standardizer_fits_in_chunks_bit_for_bit():
+    """Standardizer.fit sums its float64 products a chunk of rows at a time (memory): the same mean and
+    scale as the one-shot sums, whatever the chunk."""
+    from sgpor_pipeline.removal.features import Standardizer, column_sums
+
+    rng = np.random.default_rng(4)
+    feats = (rng.standard_normal((40_000, 9, 24)) * rng.random((40_000, 1, 1)) * 50).astype(np.float32)
+    weights = rng.random((40_000, 9)).astype(np.float32)
+    f, wt = feats.reshape(-1, 24).astype(np.float64), weights.reshape(-1).astype(np.float64)
+    mean = (f * wt[:, None]).sum(0) / wt.sum()
+    var = ((f - mean) ** 2 * wt[:, None]).sum(0) / wt.sum()
+    for chunk in (1000, 1 << 16, 10**7):
+        got = column_sums(lambda s: f[s] * wt[s, None], len(f), 24, chunk) / wt.sum()
+        assert np.array_equal(got, mean)
+    st = Standardizer.fit(feats, weights, [("a", 24)])
+    std = np.sqrt(var)
+    floor = max(float(np.median(std[std > 0])) * 1e-2, 1e-6)
+    assert np.array_equal(st.mean, mean.astype(np.float32))
+    assert np.array_equal(st.scale, (1.0 / np.maximum(std, floor) / np.sqrt(24)).astype(np.float32))
+
+
 def test_a_bank_of_uint8_images_fills_exactly_as_their_float_images(scene):
     """The inpaint stage hands the bank its 8-bit context images (a quarter of the memory, held for every
     view); converted at use, every fill and every ranking is the float bank's, bit for bit, at both levels,
@@ -269,6 +290,9 @@ def test_a_bank_of_uint8_images_fills_exactly_as_their_float_images(scene):
             cur = to_float32(images8[i])
             r8, rf = inpaint_view(cur, holes[i], b8, p), inpaint_view(cur, holes[i], bf, p)
             assert np.array_equal(r8.image, rf.image) and np.array_equal(r8.cand, rf.cand)
+            assert np.array_equal(r8.cost, rf.cost)
+        if _raster_cpu.available():  # (the kernel reads the 8-bit views: no float copy of them)
+            assert not b8._padded and bf._padded
     rp = RPRParams(ratio=2.0)  # (every block counts as low: each is re-pasted from its next source)
     a = refine_view(rf.image, holes[3], rf.targets, rf.cand, images8, rp)
     b = refine_view(rf.image, holes[3], rf.targets, rf.cand, [to_float32(im) for im in images8], rp)
@@ -328,6 +352,43 @@ def test_masked_ssd_kernel_is_opencvs_masked_template_matching():
         _raster_cpu.masked_ssd(cur, mask, tpos, win, views, np.array([[[0, 70 - win - 2 * r + 1, 0]]] * 6), r, 1)
     with pytest.raises(ValueError, match="template window"):
         _raster_cpu.masked_ssd(cur, mask, np.array([[60 - win + 1, 0]]), win, views, cand[:1], r, 1)
+
+
+@pytest.mark.skipif(not _raster_cpu.available(), reason="the cpu kernel is not built")
+def test_masked_ssd_of_8bit_views_is_that_of_their_padded_float_views():
+    """masked_ssd_u8 pads the 8-bit views itself (sentinel outside them and at invalid pixels, the table's
+    value elsewhere): bit for bit masked_ssd on the float views so padded, for regions inside, across
+    every border and beyond; a missing candidate costs +inf; regions leaving the padded view are refused."""
+    from sgpor_pipeline.imageio import to_float32, to_uint8
+    from sgpor_pipeline.removal.sbm import SENTINEL, UINT8_TO_FLOAT
+
+    rng = np.random.default_rng(5)
+    win, r, pad = 17, 3, 12
+    views8 = [to_uint8(texture(40 + 10 * s, 55, seed=s)) for s in range(3)]
+    valid = [rng.random(v.shape[:2]) > 0.2 for v in views8]
+    padded = []
+    for v, ok in zip(views8, valid):
+        img = to_float32(v)
+        img[~ok] = SENTINEL
+        padded.append(cv2.copyMakeBorder(img, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=(SENTINEL,) * 3))
+    cur = texture(50, 50, seed=9)
+    mask = (rng.random((50, 50)) * (rng.random((50, 50)) > 0.3)).astype(np.float32)
+    tpos = rng.integers(0, 50 - win, (5, 2))
+    side = win + 2 * r
+    vs = rng.integers(0, 3, (5, 6))
+    hs = np.array([p.shape[0] for p in padded])[vs] - side
+    ws = np.array([p.shape[1] for p in padded])[vs] - side
+    cand = np.stack([vs, (rng.random((5, 6)) * (hs + 1)).astype(int), (rng.random((5, 6)) * (ws + 1)).astype(int)], -1)
+    cand[0, :3, 1:] = [[0, 0], [hs[0, 1], ws[0, 1]], [0, ws[0, 2]]]  # the corners: mostly outside the view
+    cand[4, 5] = (-1, 0, 0)
+    ref = _raster_cpu.masked_ssd(cur, mask, tpos, win, padded, cand, r, threads=2)
+    got = _raster_cpu.masked_ssd_u8(cur, mask, tpos, win, views8, valid, cand, r, pad, UINT8_TO_FLOAT, SENTINEL, 2)
+    assert np.array_equal(got, ref) and np.isinf(got[4, 5]).all() and np.isfinite(got[:4]).all()
+    with pytest.raises(ValueError, match="leaves its view"):
+        bad = np.array([[[0, padded[0].shape[0] - side + 1, 0]]] * 5)
+        _raster_cpu.masked_ssd_u8(cur, mask, tpos, win, views8, valid, bad, r, pad, UINT8_TO_FLOAT, SENTINEL, 1)
+    with pytest.raises(ValueError, match="validity"):
+        _raster_cpu.masked_ssd_u8(cur, mask, tpos, win, views8, valid[:2], cand, r, pad, UINT8_TO_FLOAT, SENTINEL, 1)
 
 
 @pytest.mark.skipif(not _raster_cpu.available(), reason="the cpu kernel is not built")

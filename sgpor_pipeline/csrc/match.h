@@ -65,14 +65,65 @@ inline void ssd_shifts(const float* buf, int64_t Lr, const float* tm, const floa
   for (int g = 0; g < ng; ++g) o[g] = hsum(acc[g]);
 }
 
+// Where the candidates' regions come from: float views (padded by the caller with its sentinel), or
+// 8-bit views read through a table with a validity mask, padded here (below).
+struct FloatViews {
+  const float* const* views;  // HWC float32
+  const int64_t* vstride;     // floats per row
+  // region rows (rh of rw3 floats) of candidate c = (view, y, x) into buf, rows Lr apart
+  void fill(const int32_t* c, int rh, int rw3, float* buf, int64_t Lr) const {
+    const int64_t vs = vstride[c[0]];
+    const float* src = views[c[0]] + c[1] * vs + 3 * int64_t(c[2]);
+    for (int y = 0; y < rh; ++y) std::memcpy(&buf[size_t(y) * Lr], src + y * vs, sizeof(float) * rw3);
+  }
+};
+
+// 8-bit views: (y, x) of a candidate is its corner in the view padded by `pad` on every side; a pixel
+// outside the view or not valid reads `sentinel`, any other lut[value]: the float padded view's value
+// bit for bit (the caller's table is its own uint8 -> float32 conversion), without a float copy of
+// every view (12 bytes a pixel of every view: the inpaint stage's largest per-view memory).
+struct ByteViews {
+  const uint8_t* const* views;   // HWC uint8, rows 3 * width apart
+  const uint8_t* const* valid;   // HW, 0 = invalid
+  const int32_t* height;
+  const int32_t* width;
+  int pad;
+  const float* lut;  // [256]
+  float sentinel;
+  void fill(const int32_t* c, int rh, int rw3, float* buf, int64_t Lr) const {
+    const int v = c[0], H = height[v], W = width[v], rw = rw3 / 3;
+    const uint8_t* px = views[v];
+    const uint8_t* ok = valid[v];
+    for (int y = 0; y < rh; ++y) {
+      float* row = &buf[size_t(y) * Lr];
+      const int oy = c[1] + y - pad;
+      if (oy < 0 || oy >= H) {
+        std::fill(row, row + rw3, sentinel);
+        continue;
+      }
+      for (int x = 0; x < rw; ++x) {
+        const int ox = c[2] + x - pad;
+        if (ox < 0 || ox >= W || !ok[int64_t(oy) * W + ox]) {
+          row[3 * x] = row[3 * x + 1] = row[3 * x + 2] = sentinel;
+        } else {
+          const uint8_t* p = px + (int64_t(oy) * W + ox) * 3;
+          row[3 * x] = lut[p[0]];
+          row[3 * x + 1] = lut[p[1]];
+          row[3 * x + 2] = lut[p[2]];
+        }
+      }
+    }
+  }
+};
+
 // cur: the current image, template corner of target t at (tpos[2t], tpos[2t+1]); mask: one channel,
-// same layout; views[v]: source view v, candidate j's region corner at (cand[3(t KC + j) + 1], + 2)
-// of view cand[3(t KC + j)] (-1: no candidate, out = +inf). The caller keeps every window inside
-// its image.
+// same layout; source: the views (FloatViews or ByteViews), candidate j's region corner at
+// (cand[3(t KC + j) + 1], + 2) of view cand[3(t KC + j)] (-1: no candidate, out = +inf). The caller
+// keeps every window inside its (padded) image.
+template <class Source>
 inline void masked_ssd(int T, int KC, int win, int r, const float* cur, int64_t cur_stride,
-                       const float* mask, int64_t mask_stride, const int32_t* tpos,
-                       const float* const* views, const int64_t* vstride, const int32_t* cand,
-                       float* out, int nthreads) {
+                       const float* mask, int64_t mask_stride, const int32_t* tpos, const Source& source,
+                       const int32_t* cand, float* out, int nthreads) {
   constexpr int G = 8;  // shifts per pass (8 accumulators + 3 temporaries: no spills with AVX)
   const int side = 2 * r + 1;
   const int L = 3 * win;                                 // floats in a template row
@@ -120,9 +171,7 @@ inline void masked_ssd(int T, int KC, int win, int r, const float* cur, int64_t 
           std::fill(o, o + side * side, std::numeric_limits<float>::infinity());
           continue;
         }
-        const int64_t vs = vstride[c[0]];
-        const float* src = views[c[0]] + c[1] * vs + 3 * int64_t(c[2]);
-        for (int y = 0; y < rh; ++y) std::memcpy(&buf[size_t(y) * Lr], src + y * vs, sizeof(float) * rw3);
+        source.fill(c, rh, rw3, buf.data(), Lr);
         for (int dy = 0; dy < side; ++dy)
           for (int g = 0; g < groups; ++g)
             ssd_shifts<G>(buf.data(), Lr, tm.data(), m2.data(), Lp, rows.data(), lo.data(), hi.data(),

@@ -109,7 +109,7 @@ def _open(path: Path) -> ctypes.CDLL:
     # sgpor_pipeline/__init__.py sets it before torch is imported through the package.
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     lib = ctypes.CDLL(str(path))
-    if lib.sgpor_abi_version() != 5:
+    if lib.sgpor_abi_version() != 6:
         raise OSError(f"{path.name}: unexpected ABI version")
     for base, (res, args) in _SIGNATURES.items():
         for suf in ("f32", "f64"):
@@ -124,6 +124,9 @@ def _open(path: Path) -> ctypes.CDLL:
         fn.argtypes = [_P, _I64]
     lib.sgpor_masked_ssd_f32.restype = None
     lib.sgpor_masked_ssd_f32.argtypes = [_I, _I, _I, _I, _P, _I64, _P, _I64, _P, _P, _P, _P, _P, _I]
+    lib.sgpor_masked_ssd_u8.restype = None
+    lib.sgpor_masked_ssd_u8.argtypes = [_I, _I, _I, _I, _P, _I64, _P, _I64, _P, _P, _P, _P, _P, _I, _P,
+                                        ctypes.c_float, _P, _P, _I]
     return lib
 
 
@@ -221,34 +224,74 @@ def masked_ssd(cur: np.ndarray, mask: np.ndarray, tpos: np.ndarray, win: int, vi
     if not available():
         raise RuntimeError(f"the cpu kernel is not loaded: {load_error()}")
     arrays = [np.ascontiguousarray(v, np.float32) for v in views]
-    for a in (cur, *arrays):
-        if a.ndim != 3 or a.shape[2] != 3:
-            raise ValueError(f"images must be HxWx3, got {a.shape}")
-    cur = np.ascontiguousarray(cur, np.float32)
-    mask = np.ascontiguousarray(mask, np.float32)
-    tpos = np.ascontiguousarray(tpos, np.int32).reshape(-1, 2)
-    cand = np.ascontiguousarray(cand, np.int32)
+    cur, mask, tpos, cand = _ssd_inputs(cur, mask, tpos, win, arrays, cand, r, [a.shape[:2] for a in arrays])
     T, KC = cand.shape[:2]
     side = 2 * r + 1
-    # the windows stay inside their images: the kernel reads without bounds checks
-    if T and ((tpos < 0).any() or (tpos[:, 0] + win > cur.shape[0]).any() or (tpos[:, 1] + win > cur.shape[1]).any()
-              or mask.shape != cur.shape[:2]):
-        raise ValueError("a template window leaves the current image")
-    valid = cand[..., 0] >= 0
-    if valid.any():
-        cv = cand[valid]
-        if cv[:, 0].max() >= len(arrays) or (cv[:, 1:] < 0).any():
-            raise ValueError("a candidate names a missing view or a negative corner")
-        hs = np.array([a.shape[0] for a in arrays])[cv[:, 0]]
-        ws = np.array([a.shape[1] for a in arrays])[cv[:, 0]]
-        if (cv[:, 1] + win + 2 * r > hs).any() or (cv[:, 2] + win + 2 * r > ws).any():
-            raise ValueError("a candidate region leaves its view")
     out = np.empty((T, KC, side, side), np.float32)
     ptrs = (ctypes.c_void_p * max(len(arrays), 1))(*[a.ctypes.data for a in arrays])
     strides = np.array([a.shape[1] * 3 for a in arrays] or [0], np.int64)
     _lib.sgpor_masked_ssd_f32(T, KC, win, r, cur.ctypes.data, cur.shape[1] * 3, mask.ctypes.data, mask.shape[1],
                               tpos.ctypes.data, ctypes.addressof(ptrs), strides.ctypes.data, cand.ctypes.data,
                               out.ctypes.data, max(1, int(threads)))
+    return out
+
+
+def _ssd_inputs(cur: np.ndarray, mask: np.ndarray, tpos: np.ndarray, win: int, views: list[np.ndarray],
+                cand: np.ndarray, r: int, region_shapes: list[tuple[int, int]]) -> tuple:
+    """The masked-SSD inputs as the kernel reads them, checked: every window inside its image (the
+    kernel reads without bounds checks), ``region_shapes`` the (padded) extent the regions must stay in."""
+    for a in (cur, *views):
+        if a.ndim != 3 or a.shape[2] != 3:
+            raise ValueError(f"images must be HxWx3, got {a.shape}")
+    cur = np.ascontiguousarray(cur, np.float32)
+    mask = np.ascontiguousarray(mask, np.float32)
+    tpos = np.ascontiguousarray(tpos, np.int32).reshape(-1, 2)
+    cand = np.ascontiguousarray(cand, np.int32)
+    if len(tpos) and ((tpos < 0).any() or (tpos[:, 0] + win > cur.shape[0]).any()
+                      or (tpos[:, 1] + win > cur.shape[1]).any() or mask.shape != cur.shape[:2]):
+        raise ValueError("a template window leaves the current image")
+    valid = cand[..., 0] >= 0
+    if valid.any():
+        cv = cand[valid]
+        if cv[:, 0].max() >= len(views) or (cv[:, 1:] < 0).any():
+            raise ValueError("a candidate names a missing view or a negative corner")
+        hs = np.array([s[0] for s in region_shapes])[cv[:, 0]]
+        ws = np.array([s[1] for s in region_shapes])[cv[:, 0]]
+        if (cv[:, 1] + win + 2 * r > hs).any() or (cv[:, 2] + win + 2 * r > ws).any():
+            raise ValueError("a candidate region leaves its view")
+    return cur, mask, tpos, cand
+
+
+def masked_ssd_u8(cur: np.ndarray, mask: np.ndarray, tpos: np.ndarray, win: int, views: list[np.ndarray],
+                  valid: list[np.ndarray], cand: np.ndarray, r: int, pad: int, lut: np.ndarray, sentinel: float,
+                  threads: int) -> np.ndarray:
+    """:func:`masked_ssd` with 8-bit source views (HxWx3 uint8) and their validity (HxW bool): the
+    candidates' corners are in the views padded by ``pad`` on every side, and a region pixel reads
+    ``sentinel`` outside its view or where it is not valid, ``lut[value]`` (float32 [256]) elsewhere.
+    That is :func:`masked_ssd` on the float views so padded, bit for bit, without their float copies."""
+    if not available():
+        raise RuntimeError(f"the cpu kernel is not loaded: {load_error()}")
+    arrays = [np.ascontiguousarray(v, np.uint8) for v in views]
+    oks = [np.ascontiguousarray(m, bool) for m in valid]
+    if len(oks) != len(arrays) or any(m.shape != a.shape[:2] for m, a in zip(oks, arrays)):
+        raise ValueError("one validity mask of each view's size is needed")
+    lut = np.ascontiguousarray(lut, np.float32)
+    if lut.shape != (256,):
+        raise ValueError(f"the table has 256 entries, got {lut.shape}")
+    padded = [(a.shape[0] + 2 * pad, a.shape[1] + 2 * pad) for a in arrays]
+    cur, mask, tpos, cand = _ssd_inputs(cur, mask, tpos, win, arrays, cand, r, padded)
+    T, KC = cand.shape[:2]
+    side = 2 * r + 1
+    out = np.empty((T, KC, side, side), np.float32)
+    n = max(len(arrays), 1)
+    ptrs = (ctypes.c_void_p * n)(*[a.ctypes.data for a in arrays])
+    vptrs = (ctypes.c_void_p * n)(*[m.ctypes.data for m in oks])
+    heights = np.array([a.shape[0] for a in arrays] or [0], np.int32)
+    widths = np.array([a.shape[1] for a in arrays] or [0], np.int32)
+    _lib.sgpor_masked_ssd_u8(T, KC, win, r, cur.ctypes.data, cur.shape[1] * 3, mask.ctypes.data, mask.shape[1],
+                             tpos.ctypes.data, ctypes.addressof(ptrs), ctypes.addressof(vptrs), heights.ctypes.data,
+                             widths.ctypes.data, int(pad), lut.ctypes.data, float(sentinel), cand.ctypes.data,
+                             out.ctypes.data, max(1, int(threads)))
     return out
 
 

@@ -40,7 +40,7 @@ agrees).
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import cv2
@@ -194,6 +194,42 @@ def load_remove_folder(folder: str | Path) -> RemovalInputs:
 # geometry
 
 
+@dataclass
+class CropCamera(Camera):
+    """A camera whose arrays (image, depth, mask) are a crop of its image starting at ``origin`` = (row,
+    column). Its projection stays in the full image's pixels, so the crop gives exactly the full arrays'
+    results (:func:`crop_view`): only the array indices move."""
+
+    origin: tuple[int, int] = (0, 0)
+
+
+def origin_of(cam: Camera) -> tuple[int, int]:
+    """(row, column) of a camera's arrays in its full image: (0, 0) but for a :class:`CropCamera`."""
+    return cam.origin if isinstance(cam, CropCamera) else (0, 0)
+
+
+def crop_view(image: np.ndarray, cam: Camera, depth: np.ndarray, mask: np.ndarray
+              ) -> tuple[np.ndarray, CropCamera, np.ndarray, np.ndarray]:
+    """A view's (image, camera, depth, mask) cut to the bounding box of ``mask``: as a source of
+    :func:`warp_from_reference` (and :func:`on_same_surface`) it gives the full view's colours bit for bit,
+    since only the mask's pixels are read (their bilinear neighbours outside it weigh 0 either way). The
+    inpaint stage's consensus holds one per view with a hole: the box instead of the image."""
+    if isinstance(cam, CropCamera):
+        raise ValueError("crop_view takes a full view, not a crop")
+    ys, xs = np.nonzero(mask)
+    if len(ys) == 0:
+        box = (slice(0, 0), slice(0, 0))
+    else:
+        # (a box from row or column 1 starts at 0: sample_bilinear's float32 offset of 1 is not exact for
+        # coordinates below 0.5, those of the pixels beside the box's edge; from 2 on it is)
+        box = tuple(slice(0 if lo == 1 else lo, hi + 1) for lo, hi in ((int(ys.min()), int(ys.max())),
+                                                                       (int(xs.min()), int(xs.max()))))
+    crop = CropCamera(**{f.name: getattr(cam, f.name) for f in fields(Camera)},
+                      origin=(box[0].start, box[1].start))
+    return (np.ascontiguousarray(image[box]), crop, np.ascontiguousarray(depth[box]),
+            np.ascontiguousarray(mask[box]))
+
+
 def nearest_per_pixel(lin: np.ndarray, z: np.ndarray) -> np.ndarray:
     """Indices of the nearest entry (smallest ``z``) for each distinct linear pixel index in ``lin``:
     a z-buffer for points splatted to pixels."""
@@ -203,16 +239,22 @@ def nearest_per_pixel(lin: np.ndarray, z: np.ndarray) -> np.ndarray:
     return order[first]
 
 
-def sample_bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray, row: int = 1024) -> np.ndarray:
+def sample_bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray, row: int = 1024,
+                    origin: tuple[int, int] = (0, 0)) -> np.ndarray:
     """``image`` (HxW or HxWxC float32) bilinearly sampled at N points (x, y: pixel-index coordinates,
     0 = centre of the first pixel; outside = 0): [N] or [N,C]. The maps are laid out in rows of
-    ``row`` points because cv2.remap takes maps of fewer than 32767 rows (large masks have more points)."""
+    ``row`` points because cv2.remap takes maps of fewer than 32767 rows (large masks have more points).
+    ``origin`` (row, column): ``image`` is a crop starting there and x, y are in the full image; the
+    offset is taken after the float32 rounding of x, y (exact), so a crop samples as the full image."""
     n = len(x)
     rows = max(1, -(-n // row))
     mx = np.full(rows * row, -1e4, np.float32)
     my = np.full(rows * row, -1e4, np.float32)
     mx[:n] = x
     my[:n] = y
+    if origin != (0, 0):
+        mx[:n] -= np.float32(origin[1])
+        my[:n] -= np.float32(origin[0])
     out = cv2.remap(np.asarray(image, np.float32), mx.reshape(rows, row), my.reshape(rows, row), cv2.INTER_LINEAR,
                     borderMode=cv2.BORDER_CONSTANT)
     return out.reshape(rows * row, *image.shape[2:])[:n]
@@ -222,11 +264,13 @@ def on_same_surface(points: np.ndarray, cam: Camera, depth: np.ndarray, filled: 
                     depth_tol: float) -> tuple[np.ndarray, np.ndarray]:
     """Where world points [N,3] land in a view: (continuous pixel coordinates [N,2], hit bool [N]).
     A point hits when it lies in front of the camera, inside the image, on a ``filled`` pixel whose
-    completed ``depth`` agrees with its own within ``depth_tol`` (relative): the same surface point."""
+    completed ``depth`` agrees with its own within ``depth_tol`` (relative): the same surface point.
+    With a :class:`CropCamera` ``depth`` and ``filled`` are its crop (the coordinates stay full-image)."""
     h, w = filled.shape
     uv, z = cam.project(points)
+    oy, ox = origin_of(cam)
     with np.errstate(invalid="ignore"):
-        iu, iv = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+        iu, iv = np.floor(uv[:, 0]).astype(np.int64) - ox, np.floor(uv[:, 1]).astype(np.int64) - oy
     hit = (z > 0) & (iu >= 0) & (iu < w) & (iv >= 0) & (iv < h)
     idx = np.nonzero(hit)[0]
     zr, zi = depth[iv[idx], iu[idx]], z[idx]
@@ -258,8 +302,9 @@ def warp_from_reference(ref_image: np.ndarray, ref_cam: Camera, ref_depth: np.nd
         # bilinear sample, restricted to filled reference pixels (normalised weights)
         src = np.where(ref_filled[..., None], ref_image, 0.0).astype(np.float32)
         wmap = ref_filled.astype(np.float32)
-        col = sample_bilinear(src, u - 0.5, v - 0.5)
-        wt = sample_bilinear(wmap, u - 0.5, v - 0.5)
+        origin = origin_of(ref_cam)
+        col = sample_bilinear(src, u - 0.5, v - 0.5, origin=origin)
+        wt = sample_bilinear(wmap, u - 0.5, v - 0.5, origin=origin)
         good = wt > 1e-3
         out[ys[good], xs[good]] = col[good] / wt[good, None]
         got[ys[good], xs[good]] = True
@@ -268,7 +313,8 @@ def warp_from_reference(ref_image: np.ndarray, ref_cam: Camera, ref_depth: np.nd
         ys, xs = np.nonzero(ref_filled & np.isfinite(ref_depth) & (ref_depth > 0))
         if len(ys) == 0:
             return out, got
-        px, z, ok = cam.pixels(ref_cam.unproject(ys, xs, ref_depth[ys, xs]))  # (cam is target's h x w)
+        oy, ox = origin_of(ref_cam)
+        px, z, ok = cam.pixels(ref_cam.unproject(ys + oy, xs + ox, ref_depth[ys, xs]))  # (cam is target's h x w)
         ys, xs, z, iu, iv = ys[ok], xs[ok], z[ok], px[ok, 0], px[ok, 1]
         ok = target[iv, iu] & (np.abs(depth[iv, iu] - z) <= depth_tol * np.abs(z))
         ys, xs, z, iu, iv = ys[ok], xs[ok], z[ok], iu[ok], iv[ok]

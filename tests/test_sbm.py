@@ -521,6 +521,28 @@ def test_inpaint_stage_progressive_order_carries_every_earlier_fill(scene, tmp_p
     assert len(builds) == 4  # cached
 
 
+def test_a_view_cut_to_its_mask_carries_exactly_what_the_whole_view_does(scene):
+    """crop_view (the consensus carriers, held for every view): as the source of warp_from_reference,
+    backward and splat, the cut view gives the whole view's colours bit for bit, masks whose box starts
+    at row or column 0, 1 or further in included."""
+    from sgpor_pipeline.removal.multiview import crop_view
+
+    src, dst = 1, 0
+    depth_src, depth_dst = scene.depth_gt[src], scene.depth_gt[dst]
+    image = scene.images_gt[src]
+    band = np.zeros(scene.masks[src].shape, bool)
+    band[1:60, 1:90] = True  # a box from row and column 1
+    for mask in (scene.masks[src], band, scene.masks[src] | band, np.roll(scene.masks[src], 40, axis=1)):
+        cut = crop_view(image, scene.cameras[src], depth_src, mask)
+        assert cut[0].shape[:2] == cut[3].shape and cut[3].sum() == mask.sum()
+        assert cut[1].origin[0] != 1 and cut[1].origin[1] != 1
+        for mode in ("backward", "splat"):
+            whole = warp_from_reference(image, scene.cameras[src], depth_src, mask, scene.cameras[dst], depth_dst,
+                                        np.ones(depth_dst.shape, bool), mode, 0.02)
+            part = warp_from_reference(*cut, scene.cameras[dst], depth_dst, np.ones(depth_dst.shape, bool), mode, 0.02)
+            assert whole[1].sum() > 50 and np.array_equal(whole[1], part[1]) and np.array_equal(whole[0], part[0])
+
+
 def test_consensus_fill_outvotes_one_views_wrong_fill(scene):
     """Every view's own fill at the same surface point: the median over them replaces one wrong fill
     (view 0 painted white) by what the others agree on, in every view, and leaves the rest alone."""

@@ -12,18 +12,17 @@ reads each stage's peak resident memory and seconds from its manifest (the runne
 Prints per stage the peak at each view count and its growth per view-pixel: (peak at the larger
 count - peak at the smaller) / (the extra views x width x height), in bytes. Target: the remove and
 inpaint stages grow by at most 16 bytes per view-pixel ([PASS] / [FAIL]; a float RGB image per view
-is 12). Measured (session 32, 2 cores), 24 / 96 views of 800 x 600, peak GB (bytes per view-pixel):
+is 12). Measured (session 32, 2 cores), 24 / 96 views of 800 x 600, peak GB (bytes per view-pixel),
+seconds at 96 views:
 
-    stage     before (198f28c)        after (this benchmark's run)
-    remove    1.32 / 3.58  (65)       0.90 / 1.13  (6.7)   [PASS]
-    inpaint   1.58 / 3.33  (51)       1.47 / 2.08  (17.8)  [FAIL]
-    refine    0.56 / 1.11  (16)       0.48 / 0.73  (7.4)
-    finetune  0.88 / 1.44  (16)       0.88 / 1.46  (16.7)  (the training images, as the fit)
+    stage     before (198f28c)              after (this benchmark, 73f3685)
+    remove    1.32 / 3.58  (65)   163 s     0.87 / 1.13  (7.6)   127 s   [PASS]
+    inpaint   1.58 / 3.33  (51)   142 s     1.02 / 1.40  (10.9)   87 s   [PASS]
+    refine    0.56 / 1.11  (16)    32 s     0.48 / 0.72  (7.1)    25 s
+    finetune  0.88 / 1.44  (16)    69 s     0.95 / 1.46  (14.7)   45 s   (its training images, as the fit)
 
-What inpaint still holds per view: the float32 copy of every source view that the block matching's
-re-ranking reads (12 bytes a pixel; a view's fill draws on ~85 of the 96 views, so a bounded cache
-would thrash) and the consensus carriers (uint8 image, depth, mask: 8). Between two runs of the same
-stage the peak moves by about 0.1 GB.
+("before" by the same method from a worktree of 198f28c.) Between two runs of the same stage the peak
+moves by about 0.1 GB.
 """
 
 from __future__ import annotations

@@ -26,6 +26,29 @@ def test_multigrid_solves_one_and_several_right_hand_sides():
     assert linsolve.large(linsolve.DIRECT_MAX_UNKNOWNS + 1) and not linsolve.large(linsolve.DIRECT_MAX_UNKNOWNS)
 
 
+def test_multigrid_is_bit_reproducible_and_leaves_the_global_generator_alone(monkeypatch):
+    """pyamg draws random start vectors for its spectral-radius estimates from numpy's global generator:
+    the solve seeds it (and restores it), so two solves of one system agree bit for bit whatever the
+    generator's state, and a caller's random stream continues as if nothing had drawn from it."""
+    import contextlib
+
+    A = laplacian_2d(70, 80)
+    b = A @ np.random.default_rng(2).random(A.shape[0])
+    np.random.seed(11)
+    first = linsolve.solve_spd_multigrid(A, b)
+    np.random.seed(12)
+    expected = np.random.rand(3)
+    np.random.seed(12)
+    second = linsolve.solve_spd_multigrid(A, b)
+    assert np.array_equal(first, second)
+    assert np.array_equal(np.random.rand(3), expected)  # (the solve drew nothing from the caller's stream)
+    monkeypatch.setattr(linsolve, "_seeded_global_random", contextlib.nullcontext)
+    np.random.seed(11)
+    a = linsolve.solve_spd_multigrid(A, b)
+    np.random.seed(12)
+    assert not np.array_equal(a, linsolve.solve_spd_multigrid(A, b))  # (what the seeding prevents)
+
+
 def _blend_inputs():
     rng = np.random.default_rng(1)
     h, w = 180, 240

@@ -60,6 +60,21 @@ class ArraysOnDisk(Sequence):
     def __iter__(self) -> Iterator[np.ndarray | None]:
         return (self[i] for i in range(len(self)))
 
+    def release(self) -> None:
+        """Delete the files (the disk they take: the remove stage's maps are ~60 bytes a pixel of every
+        view); arrays read before stay readable until dropped, and every item reads None after."""
+        for i, present in enumerate(self._present):
+            if present:
+                self._path(i).unlink(missing_ok=True)
+        self._present = [False] * len(self._present)
+
+
+def release(arrays: Sequence[np.ndarray | None] | None) -> None:
+    """:meth:`ArraysOnDisk.release` where ``arrays`` are on disk (a list in memory is left to the
+    garbage collector)."""
+    if isinstance(arrays, ArraysOnDisk):
+        arrays.release()
+
 
 #: Where a function keeps a list of per-view arrays: ``keep(name, arrays)`` takes them (a generator:
 #: one by one as they are made; ``[None] * n``: n places to set later) and returns the list to index.

@@ -67,7 +67,7 @@ from sgpor_pipeline.removal.holes import (
 )
 from sgpor_pipeline.removal.plane import under_object
 from sgpor_pipeline.scene import Camera, save_cameras
-from sgpor_pipeline.scratch import ArraysOnDisk, Keeper, in_memory, on_disk
+from sgpor_pipeline.scratch import ArraysOnDisk, Keeper, in_memory, on_disk, release
 from sgpor_pipeline.sfm import load_sfm
 from sgpor_pipeline.stages.fit import fit_ignored_masks
 
@@ -155,11 +155,17 @@ class RemoveStage(Stage):
                 stats["disagreeing_pixels"] = int(sum(int((s & (d > p.max_disagreement)).sum())
                                                       for s, d in zip(seen, disagree)))
                 unobserved = [u | (s & (d > p.max_disagreement)) for u, s, d in zip(unobserved, seen, disagree)]
+            release(counts)  # (the disk the scratch maps take: only while they are needed)
+            release(disagree)
             holes = [hole_mask(m, a, p, u) for m, a, u in zip(masks, alphas, unobserved)]
         observed = [(a >= p.hole_alpha) & ~h for a, h in zip(alphas, holes)]  # background each view saw
         if second_pass:
+            first_depths = depths
             depths = complete_hole_depths(cameras, raw_depths, observed, holes, p, floors,
                                           functools.partial(on_disk, ctx.scratch_dir / "second_pass"))
+            release(first_depths)
+        release(raw_depths)
+        release(floors)
         if p.under_object and p.hole_mode == "unseen":
             under, why = under_object(cameras, masks, holes, depths, depth_tol=p.view_depth_tol)
             if under is None:
@@ -186,7 +192,7 @@ class RemoveStage(Stage):
             write_mask01(ctx.out_dir / "holes" / f"{cam.image}.png", hole)
             shutil.copyfile(masks_dir / f"{cam.image}.png", ctx.out_dir / "masks" / f"{cam.image}.png")
             np.save(ctx.out_dir / "depth" / f"{cam.image}.npy", filled_depth)
-            colours.append(initial_colour(rgb, hole))
+            colours.append(initial_colour(rgb, hole, as_uint8=True) if hole.any() else None)  # (seeds: holes only)
             per_view[cam.image] = {"mask_pixels": int(mask.sum()), "hole_pixels": int(hole.sum()),
                                    "rim_pixels": int((hole & ~mask).sum()),
                                    "hole_pixels_by_opacity": int((mask & (alpha < p.hole_alpha)).sum())}

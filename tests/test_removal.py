@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from sgpor_pipeline.gaussians.model import GaussianModel, rgb_to_sh
+from sgpor_pipeline.imageio import to_float32
 from sgpor_pipeline.removal.holes import (
     RemoveParams,
     clamp_dc_colours,
@@ -496,6 +497,31 @@ def _remove(model, cameras, masks, object_ids, params=None):
     spacing = median_spacing(background.means.detach().double().numpy())
     seeds = seed_hole_gaussians(cameras, holes, depths, colours, spacing, model.max_sh_degree, params)
     return delete, background, holes, depths, seeds
+
+
+def test_seeds_take_8bit_initial_colours_exactly(scene_and_model):
+    """The remove stage keeps the seeds' Telea colours as 8-bit images (on disk, holes only): the same
+    seeds, bit for bit, as from the float colours; a view without a hole needs none."""
+    scene, model, object_ids = scene_and_model
+    masks = list(scene.masks)
+    params = RemoveParams()
+    delete, background, holes, depths, seeds = _remove(model, scene.cameras, masks, object_ids, params)
+    colours8 = []
+    for cam, hole in zip(scene.cameras, holes):
+        rgb = render_background(background, cam)[0]
+        c8 = initial_colour(rgb, hole, as_uint8=True) if hole.any() else None
+        if c8 is not None:
+            assert c8.dtype == np.uint8 and np.array_equal(to_float32(c8), initial_colour(rgb, hole))
+        colours8.append(c8)
+    holes[0] = np.zeros_like(holes[0])  # (a view without a hole: its colour is None)
+    colours8[0] = None
+    spacing = median_spacing(background.means.detach().double().numpy())
+    colours = [None if c is None else to_float32(c) for c in colours8]
+    a = seed_hole_gaussians(scene.cameras, holes, depths, colours8, spacing, model.max_sh_degree, params)
+    b = seed_hole_gaussians(scene.cameras, holes, depths, colours, spacing, model.max_sh_degree, params)
+    assert len(a) > 0 and all(torch.equal(a.params[k], b.params[k]) for k in a.params)
+    with pytest.raises(ValueError, match="needs a hole"):
+        initial_colour(np.zeros((4, 4, 3), np.float32), np.zeros((4, 4), bool), as_uint8=True)
 
 
 def test_empty_mask_passes_the_scene_through_unchanged(scene_and_model):

@@ -48,6 +48,21 @@ def test_an_item_set_again_leaves_earlier_reads_intact(tmp_path):
         store[2] = np.zeros(1)
 
 
+def test_released_arrays_free_their_files_and_read_none(tmp_path):
+    from sgpor_pipeline.scratch import release
+
+    store = ArraysOnDisk(tmp_path / "a")
+    store.append(np.arange(4.0))
+    store.append(None)
+    kept = store[0]
+    release(store)
+    assert not list((tmp_path / "a").glob("*.npy")) and store[0] is None and len(store) == 2
+    assert np.array_equal(kept, np.arange(4.0))  # (read before: still mapped)
+    plain = [np.ones(2)]
+    release(plain)  # (a list in memory: nothing to delete)
+    assert plain[0].sum() == 2
+
+
 def test_on_disk_writes_a_generator_one_item_at_a_time(tmp_path):
     written = []
 

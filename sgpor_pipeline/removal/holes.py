@@ -24,7 +24,7 @@ from ..errors import PipelineError
 from ..gaussians.model import GaussianModel, inverse_sigmoid, rgb_to_sh, sh_to_rgb
 from ..imageio import to_float32
 from ..scene import Camera
-from ..scratch import Keeper, in_memory
+from ..scratch import Keeper, in_memory, release
 from . import linsolve
 from .multiview import nearest_per_pixel, pinned_parts
 from .selection import (
@@ -353,6 +353,7 @@ def observing_views(cameras: list[Camera], masks: list[np.ndarray], depths: list
             dis[ys[seen_by], xs[seen_by]] = np.nanmedian(stacked[:, seen_by], axis=0)
         if compare:
             disagreements[i] = dis
+    release(blurred_photos)
     return counts, disagreements
 
 
@@ -496,20 +497,25 @@ def context_image(render: np.ndarray, photo: np.ndarray | None, mask: np.ndarray
     return np.where(within_margin(mask, margin)[..., None], render, photo).astype(render.dtype)
 
 
-def initial_colour(render: np.ndarray, hole: np.ndarray) -> np.ndarray:
-    """A first colour for the hole (OpenCV Telea diffusion from its border): seeds' starting colour."""
+def initial_colour(render: np.ndarray, hole: np.ndarray, as_uint8: bool = False) -> np.ndarray:
+    """A first colour for the hole (OpenCV Telea diffusion from its border): seeds' starting colour.
+    Float32 in [0, 1], or with ``as_uint8`` (a hole to fill) the 8-bit image it comes from, a quarter of
+    its size (:func:`~sgpor_pipeline.imageio.to_float32` gives the same values)."""
     if not hole.any():
+        if as_uint8:
+            raise ValueError("initial_colour(as_uint8=True) needs a hole")
         return render
     img8 = (render.clip(0, 1) * 255 + 0.5).astype(np.uint8)
     filled = cv2.inpaint(img8, hole.astype(np.uint8), 3, cv2.INPAINT_TELEA)
-    return filled.astype(np.float32) / 255.0
+    return filled if as_uint8 else to_float32(filled)
 
 
 def seed_hole_gaussians(cameras: list[Camera], holes: list[np.ndarray], depths: list[np.ndarray],
                         colours: list[np.ndarray], spacing: float, max_sh_degree: int,
                         params: RemoveParams, seed: int = 0,
                         observed: list[np.ndarray] | None = None) -> GaussianModel:
-    """New isotropic Gaussians on the completed hole surfaces of every view, merged on a voxel grid.
+    """New isotropic Gaussians on the completed hole surfaces of every view, merged on a voxel grid
+    (``colours``: float in [0, 1] or uint8 per view; None for a view without a hole).
 
     With ``observed`` (per view, the pixels whose background was seen: opaque and not a hole), a seed
     that any view shows in front of such a pixel's surface (nearer than its depth by more than
@@ -527,7 +533,7 @@ def seed_hole_gaussians(cameras: list[Camera], holes: list[np.ndarray], depths: 
             ray = np.linalg.norm(cam.unproject(ys, xs, np.ones(len(ys))) - cam.center, axis=1)
             z = z + params.seed_depth_offset * spacing / ray
         pts.append(cam.unproject(ys, xs, z))
-        cols.append(colour[ys, xs])
+        cols.append(to_float32(colour[ys, xs]))
     if not pts:
         return GaussianModel.empty(0, max_sh_degree)
     xyz = np.concatenate(pts)

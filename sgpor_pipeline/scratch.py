@@ -12,7 +12,7 @@ views x pixels. The values are the same arrays, bit for bit.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -56,9 +56,6 @@ class ArraysOnDisk(Sequence):
         if not self._present[i]:
             return None
         return np.load(self._path(i), mmap_mode="r")
-
-    def __iter__(self) -> Iterator[np.ndarray | None]:
-        return (self[i] for i in range(len(self)))
 
     def release(self) -> None:
         """Delete the files (the disk they take: the remove stage's maps are ~60 bytes a pixel of every

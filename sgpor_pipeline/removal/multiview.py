@@ -74,9 +74,7 @@ class OnDemand(Sequence):
     def __getitem__(self, i):
         if isinstance(i, slice):
             return [self._read(k) for k in range(*i.indices(self._n))]
-        if not -self._n <= i < self._n:
-            raise IndexError(i)
-        return self._read(i % self._n)
+        return self._read(range(self._n)[i])  # (negative indices; IndexError past the end)
 
 
 @dataclass

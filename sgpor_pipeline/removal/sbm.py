@@ -475,11 +475,11 @@ def _shift_costs(bank: SourceBank, cur_p: np.ndarray, known_p: np.ndarray, corne
     from sgpor_pipeline.gaussians import _raster_cpu
 
     PP = pad + r  # a region (the window at every shift) of a source block at (y, x) is padded[y:, x:]
-    used = np.unique(pos[..., 0])
     if _raster_cpu.available() and all(im.dtype == np.uint8 for im in bank.images):
         # the kernel pads the 8-bit views itself: no float copy of every source view (12 bytes a pixel)
         return _raster_cpu.masked_ssd_u8(cur_p, known_p, corners, win, bank.images, bank.valid, pos, r, PP,
                                          UINT8_TO_FLOAT, SENTINEL, threads)
+    used = np.unique(pos[..., 0])
     if _raster_cpu.available():
         views = [bank.padded(v, PP) if v in used else np.zeros((1, 1, 3), np.float32) for v in range(len(bank.images))]
         return _raster_cpu.masked_ssd(cur_p, known_p, corners, win, views, pos, r, threads)

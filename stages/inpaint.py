@@ -324,8 +324,9 @@ def _empty_sources(names: list[str], k: int) -> dict[str, np.ndarray]:
 class InpaintStage(Stage):
     name = "inpaint"
     # 2: carry_max_misfit (a hole part is carried only when its rim lies on a plane); 3: the plane
-    # texture's unseen texels are smoothed from the seen ones only (not from its black hole)
-    VERSION = 3
+    # texture's unseen texels are smoothed from the seen ones only (not from its black hole); 4: a
+    # target's candidates in source/ are distinct blocks (the fills are as before; RPR's next-best differ)
+    VERSION = 4
     Params = InpaintParams
     inputs = ("remove",)
     libraries = ("torch",)

@@ -849,3 +849,24 @@ def test_paste_top_one_is_the_best_match_and_more_blend_similar_sources(scene):
     e_gt, e1, e5 = (float(hf_energy(x)[hole].mean()) for x in (gt, r1.image, r5.image))
     assert 0.4 * e_gt < e5 < e1, (e_gt, e1, e5)
     assert inpaint_view(renders[2], hole, bank, SBMParams()).image.tobytes() == r1.image.tobytes()  # the default
+
+
+def test_a_targets_candidates_are_distinct_blocks(scene):
+    """Grid neighbours of the shortlist often settle on one block after the shift search: it is listed
+    once, at its best rank (RPR's next-best source is then another block), and the list ends with
+    (-1, -1, -1), cost NaN, when fewer than top_k distinct blocks remain."""
+    names, renders, holes = scene_inputs(scene)
+    bank = build_source_bank(names, renders, list(scene.masks), holes, SBMParams())
+    targets = target_positions(holes[2], 15, 5, 0.1)
+    for p in (SBMParams(), SBMParams(rerank=5)):  # a shortlist as long as the list: repeats leave gaps
+        pos, cost, _, _ = match_blocks(renders[2], ~holes[2], targets, bank, p)
+        listed = pos[..., 0] >= 0
+        assert listed[:, 0].all()
+        assert np.isnan(cost[~listed]).all() and (pos[~listed] == -1).all()
+        for row, ok, c in zip(pos, listed, cost):
+            blocks = [tuple(b) for b in row[ok].tolist()]
+            assert len(set(blocks)) == len(blocks)
+            assert ok[:ok.sum()].all()  # the distinct blocks first
+            cc = c[ok][np.isfinite(c[ok])]
+            assert (np.diff(cc) >= 0).all()
+    assert (~listed).any()  # (rerank 5: this scene's shortlists do repeat blocks)

@@ -509,8 +509,12 @@ def _best_shifts(bank: SourceBank, res: np.ndarray, pos: np.ndarray, sims: np.nd
                  k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each candidate at its best free shift, the candidates ranked by colour cost per valid pixel: from
     the SSD ``res`` [T,kc,side,side] of candidates ``pos`` [T,kc,3] with feature similarities ``sims``
-    [T,kc] and the targets' context weights ``msum`` [T]. A target without known context (``msum`` < 1)
-    keeps the feature ranking (cost NaN). Returns (positions [T,k,3], cost [T,k], similarity [T,k])."""
+    [T,kc] and the targets' context weights ``msum`` [T]. Two candidates of a target often settle on
+    the same block (grid neighbours, each shifted towards the best alignment): a block is listed once,
+    at its best rank, so the list's next-best sources (RPR's, ``paste_top``'s) are other blocks; the
+    list ends with (-1, -1, -1), cost NaN, when fewer than k distinct blocks remain. A target without
+    known context (``msum`` < 1) keeps the feature ranking (cost NaN). Returns (positions [T,k,3],
+    cost [T,k], similarity [T,k])."""
     T, kc, side = res.shape[0], res.shape[1], res.shape[2]
     ok = np.zeros(res.shape, bool)  # the shifted corner must be a free source block (off the view: not)
     ar = np.arange(side)
@@ -526,10 +530,18 @@ def _best_shifts(bank: SourceBank, res: np.ndarray, pos: np.ndarray, sims: np.nd
     per_px = (np.take_along_axis(flat, best[..., None], axis=2)[..., 0]
               / np.where(msum < 1, 1.0, 3.0 * msum)[:, None].astype(np.float32))  # (msum < 1: replaced below)
     cost = per_px.astype(np.float64)
-    order = np.argsort(cost, axis=1, kind="stable")[:, :k]
+    ranked = np.argsort(cost, axis=1, kind="stable")
+    sp = np.take_along_axis(shifted, ranked[..., None], axis=1)
+    key = (sp[..., 0] * (1 << 21) + sp[..., 1]) * (1 << 21) + sp[..., 2]
+    # a repeat of a better-ranked candidate's block (strictly lower triangle: j < i)
+    repeat = ((key[:, :, None] == key[:, None, :]) & np.tri(kc, k=-1, dtype=bool)[None]).any(axis=2)
+    keep = np.argsort(repeat, axis=1, kind="stable")[:, :k]  # distinct blocks first, in rank order
+    order = np.take_along_axis(ranked, keep, axis=1)
     out_pos = np.take_along_axis(shifted, order[..., None], axis=1)
     out_cost = np.take_along_axis(cost, order, axis=1)
     out_sim = np.take_along_axis(sims, order, axis=1)
+    gone = np.take_along_axis(repeat, keep, axis=1)
+    out_pos[gone], out_cost[gone], out_sim[gone] = -1, np.nan, np.nan
     none = msum < 1  # no known context: the feature ranking stands
     out_pos[none] = pos[none, :k]
     out_cost[none] = np.nan

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import os
@@ -244,10 +245,17 @@ def _run_stage(cls: type[Stage], name: str, key: str, config: dict[str, Any], ca
     t0 = time.perf_counter()
     try:
         cls().run(ctx)
-    except BaseException:
+    except BaseException as e:
         if not (tmp / CHECKPOINT).is_dir():  # keep a checkpoint for the next run to resume
             shutil.rmtree(tmp, ignore_errors=True)
         shutil.rmtree(tmp / SCRATCH, ignore_errors=True)
+        if isinstance(e, OSError) and e.errno == errno.ENOSPC:
+            raise PipelineError(
+                f"the disk filled up while the {name} stage wrote {e.filename or 'its results'}",
+                path=cache.root.parent,
+                fix="free disk space (`sgpor-pipeline clean OUT --keep-last 1` deletes cached results the run "
+                    "no longer uses) or run with --out on a larger disk, then run the same command: the "
+                    "finished stages are kept") from e
         raise
     seconds = time.perf_counter() - t0
     peak = peak_memory() if measured else None

@@ -67,7 +67,7 @@ from sgpor_pipeline.removal.holes import (
 )
 from sgpor_pipeline.removal.plane import under_object
 from sgpor_pipeline.scene import Camera, save_cameras
-from sgpor_pipeline.scratch import ArraysOnDisk, Keeper, in_memory, on_disk, release
+from sgpor_pipeline.scratch import ArraysOnDisk, Keeper, in_memory, on_disk, release, require_free_disk
 from sgpor_pipeline.sfm import load_sfm
 from sgpor_pipeline.stages.fit import fit_ignored_masks
 
@@ -89,6 +89,9 @@ def complete_hole_depths(cameras: list[Camera], depths: list[np.ndarray], valids
 
 
 CONTEXTS = ("photos", "renders")
+# Free disk the stage needs, per pixel of every view: its scratch maps' peak (45 bytes, measured on 24
+# views of 800x600, benchmarks/memory.py) and its outputs (~8)
+DISK_BYTES_PER_PIXEL = 53
 
 
 class RemoveStage(Stage):
@@ -130,6 +133,12 @@ class RemoveStage(Stage):
         # every view's float maps (renders, opacities, depths, ...) on disk while the stage runs, read back
         # memory-mapped: held in memory they took ~60 bytes a pixel of every view (scratch.py); the bool
         # masks stay in memory (1 byte a pixel each)
+        # at most ~45 bytes a pixel of every view on disk while the stage runs (benchmarks/memory.py) and
+        # ~8 in the outputs (renders, context, holes, depths), the two Gaussian files besides
+        pixels = sum(c.width * c.height for c in cameras)
+        ply = (ctx.inputs["fit"] / "gaussians.ply").stat().st_size
+        require_free_disk(ctx.scratch_dir, DISK_BYTES_PER_PIXEL * pixels + 2 * ply,
+                          f"the remove stage's maps of {len(cameras)} views ({pixels / 1e6:.0f} M pixels)")
         keep = functools.partial(on_disk, ctx.scratch_dir)
         renders, alphas, raw_depths = (ArraysOnDisk(ctx.scratch_dir / n) for n in ("renders", "alphas", "raw_depths"))
         for cam in ctx.progress(cameras, total=len(cameras), desc="remove: render"):

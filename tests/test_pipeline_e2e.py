@@ -87,6 +87,42 @@ def test_resumed_run_is_all_hits_and_status_lists_every_stage(finished_run):
 
 
 @pytest.mark.slow
+def test_a_full_disk_is_an_error_to_act_on_and_keeps_the_finished_stages(finished_run, tmp_path, monkeypatch):
+    """Too little free disk for the remove stage's maps: refused before it renders anything. The disk
+    filling up while a stage writes: one error naming the run folder and the fix, no build folder left
+    behind, and the same command then resumes from the finished stages."""
+    import errno
+    import shutil
+    from collections import namedtuple
+
+    from sgpor_pipeline import scratch
+    from sgpor_pipeline.errors import PipelineError
+
+    out, inputs, _ = finished_run
+    run = tmp_path / "out"
+    shutil.copytree(out, run)
+    usage = namedtuple("usage", "total used free")
+    with monkeypatch.context() as m:
+        m.setattr(scratch.shutil, "disk_usage", lambda path: usage(10**9, 10**9 - 10**5, 10**5))
+        with pytest.raises(PipelineError, match="need about .* GB of free disk here, and 0.0 GB is free") as e:
+            run_pipeline(run, inputs, overrides=FAST, until="remove", force=["remove"])
+    assert "_scratch" in e.value.path and "--out on a larger disk" in str(e.value)
+
+    def full(self, array):
+        raise OSError(errno.ENOSPC, "No space left on device", str(self.folder / "0.npy"))
+
+    with monkeypatch.context() as m:
+        m.setattr(scratch.ArraysOnDisk, "append", full)
+        with pytest.raises(PipelineError, match="the disk filled up while the remove stage wrote") as e:
+            run_pipeline(run, inputs, overrides=FAST, until="remove", force=["remove"])
+    assert e.value.path == str(run) and "run the same command" in str(e.value)
+    assert isinstance(e.value.__cause__, OSError)
+    assert not list((run / "cache" / "remove").glob(".tmp-*"))  # nothing of the failed build is left
+    again = run_pipeline(run, inputs, overrides=FAST, until="remove")
+    assert again.ran == [] and set(again.hits) == {"ingest", "sfm", "fit", "masks", "remove"}
+
+
+@pytest.mark.slow
 def test_with_every_mask_given_the_fit_leaves_the_object_out(finished_run, tmp_path):
     """Every view has a mask here, so ``fit.object_masks=auto`` (the default) fits without the masked
     pixels: the masks stage selects no Gaussian and keeps every given mask, the remove stage deletes

@@ -102,6 +102,7 @@ from sgpor_pipeline.removal.plane import (
     contact_shading,
     grown,
     plane_texture,
+    rim_dark_share,
     sample_into_view,
     shading_into_view,
 )
@@ -262,6 +263,9 @@ class InpaintParams:
 
 
 LIFT_SHADOW = ("none", "contact", "cast")
+# above this share of dark texels on the plane texture's rim (removal.plane.rim_dark_share) the log
+# suggests remove.under_object (mip360 kitchen from one mask: 0.20; the benchmarks' scenes: <= 0.07)
+DARK_RIM_HINT = 0.1
 PLANE_SOURCE = -2  # thick_reference = "plane": the thick planar parts take the plane texture's fill
 
 
@@ -544,6 +548,7 @@ class InpaintStage(Stage):
                             info["shadow"]["under_texels"] = int((below & tex.seen).sum())
                             tex.hole |= below
                             tex.seen &= ~below
+                info["rim_dark_share"] = rim_dark_share(tex.image, tex.hole, tex.seen)
                 img = tex.image
                 if tex.hole.any():
                     tb = build_source_bank([PLANE_NAME], [tex.image], [~tex.seen], [tex.hole], sbm)
@@ -585,6 +590,12 @@ class InpaintStage(Stage):
                         _link_or_copy(pfolder / f, ctx.out_dir / PLANE_NAME / f)
                 ctx.log.info(f"inpaint: the plane under the object as one texture, {plane_info['width']}x"
                              f"{plane_info['height']} texels ({plane_info['hole_texels']} to fill)")
+                dark = plane_info.get("rim_dark_share", float("nan"))
+                if under is None and dark > DARK_RIM_HINT:
+                    ctx.log.warning(
+                        f"inpaint: {100 * dark:.0f} % of the plane texture's rim around its hole is dark (the "
+                        "object's footprint or contact shadow?), and the fill continues it into the hole; if a "
+                        "dark patch shows where the object stood, rerun with --set remove.under_object=true")
             else:
                 ctx.log.warning(f"inpaint: thick_reference = plane: {plane_info['reason']}; each view fills "
                                 "its thick parts on its own")

@@ -3,6 +3,7 @@ textured floor: exact cameras, exact depth, colours known at every point of the 
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 
@@ -380,3 +381,26 @@ def test_contact_shading_finds_the_objects_cast_shadow_when_asked():
     sc, texture = _box_texture("contact", seed=0)
     shading, _ = contact_shading(texture(sc.images), sc.cameras, list(sc.masks), params)
     assert shading is not None and "cast" not in shading.info, shading.info
+
+
+def test_rim_dark_share_sees_a_dark_footprint_beside_the_hole():
+    """A dark band on the seen texels around the hole (an object's footprint or contact shadow, which the
+    fill would continue into the hole) against the same plane without it, and the empty cases."""
+    from sgpor_pipeline.removal.plane import rim_dark_share
+
+    rng = np.random.default_rng(0)
+    img = (0.55 + 0.05 * rng.standard_normal((120, 160, 3))).astype(np.float32)
+    hole = np.zeros((120, 160), bool)
+    hole[45:75, 60:100] = True
+    seen = np.ones_like(hole)
+    seen[:, :5] = False  # unseen texels count on neither side
+    clean = rim_dark_share(img, hole, seen)
+    band = cv2.dilate(hole.astype(np.uint8), np.ones((9, 9), np.uint8)).astype(bool) & ~hole
+    dark = img.copy()
+    dark[band & (np.arange(160)[None, :] < 80)] = 0.05  # the footprint along half the rim
+    shadowed = rim_dark_share(dark, hole, seen)
+    assert clean < 0.01 and 0.2 < shadowed < 0.8, (clean, shadowed)
+    dark[:, :5] = 0.0
+    assert rim_dark_share(dark, hole, seen) == shadowed  # (the unseen texels do not count)
+    assert np.isnan(rim_dark_share(img, np.zeros_like(hole), seen))
+    assert np.isnan(rim_dark_share(img, hole, np.zeros_like(hole)))

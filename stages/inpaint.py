@@ -264,7 +264,7 @@ class InpaintParams:
 
 LIFT_SHADOW = ("none", "contact", "cast")
 # above this share of dark texels on the plane texture's rim (removal.plane.rim_dark_share) the log
-# suggests remove.under_object (mip360 kitchen from one mask: 0.20; the benchmarks' scenes: <= 0.07)
+# suggests remove.under_object (mip360 kitchen from one mask: 0.21; the benchmarks' scenes: <= 0.07)
 DARK_RIM_HINT = 0.1
 PLANE_SOURCE = -2  # thick_reference = "plane": the thick planar parts take the plane texture's fill
 
@@ -548,7 +548,8 @@ class InpaintStage(Stage):
                             info["shadow"]["under_texels"] = int((below & tex.seen).sum())
                             tex.hole |= below
                             tex.seen &= ~below
-                info["rim_dark_share"] = rim_dark_share(tex.image, tex.hole, tex.seen)
+                dark = rim_dark_share(tex.image, tex.hole, tex.seen)
+                info["rim_dark_share"] = None if np.isnan(dark) else dark  # (strict JSON)
                 img = tex.image
                 if tex.hole.any():
                     tb = build_source_bank([PLANE_NAME], [tex.image], [~tex.seen], [tex.hole], sbm)
@@ -590,7 +591,7 @@ class InpaintStage(Stage):
                         _link_or_copy(pfolder / f, ctx.out_dir / PLANE_NAME / f)
                 ctx.log.info(f"inpaint: the plane under the object as one texture, {plane_info['width']}x"
                              f"{plane_info['height']} texels ({plane_info['hole_texels']} to fill)")
-                dark = plane_info.get("rim_dark_share", float("nan"))
+                dark = plane_info.get("rim_dark_share") or 0.0
                 if under is None and dark > DARK_RIM_HINT:
                     ctx.log.warning(
                         f"inpaint: {100 * dark:.0f} % of the plane texture's rim around its hole is dark (the "

@@ -21,14 +21,16 @@ import numpy as np
 from sgpor_pipeline.errors import PipelineError
 
 
-def require_free_disk(folder: Path, need: int, what: str) -> int:
+def require_free_disk(folder: Path, need: int, what: str, shown: Path | None = None) -> int:
     """Raise a PipelineError before a stage starts when the disk holding ``folder`` has less than
-    ``need`` bytes free (``what`` says what they are for); returns the free bytes. Failing here costs
-    nothing; a full disk halfway through would cost the stage's work so far."""
+    ``need`` bytes free (``what`` says what they are for; the error names ``shown``, default
+    ``folder``); returns the free bytes. Failing here costs nothing; a full disk halfway through would
+    cost the stage's work so far."""
     free = shutil.disk_usage(folder).free
     if free < need:
         raise PipelineError(
-            f"{what} need about {need / 1e9:.1f} GB of free disk here, and {free / 1e9:.1f} GB is free", path=folder,
+            f"{what} need about {need / 1e9:.1f} GB of free disk here, and {free / 1e9:.1f} GB is free",
+            path=shown or folder,
             fix="free disk space (`sgpor-pipeline clean OUT --keep-last 1` deletes cached results the run no "
                 "longer uses), or run with --out on a larger disk, or use fewer or smaller photos "
                 "(--set ingest.max_size=960); the finished stages are kept")

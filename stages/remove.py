@@ -138,7 +138,8 @@ class RemoveStage(Stage):
         pixels = sum(c.width * c.height for c in cameras)
         ply = (ctx.inputs["fit"] / "gaussians.ply").stat().st_size
         require_free_disk(ctx.scratch_dir, DISK_BYTES_PER_PIXEL * pixels + 2 * ply,
-                          f"the remove stage's maps of {len(cameras)} views ({pixels / 1e6:.0f} M pixels)")
+                          f"the remove stage's maps of {len(cameras)} views ({pixels / 1e6:.0f} M pixels)",
+                          shown=ctx.out_dir.parent)  # (the build folder itself is removed after the error)
         keep = functools.partial(on_disk, ctx.scratch_dir)
         renders, alphas, raw_depths = (ArraysOnDisk(ctx.scratch_dir / n) for n in ("renders", "alphas", "raw_depths"))
         for cam in ctx.progress(cameras, total=len(cameras), desc="remove: render"):

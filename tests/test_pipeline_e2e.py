@@ -106,7 +106,7 @@ def test_a_full_disk_is_an_error_to_act_on_and_keeps_the_finished_stages(finishe
         m.setattr(scratch.shutil, "disk_usage", lambda path: usage(10**9, 10**9 - 10**5, 10**5))
         with pytest.raises(PipelineError, match="need about .* GB of free disk here, and 0.0 GB is free") as e:
             run_pipeline(run, inputs, overrides=FAST, until="remove", force=["remove"])
-    assert "_scratch" in e.value.path and "--out on a larger disk" in str(e.value)
+    assert e.value.path == str(run / "cache" / "remove") and "--out on a larger disk" in str(e.value)
 
     def full(self, array):
         raise OSError(errno.ENOSPC, "No space left on device", str(self.folder / "0.npy"))

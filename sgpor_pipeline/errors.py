@@ -8,6 +8,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
+# the first fix for a disk that is (or would get) full: what frees disk without losing the run
+FREE_DISK = "free disk space (`sgpor-pipeline clean OUT --keep-last 1` deletes cached results the run no longer uses)"
+
 
 class PipelineError(Exception):
     """An error with the file it concerns and what the user can do about it."""

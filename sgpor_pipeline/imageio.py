@@ -51,6 +51,12 @@ def to_float32(img: np.ndarray) -> np.ndarray:
     return img.astype(np.float32, copy=False)
 
 
+def luminance(img: np.ndarray) -> np.ndarray:
+    """The grey (Rec. 601 luma) of an RGB float image, HxW float32; a grey image as float32."""
+    img = np.asarray(img, np.float32)
+    return img[..., :3] @ np.array([0.299, 0.587, 0.114], np.float32) if img.ndim == 3 else img
+
+
 def read_rgb8(path: Path) -> np.ndarray:
     """An image file as uint8 RGB HxWx3, EXIF orientation applied, alpha dropped."""
     # ANYDEPTH|ANYCOLOR keeps 16 bits and grey, applies the EXIF orientation and drops alpha.

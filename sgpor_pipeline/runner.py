@@ -27,7 +27,7 @@ from .dag import (
     topological_order,
     upstream_of,
 )
-from .errors import PipelineError
+from .errors import FREE_DISK, PipelineError
 from .hashing import DigestMemo, file_digest, hash_obj
 
 CACHE_FORMAT = 1
@@ -253,8 +253,7 @@ def _run_stage(cls: type[Stage], name: str, key: str, config: dict[str, Any], ca
             raise PipelineError(
                 f"the disk filled up while the {name} stage wrote {e.filename or 'its results'}",
                 path=cache.root.parent,
-                fix="free disk space (`sgpor-pipeline clean OUT --keep-last 1` deletes cached results the run "
-                    "no longer uses) or run with --out on a larger disk, then run the same command: the "
+                fix=f"{FREE_DISK} or run with --out on a larger disk, then run the same command: the "
                     "finished stages are kept") from e
         raise
     seconds = time.perf_counter() - t0

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sgpor_pipeline.errors import PipelineError
+from sgpor_pipeline.errors import FREE_DISK, PipelineError
 
 
 def require_free_disk(folder: Path, need: int, what: str, shown: Path | None = None) -> int:
@@ -31,8 +31,7 @@ def require_free_disk(folder: Path, need: int, what: str, shown: Path | None = N
         raise PipelineError(
             f"{what} need about {need / 1e9:.1f} GB of free disk here, and {free / 1e9:.1f} GB is free",
             path=shown or folder,
-            fix="free disk space (`sgpor-pipeline clean OUT --keep-last 1` deletes cached results the run no "
-                "longer uses), or run with --out on a larger disk, or use fewer or smaller photos "
+            fix=f"{FREE_DISK}, or run with --out on a larger disk, or use fewer or smaller photos "
                 "(--set ingest.max_size=960); the finished stages are kept")
     return free
 

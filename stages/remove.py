@@ -90,7 +90,8 @@ def complete_hole_depths(cameras: list[Camera], depths: list[np.ndarray], valids
 
 CONTEXTS = ("photos", "renders")
 # Free disk the stage needs, per pixel of every view: its scratch maps' peak (45 bytes, measured on 24
-# views of 800x600, benchmarks/memory.py) and its outputs (~8)
+# views of 800x600, benchmarks/memory.py) and its outputs (~8: renders, context, holes, depths); the
+# two Gaussian files (gaussians.ply, object.ply) besides
 DISK_BYTES_PER_PIXEL = 53
 
 
@@ -112,6 +113,12 @@ class RemoveStage(Stage):
             raise PipelineError(f"unknown remove.context {p.context!r}", fix=f"use one of {', '.join(CONTEXTS)}")
         sfm = load_sfm(ctx.inputs["sfm"])
         cameras = sfm.posed
+        # before any rendering: the disk the scratch maps and the outputs need
+        pixels = sum(c.width * c.height for c in cameras)
+        ply = (ctx.inputs["fit"] / "gaussians.ply").stat().st_size
+        require_free_disk(ctx.scratch_dir, DISK_BYTES_PER_PIXEL * pixels + 2 * ply,
+                          f"the remove stage's maps of {len(cameras)} views ({pixels / 1e6:.0f} M pixels)",
+                          shown=ctx.out_dir.parent)  # (the build folder itself is removed after the error)
         model = read_ply(ctx.inputs["fit"] / "gaussians.ply")
         masks_dir = ctx.inputs["masks"] / "masks"
         masks = [read_mask(masks_dir / f"{c.image}.png") for c in cameras]
@@ -133,13 +140,6 @@ class RemoveStage(Stage):
         # every view's float maps (renders, opacities, depths, ...) on disk while the stage runs, read back
         # memory-mapped: held in memory they took ~60 bytes a pixel of every view (scratch.py); the bool
         # masks stay in memory (1 byte a pixel each)
-        # at most ~45 bytes a pixel of every view on disk while the stage runs (benchmarks/memory.py) and
-        # ~8 in the outputs (renders, context, holes, depths), the two Gaussian files besides
-        pixels = sum(c.width * c.height for c in cameras)
-        ply = (ctx.inputs["fit"] / "gaussians.ply").stat().st_size
-        require_free_disk(ctx.scratch_dir, DISK_BYTES_PER_PIXEL * pixels + 2 * ply,
-                          f"the remove stage's maps of {len(cameras)} views ({pixels / 1e6:.0f} M pixels)",
-                          shown=ctx.out_dir.parent)  # (the build folder itself is removed after the error)
         keep = functools.partial(on_disk, ctx.scratch_dir)
         renders, alphas, raw_depths = (ArraysOnDisk(ctx.scratch_dir / n) for n in ("renders", "alphas", "raw_depths"))
         for cam in ctx.progress(cameras, total=len(cameras), desc="remove: render"):

@@ -39,6 +39,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from sgpor_pipeline.imageio import luminance
 from sgpor_pipeline.scene import Camera
 
 from .multiview import warp_from_reference
@@ -219,7 +220,7 @@ def rim_dark_share(image: np.ndarray, hole: np.ndarray, seen: np.ndarray, rim: i
     if not hole.any():
         return float("nan")
     dist = cv2.distanceTransform((~hole).astype(np.uint8), cv2.DIST_L2, 3)
-    lum = np.asarray(image, np.float32)[..., :3] @ np.array([0.299, 0.587, 0.114], np.float32)
+    lum = luminance(image)
     inner = seen & (dist <= rim)
     outer = seen & (dist > around[0]) & (dist <= around[1])
     if not inner.any() or not outer.any():

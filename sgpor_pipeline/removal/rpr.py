@@ -30,7 +30,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from sgpor_pipeline.imageio import to_float32
+from sgpor_pipeline.imageio import luminance, to_float32
 
 from .sbm import feather
 
@@ -50,8 +50,7 @@ def hf_energy(image: np.ndarray) -> np.ndarray:
     import kornia
     import torch
 
-    img = np.asarray(image, np.float32)
-    grey = img @ np.array([0.299, 0.587, 0.114], np.float32) if img.ndim == 3 else img
+    grey = luminance(image)
     with torch.no_grad():
         g = kornia.filters.spatial_gradient(torch.from_numpy(np.ascontiguousarray(grey))[None, None],
                                             mode="sobel", order=1, normalized=True)  # [1,1,2,H,W]

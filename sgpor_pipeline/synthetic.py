@@ -48,7 +48,14 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 RIGS = ("inward", "forward")
-OBJECT_KINDS = ("box", "sphere", "cylinder")
+OBJECT_KINDS = ("box", "sphere", "cylinder")  # what "random" draws from (objects and background)
+# Also for the removable object, only when asked for by name: a box whose body stands on four short
+# feet, so the floor under it is seen through the gap, darkened by its ambient occlusion, as under
+# mip360 kitchen's bulldozer (a real footprint for ``object_shadow``; drawing it at random would
+# change every seeded scene).
+RAISED_KIND = "raised_box"
+RAISED_GAP = 0.22  # the gap under the body, as a share of the object's height
+RAISED_FOOT = 0.16  # a foot's side, as a share of the body's side
 OBJECT_SHADOWS = ("none", "contact", "cast")
 
 # Colour photos: the removable object's texture is drawn from these (and never reused elsewhere).
@@ -77,7 +84,7 @@ class SceneParams:
     height: int = 192
     hfov_deg: float = 60.0  # horizontal field of view; principal point at the image centre
     n_background_objects: int = 6
-    object_kind: str = "random"  # "box", "sphere", "cylinder" or "random"
+    object_kind: str = "random"  # "box", "sphere", "cylinder", "raised_box" or "random"
     rug: bool = True  # a textured rug on the floor under the object (makes the hole non-trivial)
     shadows: bool = True  # hard shadows cast by the background objects (never by the object)
     # How the object darkens the background in ``images`` (never in ``images_gt``), as in a real
@@ -392,6 +399,18 @@ def _primitive_mesh(kind: str, half: np.ndarray, center: np.ndarray, rot: np.nda
     if kind == "box":
         m = o3d.geometry.TriangleMesh.create_box(*(2 * half))
         m.translate(-half)
+    elif kind == RAISED_KIND:  # the body over the gap, a foot under each corner (inset by half a foot)
+        gap = 2 * half[2] * RAISED_GAP
+        body = o3d.geometry.TriangleMesh.create_box(*(2 * half[:2]), 2 * half[2] - gap)
+        body.translate([-half[0], -half[1], -half[2] + gap])
+        m = body
+        foot = RAISED_FOOT * 2 * half[:2]
+        for sx in (-1, 1):
+            for sy in (-1, 1):
+                f = o3d.geometry.TriangleMesh.create_box(foot[0], foot[1], gap)
+                c = np.array([sx * (half[0] - foot[0]), sy * (half[1] - foot[1])])
+                f.translate([c[0] - foot[0] / 2, c[1] - foot[1] / 2, -half[2]])
+                m += f
     elif kind == "sphere":
         m = o3d.geometry.TriangleMesh.create_sphere(radius=float(half[0]), resolution=24)
     elif kind == "cylinder":
@@ -564,9 +583,9 @@ def _lighting(p: SceneParams, rng: np.random.Generator) -> _Lighting:
 def _validate(p: SceneParams) -> None:
     if p.rig not in RIGS:
         raise PipelineError(f"unknown synthetic rig {p.rig!r}", fix=f"use one of {', '.join(RIGS)}")
-    if p.object_kind not in (*OBJECT_KINDS, "random"):
+    if p.object_kind not in (*OBJECT_KINDS, RAISED_KIND, "random"):
         raise PipelineError(f"unknown object kind {p.object_kind!r}",
-                            fix=f"use one of {', '.join(OBJECT_KINDS)} or random")
+                            fix=f"use one of {', '.join((*OBJECT_KINDS, RAISED_KIND))} or random")
     if p.object_shadow not in OBJECT_SHADOWS:
         raise PipelineError(f"unknown object_shadow {p.object_shadow!r}",
                             fix=f"use one of {', '.join(OBJECT_SHADOWS)}")

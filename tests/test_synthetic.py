@@ -130,11 +130,46 @@ def test_object_shadow_darkens_only_the_photos_near_the_object():
     assert darker["cast"].sum() > darker["contact"].sum()
 
 
+def _world_points(cam: Camera, depth: np.ndarray, v: np.ndarray, u: np.ndarray) -> np.ndarray:
+    rays = np.linalg.inv(cam.K) @ np.stack([u + 0.5, v + 0.5, np.ones_like(u, float)])
+    pc = rays * depth[v, u]
+    return (np.linalg.inv(cam.cam_from_world) @ np.vstack([pc, np.ones(len(u))]))[:3].T
+
+
+def test_raised_box_shows_its_dark_footprint():
+    """A ``raised_box`` stands on four feet: the photos see the floor under its body through the gap
+    (outside the masks), in its shadow; the truth is the box scene's."""
+    import open3d as o3d
+
+    params = dict(seed=2, n_views=8, width=128, height=96)
+    box = generate_scene(SceneParams(**params, object_kind="box"))
+    sc = generate_scene(SceneParams(**params, object_kind="raised_box", object_shadow="cast"))
+    assert np.array_equal(sc.images_gt, box.images_gt)  # the same room, rug and object placement
+    assert np.allclose(sc.object_bounds, box.object_bounds)
+    assert sc.masks.sum() < box.masks.sum()  # the gap is seen through
+    body = o3d.t.geometry.RaycastingScene()
+    body.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(sc.object_mesh))
+    under, ratio = 0, []
+    for i, cam in enumerate(sc.cameras):
+        v, u = np.nonzero(~sc.masks[i] & np.isfinite(sc.depth[i]))
+        pw = _world_points(cam, sc.depth[i], v, u)
+        up = np.hstack([pw + [0.0, 0.0, 1e-3], np.tile([0.0, 0.0, 1.0], (len(pw), 1))]).astype(np.float32)
+        below = body.test_occlusions(o3d.core.Tensor(up)).numpy().astype(bool)  # the object right above
+        under += int(below.sum())
+        lum_photo = sc.images[i, v[below], u[below]].mean(axis=1)
+        lum_truth = sc.images_gt[i, v[below], u[below]].mean(axis=1)
+        ratio.extend(lum_photo / np.maximum(lum_truth, 1e-3))
+    assert under > 100  # the floor under the body, seen in the photos
+    assert np.median(ratio) < 0.4  # and dark there: its footprint
+
+
 def test_bad_params():
     with pytest.raises(PipelineError, match="rig"):
         generate_scene(SceneParams(rig="sideways"))
     with pytest.raises(PipelineError, match="object_shadow"):
         generate_scene(SceneParams(object_shadow="soft"))
+    with pytest.raises(PipelineError, match="raised_box"):  # the fix lists every kind
+        generate_scene(SceneParams(object_kind="table"))
 
 
 def test_default_scene_is_fast():

@@ -90,6 +90,34 @@ def test_selection_from_one_mask_propagates_to_every_view(scene_and_model):
     assert min(ious) > 0.75 and np.mean(ious) > 0.8, ious
 
 
+def test_hidden_parts_of_the_object_are_selected_where_growing_cannot_reach_them(scene_and_model):
+    """``hidden``: the Gaussians inside the given mask and in front of the background carried under it
+    are seeds. With the object's middle cut out (a gap wider than growing's links, as where a fit
+    covers the object's far side sparsely), growing from what the view sees stops at the gap; with
+    ``hidden`` the far side is selected too, and still no background."""
+    scene, model, truth = scene_and_model
+    cam, mask = scene.cameras[0], scene.masks[0]
+    means = model.means.detach().numpy().astype(np.float64)
+    centre = means[truth].mean(axis=0)
+    axis = (centre - cam.center) / np.linalg.norm(centre - cam.center)
+    depth_along = (means - centre) @ axis  # > 0: the object's far side, as the view looks
+    keep = ~(truth & (np.abs(depth_along) < 0.1))
+    cut, truth = subset(model, keep), truth[keep]
+    far = truth & (depth_along[keep] > 0)
+    params = SelectionParams()
+    tight, _, behind = tighten_mask(cut, cam, mask, TightParams())
+    # (seen by the whole object's views: through the cut, the floor sampled under the object shows)
+    _, seen_weight = contribution_scores(model, scene.cameras, list(scene.masks))
+    visible_bg = ~truth & (seen_weight[keep] >= params.min_weight)
+    found = {}
+    for hidden in (False, True):
+        sel = select_object(cut, [cam], [tight], params, cone_masks=[mask], background_depths=[behind],
+                            hidden=hidden).is_object
+        found[hidden] = (sel & far).sum() / far.sum()
+        assert (sel & truth).sum() / (sel & (truth | visible_bg)).sum() > 0.95
+    assert found[False] < 0.3 and found[True] > 0.8, found
+
+
 def test_a_generous_mask_is_tightened_and_does_not_select_the_floor(scene_and_model):
     """A given mask drawn with a margin of floor around the object: its pixels in front of the floor
     carried in from around it are (nearly) the true mask, the margin width is measured, and the

@@ -339,7 +339,8 @@ class InpaintStage(Stage):
     name = "inpaint"
     # 2: carry_max_misfit (a hole part is carried only when its rim lies on a plane); 3: the plane
     # texture's unseen texels are smoothed from the seen ones only (not from its black hole); 4: a
-    # target's candidates in source/ are distinct blocks (the fills are as before; RPR's next-best differ)
+    # target's candidates in source/ are distinct blocks (the fills are as before; RPR's next-best differ);
+    # 5: the plane texture of thin planar parts where no part is thick and it finds a shadow (plane_thin_rim)
     VERSION = 5
     Params = InpaintParams
     inputs = ("remove",)

@@ -12,6 +12,9 @@ dilated by ~15 px at 520 px): the object is selected from their pixels in FRONT 
 carried in from around them (``tighten``, :func:`~sgpor_pipeline.removal.selection.tighten_mask`),
 and the propagated masks get the measured margin back. Without it, the margin's floor seeded the
 selection and the kitchen's propagated masks leaked onto the table (blobs away from the object).
+The same carried background finds the object's far side, which no given view sees: every Gaussian
+inside the given masks and in front of it is selected too (``hidden``); region growing alone did not
+reach it where the fit covers it sparsely (a box from one given mask kept its far side standing).
 
 Each propagated mask is then snapped to the object in its photo (``grabcut``,
 :func:`~sgpor_pipeline.removal.selection.grabcut_mask`) and the object is selected again from ALL

@@ -106,7 +106,7 @@ from sgpor_pipeline.removal.plane import (
     sample_into_view,
     shading_into_view,
 )
-from sgpor_pipeline.removal.sbm import SBMParams, build_source_bank
+from sgpor_pipeline.removal.sbm import SBMParams, build_source_bank, free_blocks
 from sgpor_pipeline.scene import Camera
 
 
@@ -571,6 +571,14 @@ class InpaintStage(Stage):
                 dark = rim_dark_share(tex.image, tex.hole, tex.seen)
                 info["rim_dark_share"] = None if np.isnan(dark) else dark  # (strict JSON)
                 img = tex.image
+                if tex.hole.any() and uses_sbm and not free_blocks(~tex.seen, sbm.block_size).any():
+                    # (a sliver of plane around thin holes: nothing for its fill to copy; the views fill them)
+                    info = {"built": False, "reason": f"no {sbm.block_size}x{sbm.block_size} block of the plane "
+                            "texture was seen whole to fill its hole from", "seconds": time.perf_counter() - t0}
+                    for f in ("texture_as_seen.png", "shading.png", "shading.npy", "under.png"):
+                        (folder / f).unlink(missing_ok=True)
+                    (folder / "plane.json").write_text(json.dumps(info, indent=1))
+                    return
                 if tex.hole.any():
                     tb = build_source_bank([PLANE_NAME], [tex.image], [~tex.seen], [tex.hole], sbm)
                     img = fill_view(tex.image, tex.hole, "sbm" if uses_sbm else backend, tb if uses_sbm else None,

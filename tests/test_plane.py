@@ -406,7 +406,7 @@ def test_rim_dark_share_sees_a_dark_footprint_beside_the_hole():
     assert np.isnan(rim_dark_share(img, hole, np.zeros_like(hole)))
 
 
-def test_inpaint_stage_lifts_the_shadow_of_an_object_on_feet(tmp_path):
+def test_inpaint_stage_lifts_the_shadow_of_an_object_on_feet(tmp_path, monkeypatch):
     """An object raised on feet (``raised_box``) leaves thin holes: the views see the floor under it
     through the gap, in its shadow. No part is thick, so the plane texture is built from the thin
     planar parts (``plane_thin_rim``) and used because it finds the shadow: every view's floor near the
@@ -442,8 +442,20 @@ def test_inpaint_stage_lifts_the_shadow_of_an_object_on_feet(tmp_path):
         err_after.append(np.abs(img - sc.images_gt[i])[changed])
     before, after = np.concatenate(err_before).mean(), np.concatenate(err_after).mean()
     assert np.concatenate(err_before).size > 3000 and after < 0.6 * before, (before, after)
-    off, _ = inpaint(sc, "cast_off", plane_thin_rim=0)
+    off, ctx_off = inpaint(sc, "cast_off", plane_thin_rim=0)
     assert off["plane"] is None and off["thick_reference"] is None
+    # a texture with no block seen whole (a sliver of plane around thin holes) has nothing to fill
+    # from: the views fill their holes themselves, as without it
+    import sgpor_pipeline.stages.inpaint as stage
+
+    with monkeypatch.context() as m:
+        m.setattr(stage, "free_blocks", lambda mask, block: np.zeros((1, 1), bool))
+        sliver, ctx_sliver = inpaint(sc, "sliver")
+    assert not sliver["plane"]["built"] and "block" in sliver["plane"]["reason"], sliver["plane"]
+    assert sliver["thick_reference"] is None and not (ctx_sliver.out_dir / "plane").exists()
+    for cam in sc.cameras[:3]:
+        assert np.array_equal(read_image(ctx_sliver.out_dir / "images" / f"{cam.name}.png"),
+                              read_image(ctx_off.out_dir / "images" / f"{cam.name}.png"))
 
     plain = generate_scene(SceneParams(**scene))  # no shadow in the photos
     report, ctx = inpaint(plain, "none")

@@ -226,6 +226,11 @@ def test_under_object_finds_the_floor_under_a_standing_object_only(views):
         ys, xs = np.nonzero(px)
         r = np.hypot(*cam.unproject(ys, xs, depth[ys, xs])[:, :2].T)
         assert (r < 0.6).all()  # near the object (3 views: a loose hull)
+    # no part as thick as ``thin`` (an object on feet leaves thin holes): the parts deeper than min_thin
+    thin_only, why = under_object(cams, masks, holes, depths, thin=10_000)
+    assert thin_only is not None and thin_only.info["pixels"] == under.info["pixels"], why
+    none, why = under_object(cams, masks, holes, depths, thin=10_000, min_thin=0)
+    assert none is None and "thick" in why
     # hovering: each view's hole is the floor its silhouette hides (the floor under it the views see)
     hovering = [cylinder_mask(c, FLOOR_Z + 0.5, FLOOR_Z + 0.9) for c in cams]
     none, why = under_object(cams, hovering, hovering, depths, thin=3)

@@ -116,6 +116,32 @@ def test_iou_and_sheet(bench, tmp_path):
     assert (tmp_path / "s.png").is_file()
 
 
+def test_one_mask_scene_reports_the_propagated_masks_iou(bench, tmp_path):
+    """synthetic-box-1mask runs with one given mask; the IoU of the masks stage's masks against the true
+    ones is taken on the views not given, and printed and stored beside the removal."""
+    from sgpor_pipeline.imageio import write_mask01
+
+    assert bench.SYNTHETIC_SCENES["synthetic-box-1mask"] == bench.SYNTHETIC_SCENES["synthetic-box"]
+    assert "masks.max_given=1" in bench.ONE_MASK["synthetic-box-1mask"]
+    truth, masks = tmp_path / "truth", tmp_path / "masks"
+    (masks / "masks").mkdir(parents=True)
+    truth.mkdir()
+    square = np.zeros((10, 10), bool)
+    square[2:6, 2:6] = True
+    for name, shift in (("a", 0), ("b", 0), ("c", 2)):  # a: given; b: exact; c: shifted by 2 px
+        write_mask01(truth / f"{name}.png", square)
+        write_mask01(masks / "masks" / f"{name}.png", np.roll(square, shift, axis=1) if name != "a" else ~square)
+    (masks / "masks.json").write_text(json.dumps({"given": ["a"]}))
+    r = bench.propagation_iou(masks, truth)
+    assert r["given"] == ["a"] and r["propagation_iou_min"] == pytest.approx(8 / 24)
+    assert r["propagation_iou"] == pytest.approx((1 + 8 / 24) / 2)
+    rows = [_row(m, 25.0 - 1.5 * i) for i, m in enumerate(["ours", "delete-only"])]
+    summary, checks = bench.summarise({"synthetic-box-1mask": {"scene": "synthetic-box-1mask", "rows": rows,
+                                                               "wall_seconds": 1.0, **r}})
+    assert summary["synthetic_box_1mask_propagation_iou"] == pytest.approx(r["propagation_iou"])
+    assert any("masks propagated from a: IoU against the truth 0.667 (min 0.333)" in c for c in checks), checks
+
+
 def test_parser_rejects_unknown_scene(bench):
     with pytest.raises(SystemExit):
         bench.main(["--scenes", "nope"])

@@ -50,9 +50,9 @@ log = logging.getLogger(__name__)
 RIGS = ("inward", "forward")
 OBJECT_KINDS = ("box", "sphere", "cylinder")  # what "random" draws from (objects and background)
 # Also for the removable object, only when asked for by name: a box whose body stands on four short
-# feet, so the floor under it is seen through the gap, darkened by its ambient occlusion, as under
-# mip360 kitchen's bulldozer (a real footprint for ``object_shadow``; drawing it at random would
-# change every seeded scene).
+# feet, so the floor under it is seen through the gap, in its shadow with ``object_shadow`` "cast"
+# (its occlusion alone leaves the key light there), as under mip360 kitchen's bulldozer: a real
+# footprint (drawing it at random would change every seeded scene).
 RAISED_KIND = "raised_box"
 RAISED_GAP = 0.22  # the gap under the body, as a share of the object's height
 RAISED_FOOT = 0.16  # a foot's side, as a share of the body's side

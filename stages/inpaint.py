@@ -606,8 +606,8 @@ class InpaintStage(Stage):
             plane_info = json.loads((pfolder / "plane.json").read_text())
             if thin_plane:
                 if plane_info["built"] and not (pfolder / "shading.npy").is_file():
-                    plane_info = {"built": False, "reason": "thin planar parts only, and no shadow of the object "
-                                  "on their plane"}
+                    plane_info = {"built": False, "reason": "no shadow of the object on the plane of its thin "
+                                  "holes (the plane texture lifts shadows there, nothing else)"}
                 plane_info["thin_parts"] = True
                 if not plane_info["built"]:  # no texture, or no shadow on it: the views fill them as before
                     thick, thick_ref = [np.zeros(h.shape, bool) for h in holes], -1
@@ -634,7 +634,7 @@ class InpaintStage(Stage):
                         "object's footprint or contact shadow?), and the fill continues it into the hole; if a "
                         "dark patch shows where the object stood, rerun with --set remove.under_object=true")
             elif thin_plane:
-                ctx.log.info(f"inpaint: no plane texture: {plane_info['reason']}")
+                ctx.log.info(f"inpaint: the views fill their holes themselves: {plane_info['reason']}")
             else:
                 ctx.log.warning(f"inpaint: thick_reference = plane: {plane_info['reason']}; each view fills "
                                 "its thick parts on its own")

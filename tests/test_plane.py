@@ -470,3 +470,22 @@ def test_inpaint_stage_lifts_the_shadow_of_an_object_on_feet(tmp_path, monkeypat
     for cam in plain.cameras:
         assert np.array_equal(read_image(ctx.out_dir / "images" / f"{cam.name}.png"),
                               read_image(ctx_off.out_dir / "images" / f"{cam.name}.png"))
+
+
+def test_standing_hull_takes_a_hull_that_reaches_the_plane_in_part_of_its_silhouette():
+    """A sphere resting on the floor: its hull reaches the plane under about half of its silhouette.
+    ``min_standing`` says how much is enough (the inpaint stage's shadow_standing, 0.25, seeks the
+    shadow of such an object; remove.under_object keeps 0.5); a hull hovering above it never stands."""
+    from sgpor_pipeline.removal.plane import standing_hull
+
+    levels, size = 40, 60
+    cols = np.zeros((levels, size, size), bool)
+    cols[20:30, 10:50, 10:50] = True  # the body, from a quarter of the height up
+    cols[0:30, 10:50, 10:26] = True  # down to the plane under 40 % of the silhouette
+    hull, why = standing_hull(cols, top=1.0)
+    assert hull is None and "40 %" in why
+    hull, why = standing_hull(cols, top=1.0, min_standing=0.25)
+    assert hull is not None and abs(hull.standing - 0.4) < 0.01, why
+    hovering = np.zeros_like(cols)
+    hovering[20:30, 10:50, 10:50] = True
+    assert standing_hull(hovering, top=1.0, min_standing=0.25)[0] is None

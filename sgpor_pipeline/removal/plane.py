@@ -67,6 +67,9 @@ class PlaneParams:
     shading_max: float = 0.9  # the largest share of the light the object may have taken (k)
     shading_chroma: float = 0.02  # texels are grouped by chromaticity (r, g over r + g + b) in bins this wide
     shading_evidence: float = 0.01  # k must explain at least this share of the luminance scatter, else none
+    # the share of the object's silhouette where its hull must reach the plane for its shadow to be sought
+    # (a sphere on the floor: about half; the inpaint stage's shadow_standing)
+    shading_standing: float = 0.5
     # also the object's hard shadow under one light (direction and share searched; :func:`_fit_cast`)
     lift_cast: bool = False
     cast_grid: int = 64  # the direction search runs on the hull at most this many texels across
@@ -386,8 +389,8 @@ class StandingHull:
     standing: float  # fraction of the silhouette where the hull reaches down to the plane
 
 
-def standing_hull(cols: np.ndarray, top: float, max_lift: float = 0.1, min_part: float = 0.1
-                  ) -> tuple[StandingHull | None, str]:
+def standing_hull(cols: np.ndarray, top: float, max_lift: float = 0.1, min_part: float = 0.1,
+                  min_standing: float = 0.5) -> tuple[StandingHull | None, str]:
     """The hull columns' silhouette, kept to parts of at least ``min_part`` x the largest (not specks
     of hull where few views' masks meet, at the edges of the views), if the object stands on the
     plane: in at least half of the silhouette the hull reaches down to within ``max_lift`` x its
@@ -403,7 +406,7 @@ def standing_hull(cols: np.ndarray, top: float, max_lift: float = 0.1, min_part:
     highest = cols.shape[0] - np.argmax(cols[::-1], axis=0)[sil]
     height = float(np.percentile(highest, 95))
     standing = float(np.mean(lowest <= max(1.0, max_lift * height)))
-    if standing < 0.5:
+    if standing < min_standing:
         return None, (f"the object does not stand on the plane of the holes (its visual hull reaches the plane "
                       f"in {100 * standing:.0f} % of its silhouette)")
     return StandingHull(cols, sil, top, height / cols.shape[0] * top, standing), ""
@@ -528,7 +531,8 @@ def contact_shading(texture: PlaneTexture, cameras: list[Camera], masks: list[np
     # first over the whole texture, coarsely, to find the object; then over a window around it (its
     # silhouette plus the reach), so that a small object on a large texture is resolved as well
     grid = _grid_camera(texture.camera, params.shading_grid)
-    hull, why = standing_hull(hull_columns(texture.plane, grid, cameras, masks, top), top)
+    hull, why = standing_hull(hull_columns(texture.plane, grid, cameras, masks, top), top,
+                              min_standing=params.shading_standing)
     if hull is None:
         return None, why
     ys, xs = np.nonzero(hull.silhouette)
@@ -537,7 +541,8 @@ def contact_shading(texture: PlaneTexture, cameras: list[Camera], masks: list[np
     half = height / grid.K[0, 0] * (max(ys.max() - ys.min(), xs.max() - xs.min()) + 1) / 2.0
     half += params.shading_reach * hull.height
     grid = _grid_camera(_window_camera(texture.camera, centre, half, height), params.shading_grid)
-    hull, why = standing_hull(hull_columns(texture.plane, grid, cameras, masks, top), top)
+    hull, why = standing_hull(hull_columns(texture.plane, grid, cameras, masks, top), top,
+                              min_standing=params.shading_standing)
     if hull is None:
         return None, why
     reach = params.shading_reach * hull.height

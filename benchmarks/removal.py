@@ -920,10 +920,12 @@ def propagation_iou(masks_dir: Path, truth_dir: Path) -> dict[str, Any]:
 
     info = json.loads((masks_dir / "masks.json").read_text())
     given = set(info.get("given", []))
-    ious = [iou(read_mask(f), read_mask(truth_dir / f.name)) for f in sorted((masks_dir / "masks").glob("*.png"))
-            if f.stem not in given and (truth_dir / f.name).is_file()]
+    ious = [iou(read_mask(masks_dir / "masks" / f"{view}.png"), read_mask(truth_dir / f"{view}.png"))
+            for view in sorted(info.get("views") or (f.stem for f in (masks_dir / "masks").glob("*.png")))
+            if view not in given and (truth_dir / f"{view}.png").is_file()]
     return {"propagation_iou": float(np.mean(ious)) if ious else None,
-            "propagation_iou_min": float(np.min(ious)) if ious else None, "given": sorted(given)}
+            "propagation_iou_min": float(np.min(ious)) if ious else None, "given": sorted(given),
+            "views_scored": len(ious), "views": len(info.get("views") or ())}
 
 
 def iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -954,22 +956,14 @@ def protocol_propagation(scene: str, folder: Path, out: Path, quick: bool) -> di
         t0 = time.perf_counter()
         log.warning(f"[{scene}] mask propagation from {n} given mask(s)")
         res = run_pipeline(run_out, inputs, overrides=base + [f"masks.max_given={n}"], until="masks")
-        sfm_dir, masks_dir = res.path("sfm"), res.path("masks")
-        info = json.loads((masks_dir / "masks.json").read_text())
-        given = set(info["given"])
-        scores = []
-        for view in info["views"]:
-            if view in given or not (sfm_dir / "masks" / f"{view}.png").is_file():
-                continue
-            scores.append(iou(read_mask(masks_dir / "masks" / f"{view}.png"),
-                              read_mask(sfm_dir / "masks" / f"{view}.png")))
-        result["iou"][n] = float(np.mean(scores)) if scores else float("nan")
-        result["iou_min"][n] = float(np.min(scores)) if scores else float("nan")
-        result["given"][n] = sorted(given)
+        prop = propagation_iou(res.path("masks"), res.path("sfm") / "masks")
+        result["iou"][n] = prop["propagation_iou"] if prop["views_scored"] else float("nan")
+        result["iou_min"][n] = prop["propagation_iou_min"] if prop["views_scored"] else float("nan")
+        result["given"][n] = prop["given"]
         result["seconds"][n] = time.perf_counter() - t0
-        result["registered"] = len(info["views"])
-        result["evaluated_views"] = len(scores)
-        log.warning(f"[{scene}] IoU from {n} mask(s): {result['iou'][n]:.3f} over {len(scores)} views")
+        result["registered"] = prop["views"]
+        result["evaluated_views"] = prop["views_scored"]
+        log.warning(f"[{scene}] IoU from {n} mask(s): {result['iou'][n]:.3f} over {prop['views_scored']} views")
     # the full removal from 2 given masks: consistency and pictures
     n = 2
     res = run_pipeline(run_out, inputs, overrides=base + [f"masks.max_given={n}"], until="finetune")

@@ -79,7 +79,6 @@ from sgpor_pipeline.errors import PipelineError
 from sgpor_pipeline.hashing import hash_obj
 from sgpor_pipeline.imageio import read_image, read_labels, read_mask, read_rgb8, write_labels, write_mask01, write_png
 from sgpor_pipeline.removal import diffusion as sd
-from sgpor_pipeline.removal import multiview
 from sgpor_pipeline.removal.multiview import (
     CONSENSUS,
     FILLED_INPAINTED,
@@ -301,13 +300,6 @@ def carried_parts(hole: np.ndarray, depth: np.ndarray, p: InpaintParams) -> np.n
     return thin_parts(hole, p) & planar_parts(hole, depth, p.carry_max_misfit)
 
 
-def thick_planar_parts(hole: np.ndarray, depth: np.ndarray, p: InpaintParams, rim: int | None = None) -> np.ndarray:
-    """The parts of a view's hole deeper than ``rim`` px (default ``carry_max_rim``) from their rim
-    whose rim lies on a plane (``carry_max_misfit``): with ``consensus`` they take one reference's fill
-    (``thick_reference``). Empty when every part is carried (``carry_max_rim`` 0)."""
-    return multiview.thick_planar_parts(hole, depth, p.carry_rim() if rim is None else rim, p.carry_max_misfit)
-
-
 def resolve_backend(p: InpaintParams) -> tuple[str, str]:
     """(the backend that runs, why). ``auto`` decides here; an explicitly named ``diffusion`` never
     falls back (its missing weights or package are errors at run time)."""
@@ -409,15 +401,16 @@ class InpaintStage(Stage):
         thick_ref = -1
         thin_plane = False  # the plane texture of thin planar parts (plane_thin_rim): used only with a shadow
         if consensus and p.thick_reference != "none":
-            thick = [thick_planar_parts(h, data.views[i].depth(), p) if h.any() else np.zeros(h.shape, bool)
-                     for i, h in enumerate(holes)]
+            # the parts on a planar rim, once per view: the thick ones (and, without any, the thin ones)
+            planar = [planar_parts(h, data.views[i].depth(), p.carry_max_misfit) if h.any()
+                      else np.zeros(h.shape, bool) for i, h in enumerate(holes)]
+            thick = [q & ~thin_parts(h, p) for q, h in zip(planar, holes)]
             if sum(bool(t.any()) for t in thick) > 1:  # (one view alone has nothing to agree with)
                 thick_ref = (PLANE_SOURCE if p.thick_reference == PLANE_NAME else
                              choose_reference(thick, [v.camera for v in data.views], p.thick_reference, names))
             elif (p.thick_reference == PLANE_NAME and p.lift_shadow != "none" and p.plane_thin_rim > 0
                   and p.carry_rim() > p.plane_thin_rim):  # (carry_max_rim 0: every part carried, as asked)
-                thin = [thick_planar_parts(h, data.views[i].depth(), p, p.plane_thin_rim) if h.any()
-                        else np.zeros(h.shape, bool) for i, h in enumerate(holes)]
+                thin = [q & ~pinned_parts(h, p.plane_thin_rim) for q, h in zip(planar, holes)]
                 if sum(bool(t.any()) for t in thin) > 1:  # the plane texture, if it finds a shadow to lift
                     thick, thick_ref, thin_plane = thin, PLANE_SOURCE, True
 
@@ -579,9 +572,6 @@ class InpaintStage(Stage):
                             info["shadow"]["under_texels"] = int((below & tex.seen).sum())
                             tex.hole |= below
                             tex.seen &= ~below
-                dark = rim_dark_share(tex.image, tex.hole, tex.seen)
-                info["rim_dark_share"] = None if np.isnan(dark) else dark  # (strict JSON)
-                img = tex.image
                 if tex.hole.any() and uses_sbm and not free_blocks(~tex.seen, sbm.block_size).any():
                     # (a sliver of plane around thin holes: nothing for its fill to copy; the views fill them)
                     info = {"built": False, "reason": f"no {sbm.block_size}x{sbm.block_size} block of the plane "
@@ -590,6 +580,9 @@ class InpaintStage(Stage):
                         (folder / f).unlink(missing_ok=True)
                     (folder / "plane.json").write_text(json.dumps(info, indent=1))
                     return
+                dark = rim_dark_share(tex.image, tex.hole, tex.seen)
+                info["rim_dark_share"] = None if np.isnan(dark) else dark  # (strict JSON)
+                img = tex.image
                 if tex.hole.any():
                     tb = build_source_bank([PLANE_NAME], [tex.image], [~tex.seen], [tex.hole], sbm)
                     img = fill_view(tex.image, tex.hole, "sbm" if uses_sbm else backend, tb if uses_sbm else None,

@@ -548,15 +548,6 @@ def planar_parts(hole: np.ndarray, depth: np.ndarray, max_misfit: float, ring: i
     return planar[labels] & hole
 
 
-def thick_planar_parts(hole: np.ndarray, depth: np.ndarray, max_rim_distance: float, max_misfit: float = 0.1
-                       ) -> np.ndarray:
-    """The parts of ``hole`` deeper than ``max_rim_distance`` px from their rim (not
-    :func:`pinned_parts`) whose rim lies on a plane (:func:`planar_parts`): where an object stood on a
-    table, the plane makes the completed depth exact however deep the hole. Empty when
-    ``max_rim_distance`` <= 0 (every part is pinned)."""
-    return planar_parts(hole, depth, max_misfit) & ~pinned_parts(hole, max_rim_distance)
-
-
 def fill_view(render: np.ndarray, hole: np.ndarray, backend: str, bank, params,
               prior: tuple[np.ndarray, np.ndarray] | None = None):
     """Complete one view's hole: first the ``prior`` pixels (colours, mask) carried from a reference

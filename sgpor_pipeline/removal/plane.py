@@ -711,14 +711,15 @@ def under_object(cameras: list[Camera], masks: list[np.ndarray], holes: list[np.
     ``max_lift`` x its height of it. A mask pixel outside the holes whose completed depth lifts it onto
     the plane (within ``depth_tol`` x its depth) inside that silhouette lay under the object: in its
     contact shadow, seen, if at all, at a grazing angle. Returns (UnderObject, "") or (None, why not)."""
-    from .multiview import thick_planar_parts
+    from .multiview import pinned_parts, planar_parts
 
     # the thick parts on a planar rim, as the inpaint stage's plane texture takes them
-    parts = [thick_planar_parts(h, d, thin) if h.any() else None for h, d in zip(holes, depths)]
+    planar = [planar_parts(h, d, 0.1) if h.any() else None for h, d in zip(holes, depths)]
+    parts = [None if q is None else q & ~pinned_parts(h, thin) for q, h in zip(planar, holes)]
     if min_thin > 0 and sum(int(q.sum()) for q in parts if q is not None) < 3:
         # no thick part (an object on feet: the views saw the floor under it, its holes are thin): the
         # parts deeper than min_thin, as the inpaint stage's plane_thin_rim takes them
-        parts = [thick_planar_parts(h, d, min_thin) if h.any() else None for h, d in zip(holes, depths)]
+        parts = [None if q is None else q & ~pinned_parts(h, min_thin) for q, h in zip(planar, holes)]
     fitted, why = fit_hole_plane(cameras, depths, parts, sample, max_rms)
     if fitted is None:
         return None, why

@@ -177,7 +177,8 @@ class RemoveStage(Stage):
         release(raw_depths)
         release(floors)
         if p.under_object and p.hole_mode == "unseen":
-            under, why = under_object(cameras, masks, holes, depths, depth_tol=p.view_depth_tol)
+            under, why = under_object(cameras, masks, holes, depths, depth_tol=p.view_depth_tol,
+                                      rim=p.under_object_rim)
             if under is None:
                 ctx.log.info(f"remove: under_object: {why}; nothing added to the holes")
                 stats["under_object"] = {"pixels": 0, "reason": why}

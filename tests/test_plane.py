@@ -290,6 +290,14 @@ def test_under_object_finds_the_floor_under_a_standing_object_only(views):
     hovering = [cylinder_mask(c, FLOOR_Z + 0.5, FLOOR_Z + 0.9) for c in cams]
     none, why = under_object(cams, hovering, hovering, depths, thin=3)
     assert none is None and "stand" in why
+    # the holes' completed depths leaning 8 degrees: the plane is refitted to the floor seen around them
+    lean = np.array([0.0, np.sin(np.radians(8.0)), np.cos(np.radians(8.0))])
+    leant = [np.where(h, _depth_on_plane(c, (0.0, 0.0, FLOOR_Z), lean), d) for c, d, h in zip(cams, depths, holes)]
+    refit, why = under_object(cams, masks, holes, leant, thin=3, rim=25)
+    assert refit is not None, why
+    assert np.allclose(np.abs(refit.plane.normal), [0, 0, 1], atol=0.005)
+    leaning, _ = under_object(cams, masks, holes, leant, thin=3)
+    assert abs(leaning.plane.normal[2]) < np.cos(np.radians(6.0))
 
 
 def _wall_hull(height: float, top: float = 1.0, levels: int = 48, size: int = 100):

@@ -167,6 +167,9 @@ class RemoveParams:
     # margin of 0.5: 27.96 -> 26.20, no-sbm 28.49 -> 25.30); the sphere, lund + box and statue + box
     # have no thick planar hole (unchanged). Off by default.
     under_object: bool = added_param(False)
+    # under_object's plane refitted to the floor seen within this many px of the holes, as the inpaint
+    # stage's plane texture is (inpaint.plane_rim); 0: fitted to the holes' completed depths alone.
+    under_object_rim: int = added_param(0)
     # What the inpainter sees around the hole and takes its source blocks from (context/<view>.png):
     # "photos": the photo outside the object mask dilated by context_margin px (the finetune trusts the
     # photos there too), the render inside; "renders": the render everywhere. The fitted renders are a

@@ -57,9 +57,9 @@ class PlaneParams:
     max_rms: float = 0.02  # the lifted hole points' RMS distance to the plane, x the cameras' distance to it
     sample_points: int = 4000  # per view: hole pixels lifted to fit the plane
     # then the plane is refitted to the views' seen pixels within this many px of their holes that lie
-    # within ``rim_band`` x its height of it (measured floor, not the depth completed across the hole:
-    # from one mask, synthetic-raised-cast's holes were completed 2 % of that height above the floor,
-    # and the views' floor failed the texture's depth test there); 0: off
+    # within ``rim_band`` x its height of it (:func:`refit_to_rim`: the floor measured there, not the
+    # depth completed across the holes, which leaned 8 degrees on synthetic-raised-cast from one mask,
+    # where the views' floor then failed the texture's depth test); 0: off (the inpaint stage's plane_rim)
     rim: int = 0
     rim_band: float = 0.1
     footprint_quantile: float = 0.2  # texel size: this quantile of the views' pixel footprints on the plane
@@ -195,7 +195,7 @@ def lift_parts(cameras: list[Camera], depths: list[np.ndarray], parts: list[np.n
 
 
 def fit_hole_plane(cameras: list[Camera], depths: list[np.ndarray], parts: list[np.ndarray | None], sample: int,
-                   max_rms: float, holes: list[np.ndarray] | None = None, rim: int = 0, rim_band: float = 0.05
+                   max_rms: float, holes: list[np.ndarray] | None = None, rim: int = 0, rim_band: float = 0.1
                    ) -> tuple[tuple[Plane, float, np.ndarray, np.ndarray] | None, str]:
     """:func:`fit_plane` through the views' hole ``parts`` lifted with their ``depths``
     (:func:`lift_parts`), refused when its RMS distance exceeds ``max_rms`` x the cameras' (median)
@@ -221,7 +221,7 @@ def fit_hole_plane(cameras: list[Camera], depths: list[np.ndarray], parts: list[
 def refit_to_rim(plane: Plane, centers: np.ndarray, cameras: list[Camera],
                  depths: list[np.ndarray], holes: list[np.ndarray], sample: int, rim: int, band: float,
                  tol: float = 0.2, max_tilt_deg: float = 20.0, trials: int = 500, seed: int = 0) -> Plane:
-    """``plane`` (fitted to the hole points ``pts``) refitted to the views' seen pixels within ``rim`` px
+    """``plane`` (fitted to the holes' lifted points) refitted to the views' seen pixels within ``rim`` px
     of their ``holes`` whose lifted points lie within ``band`` (world units) of it: the surface the
     views measured around the holes, where the holes' depths were only completed from it (and may lean:
     8 degrees on synthetic-raised-cast from one mask). A RANSAC of ``trials`` planes through 3 of those
@@ -400,8 +400,7 @@ def plane_depth(vcam: Camera, vdepth: np.ndarray, normal: np.ndarray, cam: Camer
     oy, ox = origin_of(cam)
     h, w = shape if shape is not None else (cam.height, cam.width)
     ys, xs = np.mgrid[oy:oy + h, ox:ox + w]
-    rays = np.stack([(xs.ravel() + 0.5 - cam.K[0, 2]) / cam.K[0, 0], (ys.ravel() + 0.5 - cam.K[1, 2]) / cam.K[1, 1],
-                     np.ones(xs.size)], 1) @ cam.cam_from_world[:3, :3]  # world directions, unit camera z
+    rays = cam.unproject(ys.ravel(), xs.ravel(), np.ones(xs.size)) - cam.center  # unit camera z
     with np.errstate(divide="ignore", invalid="ignore"):
         t = (n @ (on_plane - cam.center)) / (rays @ n)
     return np.where(np.isfinite(t) & (t > 0), t, np.inf).reshape(h, w)
@@ -788,7 +787,8 @@ def shading_into_view(factor: np.ndarray, vcam: Camera, vdepth: np.ndarray, cam:
 
 def under_object(cameras: list[Camera], masks: list[np.ndarray], holes: list[np.ndarray], depths: list[np.ndarray],
                  grow: float = 0.02, depth_tol: float = 0.02, thin: int = 15, min_thin: int = 3, max_rms: float = 0.02,
-                 max_lift: float = 0.1, sample: int = 4000, resolution: int = 256) -> tuple[UnderObject | None, str]:
+                 max_lift: float = 0.1, sample: int = 4000, resolution: int = 256, rim: int = 0
+                 ) -> tuple[UnderObject | None, str]:
     """The mask pixels of each view whose background lies on the plane under the object.
 
     The plane is fitted to the holes' parts deeper than ``thin`` px on a planar rim
@@ -796,6 +796,8 @@ def under_object(cameras: list[Camera], masks: list[np.ndarray], holes: list[np.
     deeper than ``min_thin`` px (0: none): an object on feet leaves thin holes, the views having seen
     the floor under it (synthetic-raised-cast, remove.under_object, mask PSNR: with every mask given
     22.95 -> 22.85, from one given mask 19.63 -> 20.19; without the fallback the option did nothing).
+    The plane is then refitted to the floor seen within ``rim`` px of the holes (:func:`refit_to_rim`;
+    0: off), as the inpaint stage's plane texture is.
     The object is its visual hull (the masks' cones; whether or not the fit modelled it), seen straight
     down the plane's normal by a virtual camera over the holes (:func:`hull_columns`, ``resolution``
     texels across): its
@@ -813,7 +815,7 @@ def under_object(cameras: list[Camera], masks: list[np.ndarray], holes: list[np.
         # no thick part (an object on feet: the views saw the floor under it, its holes are thin): the
         # parts deeper than min_thin, as the inpaint stage's plane_thin_rim takes them
         parts = [None if q is None else q & ~pinned_parts(h, min_thin) for q, h in zip(planar, holes)]
-    fitted, why = fit_hole_plane(cameras, depths, parts, sample, max_rms)
+    fitted, why = fit_hole_plane(cameras, depths, parts, sample, max_rms, holes, rim)
     if fitted is None:
         return None, why
     plane, distance = fitted[:2]

@@ -644,8 +644,11 @@ class InpaintStage(Stage):
                 for f in ("texture.png", "filled.png", "plane.json", "texture_as_seen.png", "shading.png", "under.png"):
                     if (pfolder / f).is_file():  # (the last three: with a shadow lifted)
                         _link_or_copy(pfolder / f, ctx.out_dir / PLANE_NAME / f)
+                refit = plane_info.get("refit") or {}
+                turned = (f"; refitted to the floor seen around the holes, {refit['tilt_deg']:.1f} degrees from "
+                          "the holes' completed depths" if refit.get("tilt_deg", 0.0) >= 1.0 else "")
                 ctx.log.info(f"inpaint: the plane under the object as one texture, {plane_info['width']}x"
-                             f"{plane_info['height']} texels ({plane_info['hole_texels']} to fill)")
+                             f"{plane_info['height']} texels ({plane_info['hole_texels']} to fill){turned}")
                 dark = plane_info.get("rim_dark_share") or 0.0
                 if under is None and dark > DARK_RIM_HINT:
                     ctx.log.warning(

@@ -163,6 +163,8 @@ def test_plane_texture_refits_a_leaning_hole_plane_to_the_floor_seen_around_it(v
     assert np.degrees(np.arccos(abs(leaning.plane.normal[2]))) > 6.0
     assert np.degrees(np.arccos(abs(refit.plane.normal[2]))) < 0.5
     assert abs(refit.plane.offset + FLOOR_Z) < 2e-3
+    assert 7.0 < refit.info["refit"]["tilt_deg"] < 9.0 and refit.info["refit"]["rim_points"] > 100
+    assert leaning.info["refit"] == {}
     # the same texels (the texture spans the hole points, which the refit keeps)
     assert len(refit.plane.inliers) > 0.9 * len(leaning.plane.inliers)
     # every texel seen but the hole's (13 % seen before)

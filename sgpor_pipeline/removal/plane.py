@@ -95,6 +95,9 @@ class Plane:
     rms: float  # RMS distance of the inliers to the plane
     inliers: np.ndarray  # [M,3] the lifted points kept
     kept: np.ndarray  # [N] bool: which of the points given were kept
+    # :func:`refit_to_rim`: the rim points it took, and how far it turned (degrees) and moved (world
+    # units, at the hole points' centre) the plane fitted to the holes
+    refit: dict[str, Any] = field(default_factory=dict)
 
     def distance(self, points: np.ndarray) -> np.ndarray:
         return np.asarray(points, np.float64) @ self.normal + self.offset
@@ -257,8 +260,11 @@ def refit_to_rim(plane: Plane, centers: np.ndarray, cameras: list[Camera],
     # (the hole points kept as the first fit trimmed them: their extent sizes the texture and the grown
     # silhouette under the object; retrimmed against the new plane they spread, 180 -> 507 texels across)
     inl = plane.inliers
+    moved = {"rim_points": int(on.sum()),
+             "tilt_deg": float(np.degrees(np.arccos(np.clip(abs(refit.normal @ plane.normal), 0.0, 1.0)))),
+             "shift": float(abs(refit.distance(inl.mean(0)[None])[0]))}
     return Plane(refit.normal, refit.offset, float(np.sqrt(np.mean((inl @ refit.normal + refit.offset) ** 2))),
-                 inl, plane.kept)
+                 inl, plane.kept, moved)
 
 
 def grown(mask: np.ndarray, grow: float) -> np.ndarray:
@@ -386,7 +392,7 @@ def plane_texture(cameras: list[Camera], images: list[np.ndarray], knowns: list[
     info = {"width": w, "height": h, "texel": height / vcam.K[0, 0], "height_above_plane": height,
             "rms_relative": plane.rms / height, "points": int(len(pts)), "inliers": int(len(plane.inliers)),
             "seen_texels": int(seen.sum()), "hole_texels": int(hole.sum()), "under_object_texels": int(blocked.sum()),
-            "views_used": int(len(np.unique(best_view[best_view >= 0])))}
+            "views_used": int(len(np.unique(best_view[best_view >= 0]))), "refit": plane.refit}
     return PlaneTexture(vcam, image.astype(np.float32), vdepth, seen, hole, best_view.reshape(h, w), plane, info), ""
 
 
@@ -840,6 +846,6 @@ def under_object(cameras: list[Camera], masks: list[np.ndarray], holes: list[np.
             hit[hit] = sil[px[hit, 1], px[hit, 0]]
             out[ys[hit], xs[hit]] = True
         pixels.append(out)
-    info = {"rms_relative": plane.rms / distance, "object_height": height, "standing": standing,
+    info = {"rms_relative": plane.rms / distance, "refit": plane.refit, "object_height": height, "standing": standing,
             "silhouette_texels": int(sil.sum()), "pixels": int(sum(int(u.sum()) for u in pixels))}
     return UnderObject(pixels, plane, sil, vcam, info), ""

@@ -357,8 +357,9 @@ class InpaintStage(Stage):
     # 5: the plane texture of thin planar parts where no part is thick and it finds a shadow (plane_thin_rim);
     # 6: the shadow of an object whose hull reaches the plane in a quarter of its silhouette (shadow_standing);
     # 7: the plane refitted to the floor seen around the holes, the holes' pixels onto it (plane_rim); the
-    # occlusion of seen texels under the hull's silhouette from its edge (PlaneParams.under_edge_ao)
-    VERSION = 7
+    # occlusion of seen texels under the hull's silhouette from its edge (PlaneParams.under_edge_ao); 8: that
+    # refit trimmed (a wall's foot beside the floor)
+    VERSION = 8
     Params = InpaintParams
     inputs = ("remove",)
     libraries = ("torch",)

@@ -186,6 +186,26 @@ def test_plane_texture_refits_a_leaning_hole_plane_to_the_floor_seen_around_it(v
         assert unsnapped[hole].mean() < 0.9
 
 
+def test_the_refit_keeps_the_floor_beside_a_wall(views):
+    """A wall rises 5 cm from the hole's edge: the rim around the hole holds wall pixels too. The refit
+    takes the floor (the plane with most rim points, within 20 degrees of the holes' plane)."""
+    cams = [v[0] for v in views]
+    holes, depths = [], []
+    for cam, _, depth in views:
+        wall = _depth_on_plane(cam, (0.0, 0.35, 0.0), (0.0, 1.0, 0.0))
+        d = np.where((wall > 0) & (wall < depth), wall, depth).astype(np.float32)
+        hole = disc_in_view(cam, d, (0.0, 0.0), 0.3) & (d == depth)
+        lean = np.array([0.0, np.sin(np.radians(5.0)), np.cos(np.radians(5.0))])
+        d[hole] = _depth_on_plane(cam, (0.0, 0.0, FLOOR_Z), lean)[hole]
+        holes.append(hole)
+        depths.append(d)
+    tex, why = plane_texture(cams, [v[1] for v in views], [~h for h in holes], depths, holes, PlaneParams(rim=25),
+                             depth_tol=0.01)
+    assert tex is not None, why
+    tilt = np.degrees(np.arccos(abs(tex.plane.normal[2])))
+    assert tilt < 0.5 and abs(tex.plane.offset + FLOOR_Z) < 2e-3
+
+
 def test_plane_texture_refuses_points_off_one_plane(views):
     """Holes on two different planes (a floor and a wall-like step 40 % of the way to the cameras)."""
     cams = [v[0] for v in views]

@@ -254,7 +254,7 @@ def refit_to_rim(plane: Plane, centers: np.ndarray, cameras: list[Camera],
         count[i:i + 64] = (np.abs(around @ normals[i:i + 64].T + offsets[i:i + 64]) <= tol * band).sum(0)
     best = int(np.argmax(count))
     on = np.abs(around @ normals[best] + offsets[best]) <= tol * band
-    refit = fit_plane(around[on], centers, rounds=1)
+    refit = fit_plane(around[on], centers)  # (least squares, trimmed: a wall's foot within tol)
     if refit is None:
         return plane
     # (the hole points kept as the first fit trimmed them: their extent sizes the texture and the grown

@@ -7,8 +7,9 @@ reference view, the fill inherits that view's foreshortening and its occlusions.
 filled once, in its own frame:
 
 1. :func:`fit_plane`: a plane through the views' thick planar hole pixels lifted with their
-   completed depth (the remove stage completes the depth of a planar rim exactly), with the
-   outliers trimmed.
+   completed depth, with the outliers trimmed; then (``PlaneParams.rim``, :func:`refit_to_rim`)
+   refitted to the floor the views saw around their holes: the completed depth is exact for a planar
+   rim, but a rim is rarely only the plane (the object's feet, its shadowed floor), and it leaned.
 2. A virtual pinhole camera looks straight down at the plane (:func:`plane_camera`): the plane is
    fronto-parallel to it, so its image is the plane's texture rectified (a similarity of the
    plane: no foreshortening), and every texel's z-depth is the camera's height.
@@ -21,8 +22,8 @@ filled once, in its own frame:
    too (its contact shadow).
 4. The caller fills the texture's hole (SBM over the texture itself: source blocks at the plane's
    true scale) and :func:`sample_into_view` carries the filled texture into each view's hole
-   pixels that lie on the plane (depths within ``depth_tol``), low-pass filtered to the view's
-   footprint so far views do not alias.
+   pixels that lie on the plane (depths within ``depth_tol``, or, snapped, where their rays meet it),
+   low-pass filtered to the view's footprint so far views do not alias.
 5. :func:`contact_shading` (the inpaint stage's ``lift_shadow``): how the object darkened the plane
    around it, from its visual hull over the plane (:func:`hull_columns`): its ambient occlusion
    (:func:`ambient_occlusion`) and, optionally, its hard shadow under one light (:func:`hull_shadow`,

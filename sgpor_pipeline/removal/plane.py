@@ -39,6 +39,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+from scipy.ndimage import distance_transform_edt
 
 from sgpor_pipeline.imageio import luminance
 from sgpor_pipeline.scene import Camera
@@ -656,7 +657,6 @@ def contact_shading(texture: PlaneTexture, cameras: list[Camera], masks: list[np
     if params.under_edge_ao and under.any() and (~under).any():
         # seen under the hull's silhouette, which is larger than the object: beside it, in its deepest
         # occlusion; the occlusion at the silhouette's nearest edge texel (inside, the hull covers all)
-        from scipy.ndimage import distance_transform_edt
         iy, ix = distance_transform_edt(under, return_distances=False, return_indices=True)
         ao = ao[iy, ix]
     else:

@@ -370,7 +370,8 @@ def test_masked_ssd_of_8bit_views_is_that_of_their_padded_float_views():
     for v, ok in zip(views8, valid):
         img = to_float32(v)
         img[~ok] = SENTINEL
-        padded.append(cv2.copyMakeBorder(img, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=(SENTINEL,) * 3))
+        # (one more row and column at the bottom and right, as SourceBank.padded: an odd window's far side)
+        padded.append(cv2.copyMakeBorder(img, pad, pad + 1, pad, pad + 1, cv2.BORDER_CONSTANT, value=(SENTINEL,) * 3))
     cur = texture(50, 50, seed=9)
     mask = (rng.random((50, 50)) * (rng.random((50, 50)) > 0.3)).astype(np.float32)
     tpos = rng.integers(0, 50 - win, (5, 2))
@@ -410,6 +411,37 @@ def test_reranking_by_the_kernel_matches_opencv(scene, monkeypatch):
     assert same.mean() >= 0.95
     np.testing.assert_allclose(cost_k[same], cost_c[same], rtol=1e-4, atol=1e-6)
     assert np.array_equal(np.isnan(cost_k), np.isnan(cost_c))  # targets without known context alike
+
+
+@pytest.mark.parametrize("margin", [4, 6])
+def test_a_context_window_wider_than_its_block_by_an_odd_count_matches_everywhere(scene, margin, monkeypatch):
+    """Margin 4 around a 15 px block makes a 24 px window (cells of 8): it reaches one pixel further right
+    and down than left and up. Sources on the views' far borders are matched all the same, with 8-bit
+    views, float views and OpenCV alike (it was refused: "a candidate region leaves its view")."""
+    from sgpor_pipeline.imageio import to_float32, to_uint8
+
+    names, renders, holes = scene_inputs(scene)
+    p = SBMParams(margin=margin, source_stride=3)
+    assert (p.layout().window - p.block_size) % 2 == (margin == 4)
+    images8 = [to_uint8(r) for r in renders]
+    targets = target_positions(holes[0], 15, 5, 0.1)
+    results = []
+    for images, kernel in ((images8, True), ([to_float32(im) for im in images8], True), (images8, False)):
+        if kernel and not _raster_cpu.available():
+            continue
+        bank = build_source_bank(names, images, list(scene.masks), holes, p)
+        h, w = renders[0].shape[:2]
+        assert (bank.pos[:, 1] == h - 15).any() and (bank.pos[:, 2] == w - 15).any()  # far-border sources
+        with monkeypatch.context() as mp:
+            if not kernel:
+                mp.setattr(_raster_cpu, "available", lambda: False)
+            pos, cost, _, _ = match_blocks(to_float32(images8[0]), ~holes[0], targets, bank, p)
+        assert (pos[:, 0, 0] >= 0).all() and np.isfinite(cost[:, 0]).mean() > 0.5  # (NaN: no known context)
+        results.append((pos, cost))
+    for pos, cost in results[1:]:
+        same = (pos == results[0][0]).all(axis=(1, 2))
+        assert same.mean() >= 0.95
+        np.testing.assert_allclose(cost[same], results[0][1][same], rtol=1e-4, atol=1e-6)
 
 
 def test_hole_content_of_the_render_is_ignored(scene):

@@ -278,7 +278,7 @@ def masked_ssd_u8(cur: np.ndarray, mask: np.ndarray, tpos: np.ndarray, win: int,
     lut = np.ascontiguousarray(lut, np.float32)
     if lut.shape != (256,):
         raise ValueError(f"the table has 256 entries, got {lut.shape}")
-    padded = [(a.shape[0] + 2 * pad, a.shape[1] + 2 * pad) for a in arrays]
+    padded = [(a.shape[0] + 2 * pad + 1, a.shape[1] + 2 * pad + 1) for a in arrays]  # (as SourceBank.padded)
     cur, mask, tpos, cand = _ssd_inputs(cur, mask, tpos, win, arrays, cand, r, padded)
     T, KC = cand.shape[:2]
     side = 2 * r + 1

@@ -215,12 +215,14 @@ class SourceBank:
         return self._free_padded[view, pad]
 
     def padded(self, view: int, pad: int) -> np.ndarray:
-        """The view's image with invalid pixels and a border of ``pad`` set to SENTINEL (cached)."""
+        """The view's image with invalid pixels and a border of ``pad`` set to SENTINEL (cached); one more
+        row and column at the bottom and right, as a context window wider than its block by an odd count
+        reaches a pixel further on that side (CellLayout.pad rounds down)."""
         key = view * 100003 + pad
         if key not in self._padded:
             img = np.array(to_float32(self.images[view]), np.float32)  # (a copy)
             img[~self.valid[view]] = SENTINEL
-            self._padded[key] = cv2.copyMakeBorder(img, pad, pad, pad, pad, cv2.BORDER_CONSTANT,
+            self._padded[key] = cv2.copyMakeBorder(img, pad, pad + 1, pad, pad + 1, cv2.BORDER_CONSTANT,
                                                    value=(SENTINEL, SENTINEL, SENTINEL))
         return self._padded[key]
 

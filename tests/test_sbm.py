@@ -444,6 +444,31 @@ def test_a_context_window_wider_than_its_block_by_an_odd_count_matches_everywher
         np.testing.assert_allclose(cost[same], results[0][1][same], rtol=1e-4, atol=1e-6)
 
 
+def test_reranking_on_the_blocks_own_pixels_costs_their_mean_squared_difference(scene):
+    """rerank_margin 0: a candidate's cost is the mean squared colour difference over the target block's
+    known pixels alone (the default window adds the context around it)."""
+    names, renders, holes = scene_inputs(scene)
+    p = SBMParams(rerank_margin=0)
+    bank = build_source_bank(names, renders, list(scene.masks), holes, p)
+    targets = target_positions(holes[0], 15, 5, 0.1)
+    known = ~holes[0]
+    pos, cost, _, _ = match_blocks(renders[0], known, targets, bank, p)
+    wide = match_blocks(renders[0], known, targets, bank, SBMParams())[1]
+    checked = 0
+    for t, (ty, tx) in enumerate(targets):
+        k = known[ty:ty + 15, tx:tx + 15]
+        if not k.any():
+            assert np.isnan(cost[t, 0])  # (no known pixel in the block: the feature ranking stands)
+            continue
+        v, sy, sx = pos[t, 0]
+        d = (renders[0][ty:ty + 15, tx:tx + 15] - bank.images[v][sy:sy + 15, sx:sx + 15])[k]
+        np.testing.assert_allclose(cost[t, 0], float((d ** 2).mean()), rtol=1e-4, atol=1e-7)
+        checked += 1
+    assert checked > 20 and not np.allclose(cost, wide, equal_nan=True)
+    with pytest.raises(PipelineError, match="rerank_margin"):
+        SBMParams(rerank_margin=-2).validate()
+
+
 def test_hole_content_of_the_render_is_ignored(scene):
     names, renders, holes = scene_inputs(scene)
     with_object = [scene.images_gt[i].copy() for i in range(len(names))]

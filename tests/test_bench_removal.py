@@ -327,3 +327,39 @@ def test_method_subset_runs_ours_first_and_leaves_the_target_unjudged(bench):
     line = next(c for c in checks if "beats every baseline" in c)
     assert line.startswith("[----]") and "not judged: no-sbm, no-rpr" in line
     assert not any("helps" in c for c in checks)
+
+
+def test_plane_fill_psnr_scores_the_plane_textures_fill_against_the_rectified_truth(bench, tmp_path):
+    """The inpaint stage's plane texture (the floor under the object, filled once) against the object-free
+    truth warped onto it: its own fill scores well above a black fill, and it is absent (None) without
+    the texture's hole file or without a texture; the summary and an [INFO] line carry it."""
+    from sgpor_pipeline.dag import StageContext
+    from sgpor_pipeline.imageio import read_image, read_mask, write_png
+    from sgpor_pipeline.removal.multiview import write_remove_fixture
+    from sgpor_pipeline.stages.inpaint import InpaintParams, InpaintStage
+    from sgpor_pipeline.synthetic import SceneParams, generate_scene
+
+    scene = generate_scene(SceneParams(seed=0, rig="forward", n_views=4, width=160, height=120))
+    remove = write_remove_fixture(scene, tmp_path / "remove", holes="mask")
+    (tmp_path / "truth").mkdir()
+    for cam, img in zip(scene.cameras, scene.images_gt):
+        write_png(tmp_path / "truth" / f"{cam.name}.png", img)
+    ctx = StageContext.standalone(tmp_path / "run", "inpaint", InpaintParams(thick_reference="plane"),
+                                  {"remove": remove})
+    InpaintStage().run(ctx)
+    plane = ctx.out_dir / "plane"
+    own = bench.plane_fill_psnr(ctx.out_dir, remove, tmp_path / "truth")
+    assert own is not None and own > 18.0, own
+    hole = read_mask(plane / "hole.png")
+    filled = read_image(plane / "filled.png")
+    write_png(plane / "filled.png", np.where(hole[..., None], 0.0, filled))
+    black = bench.plane_fill_psnr(ctx.out_dir, remove, tmp_path / "truth")
+    assert black < own - 5.0, (black, own)
+    (plane / "hole.png").unlink()
+    assert bench.plane_fill_psnr(ctx.out_dir, remove, tmp_path / "truth") is None
+    assert bench.plane_fill_psnr(tmp_path / "nowhere", remove, tmp_path / "truth") is None
+    row = dict(_row("ours", 25.0), plane_fill_psnr=own)
+    summary, checks = bench.summarise({"synthetic": {"scene": "synthetic", "rows": [row], "wall_seconds": 1.0,
+                                                     "demo_seconds": 100.0}})
+    assert summary["synthetic_plane_fill_psnr"] == own
+    assert any("plane_fill_psnr" in c and f"ours {own:.2f}" in c for c in checks)

@@ -12,7 +12,7 @@ import pytest
 from sgpor_pipeline.dag import StageContext
 from sgpor_pipeline.errors import PipelineError
 from sgpor_pipeline.gaussians import _raster_cpu
-from sgpor_pipeline.imageio import read_image
+from sgpor_pipeline.imageio import read_image, read_mask
 from sgpor_pipeline.removal.features import (
     BlockFeatures,
     CellLayout,
@@ -770,8 +770,10 @@ def test_inpaint_stage_fills_the_thick_planar_parts_once_on_the_plane(scene, tmp
     assert report["plane"]["rms_relative"] < 0.01 and report["plane"]["hole_texels"] > 0
     assert 0.0 <= report["plane"]["rim_dark_share"] < 0.1  # no footprint here: no hint in the log
     assert all(v["projected"] > 0 for v in report["views"].values())
-    for f in ("texture.png", "filled.png", "plane.json"):
+    for f in ("texture.png", "hole.png", "filled.png", "plane.json"):
         assert (tmp_path / "plane" / "inpaint" / "plane" / f).exists()
+    hole = read_mask(tmp_path / "plane" / "inpaint" / "plane" / "hole.png")
+    assert hole.sum() == report["plane"]["hole_texels"]
     assert err < 0.6 * runs["none"][1], (err, runs["none"][1])
     n = len(builds)
     assert sum(k.get("role") == "plane" for k in builds) == 1

@@ -200,7 +200,8 @@ def lift_parts(cameras: list[Camera], depths: list[np.ndarray], parts: list[np.n
 
 
 def fit_hole_plane(cameras: list[Camera], depths: list[np.ndarray], parts: list[np.ndarray | None], sample: int,
-                   max_rms: float, holes: list[np.ndarray] | None = None, rim: int = 0, rim_band: float = 0.1
+                   max_rms: float, holes: list[np.ndarray] | None = None, rim: int = 0,
+                   rim_band: float = PlaneParams.rim_band
                    ) -> tuple[tuple[Plane, float, np.ndarray, np.ndarray] | None, str]:
     """:func:`fit_plane` through the views' hole ``parts`` lifted with their ``depths``
     (:func:`lift_parts`), refused when its RMS distance exceeds ``max_rms`` x the cameras' (median)

@@ -580,8 +580,9 @@ def plane_fill_psnr(inpaint_dir: Path, remove_dir: Path, truth_dir: Path) -> flo
 
     from sgpor_pipeline.imageio import read_image, read_mask
     from sgpor_pipeline.removal.multiview import load_remove_folder, warp_from_reference
-    from sgpor_pipeline.removal.plane import plane_depth
+    from sgpor_pipeline.removal.plane import PlaneParams, snapped_depth
     from sgpor_pipeline.scene import Camera
+    from sgpor_pipeline.stages.evaluate import find_truth
 
     folder = inpaint_dir / "plane"
     if not (folder / "hole.png").is_file():
@@ -593,17 +594,17 @@ def plane_fill_psnr(inpaint_dir: Path, remove_dir: Path, truth_dir: Path) -> flo
     vcam = Camera.from_dict(info["camera"])
     vdepth = np.full(hole.shape, info["height_above_plane"], np.float32)
     normal = np.asarray(info["normal"], np.float64)
+    snap = PlaneParams.rim_band  # (as the inpaint stage snaps the views' hole depths onto the plane)
     samples = []
     for v in load_remove_folder(remove_dir).views:
-        truth = next((p for p in (truth_dir / f"{v.name}.png", truth_dir / f"{v.name}.jpg") if p.is_file()), None)
+        truth = find_truth(truth_dir, v.name)
         if v.camera is None or v.depth_path is None or truth is None:
             continue
         img = read_image(truth)
         if img.shape[:2] != (v.camera.height, v.camera.width):
             img = cv2.resize(img, (v.camera.width, v.camera.height), interpolation=cv2.INTER_AREA)
         depth = v.depth()
-        on = plane_depth(vcam, vdepth, normal, v.camera)
-        depth = np.where(np.isfinite(on) & (np.abs(depth - on) <= 0.1 * on), on, depth).astype(np.float32)
+        depth = snapped_depth(vcam, vdepth, normal, v.camera, depth, np.ones(depth.shape, bool), snap)
         col, got = warp_from_reference(img, v.camera, depth, np.ones(depth.shape, bool), vcam, vdepth, hole)
         samples.append(np.where(got[hole][:, None], col[hole], np.nan))
     if not samples:
@@ -644,6 +645,7 @@ def run_variants(scene: str, run_out: Path, inputs: Any, base: list[str], out: P
                  sheet_name: str | None = None, methods: Sequence[str] | None = None) -> dict[str, Any]:
     from sgpor_pipeline.imageio import read_image, read_mask
     from sgpor_pipeline.runner import run_pipeline
+    from sgpor_pipeline.stages.evaluate import find_truth
 
     rows: list[dict[str, Any]] = []
     truth_dir = Path(inputs.extra["groundtruth"])
@@ -698,7 +700,7 @@ def run_variants(scene: str, run_out: Path, inputs: Any, base: list[str], out: P
     for n in pick:
         img = read_image(ours_paths["sfm"] / "images" / f"{n}.png")
         mask = read_mask(ours_paths["masks"] / "masks" / f"{n}.png")
-        truth = next((p for p in (truth_dir / f"{n}.png", truth_dir / f"{n}.jpg") if p.is_file()), None)
+        truth = find_truth(truth_dir, n)
         sheet.append([img, mask_overlay(img, mask), read_image(ours_paths["remove"] / "renders" / f"{n}.png"),
                       read_image(ours_paths["refine"] / "images" / f"{n}.png"),
                       read_image(ours_paths["finetune"] / "renders" / f"{n}.png"),

@@ -415,6 +415,15 @@ def plane_depth(vcam: Camera, vdepth: np.ndarray, normal: np.ndarray, cam: Camer
     return np.where(np.isfinite(t) & (t > 0), t, np.inf).reshape(h, w)
 
 
+def snapped_depth(vcam: Camera, vdepth: np.ndarray, normal: np.ndarray, cam: Camera, depth: np.ndarray,
+                  target: np.ndarray, tol: float) -> np.ndarray:
+    """``depth`` (``cam``'s) with its ``target`` pixels within ``tol`` (relative) of the texture camera's
+    plane taken where their rays meet it (:func:`plane_depth`); float32."""
+    on = plane_depth(vcam, vdepth, normal, cam, depth.shape)
+    snap = target & np.isfinite(on) & (np.abs(depth - on) <= tol * on)
+    return np.where(snap, on, depth).astype(np.float32)
+
+
 def sample_into_view(texture: np.ndarray, vcam: Camera, vdepth: np.ndarray, normal: np.ndarray, cam: Camera,
                      depth: np.ndarray, target: np.ndarray, depth_tol: float = 0.02, snap_tol: float = 0.0
                      ) -> tuple[np.ndarray, np.ndarray]:
@@ -425,9 +434,7 @@ def sample_into_view(texture: np.ndarray, vcam: Camera, vdepth: np.ndarray, norm
     around it, and leans where the plane was refitted to the floor seen there (``PlaneParams.rim``).
     Returns (colours HxWx3 float32, got bool HxW)."""
     if snap_tol > 0:
-        on = plane_depth(vcam, vdepth, normal, cam, depth.shape)
-        snap = target & np.isfinite(on) & (np.abs(depth - on) <= snap_tol * on)
-        depth = np.where(snap, on, depth).astype(np.float32)
+        depth = snapped_depth(vcam, vdepth, normal, cam, depth, target, snap_tol)
     ys, xs = np.nonzero(target & np.isfinite(depth) & (depth > 0))
     if len(ys) == 0:
         return np.zeros((*target.shape, 3), np.float32), np.zeros(target.shape, bool)

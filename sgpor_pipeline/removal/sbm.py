@@ -605,7 +605,7 @@ def match_blocks(image: np.ndarray, known: np.ndarray, targets: np.ndarray, bank
     idx, sc = retrieve(bank, desc, max(k, params.rerank), params.metric, params.chunk)
     t2 = time.perf_counter()
     if params.rerank > 0:
-        P = max(pad, rpad) + s
+        P = rpad + s
         img_p = cv2.copyMakeBorder(np.ascontiguousarray(image, np.float32), P, P, P, P, cv2.BORDER_CONSTANT,
                                    value=(0, 0, 0))
         known_p = cv2.copyMakeBorder(known.astype(np.float32), P, P, P, P, cv2.BORDER_CONSTANT, value=0)

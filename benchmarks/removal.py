@@ -56,8 +56,9 @@ the plane under the object (``inpaint/plane``), that texture's hole against the 
 onto it, apart from the re-fit. It decides the box scenes: session 36, fit seed 0, ours / no-sbm
 (SBM / FSR fill the texture), plane fill (mask PSNR): synthetic-box 23.78 / 23.22 (27.74 / 27.42),
 synthetic-box-1mask 22.99 / 20.95 (26.06 / 25.29), synthetic-box-contact 23.70 / 25.94 (27.19 / 28.19),
-synthetic-box-cast 21.97 / 24.56 (24.23 / 25.50), synthetic-raised-cast 22.32 / 25.43 (23.82 / 24.21),
-synthetic-cast 18.95 / 19.00 (22.22 / 22.64). Where FSR's smooth fill wins there, SBM pasted the floor
+synthetic-box-cast 21.97 / 24.56 (24.23 / 25.50), synthetic-raised-cast 22.32 / 25.43 (23.82 / 24.21;
+session 37, the floor under it refilled through the fit's floaters: 24.99 / 25.70), synthetic-cast
+18.95 / 19.00 (22.22 / 22.64). Where FSR's smooth fill wins there, SBM pasted the floor
 beyond the rug's edge, or the box's orange rim, into the rug: no margin or block size of SBM's
 (4-12 px, 11-15 px blocks, stride 3, coarse to fine) won on all six.
 

@@ -117,12 +117,15 @@ def test_iou_and_sheet(bench, tmp_path):
 
 
 def test_one_mask_scene_reports_the_propagated_masks_iou(bench, tmp_path):
-    """synthetic-box-1mask runs with one given mask; the IoU of the masks stage's masks against the true
-    ones is taken on the views not given, and printed and stored beside the removal."""
+    """synthetic-box-1mask (and synthetic-raised-cast-1mask) runs with one given mask; the IoU of the
+    masks stage's masks against the true ones is taken on the views not given, and printed and stored
+    beside the removal."""
     from sgpor_pipeline.imageio import write_mask01
 
-    assert bench.SYNTHETIC_SCENES["synthetic-box-1mask"] == bench.SYNTHETIC_SCENES["synthetic-box"]
-    assert "masks.max_given=1" in bench.ONE_MASK["synthetic-box-1mask"]
+    for one, every in (("synthetic-box-1mask", "synthetic-box"),
+                       ("synthetic-raised-cast-1mask", "synthetic-raised-cast")):
+        assert bench.SYNTHETIC_SCENES[one] == bench.SYNTHETIC_SCENES[every]
+        assert "masks.max_given=1" in bench.ONE_MASK[one] and one in bench.PREFIX
     truth, masks = tmp_path / "truth", tmp_path / "masks"
     (masks / "masks").mkdir(parents=True)
     truth.mkdir()

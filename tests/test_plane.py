@@ -580,9 +580,10 @@ def test_inpaint_stage_lifts_the_shadow_of_an_object_on_feet(tmp_path, monkeypat
 
 def test_inpaint_stage_refills_the_floor_under_a_raised_object_through_floaters(tmp_path):
     """The fit models the shadowed floor seen through the gap under a raised object with dark Gaussians
-    floating above it. Emulated: the mask pixels other views saw render dark and 5 % nearer than the
-    floor. With the hard shadow found, those whose ray meets the floor under the object take the plane
-    texture all the same: they come out close to the truth."""
+    floating above it. Emulated: the mask pixels other views saw render dark, and the masks' depths
+    (the holes' completed from around them) are 5 % nearer than the floor. With the hard shadow found,
+    every mask pixel whose ray meets the floor under the object takes the plane texture all the same:
+    they come out close to the truth."""
     import json
 
     from sgpor_pipeline.dag import StageContext
@@ -601,24 +602,36 @@ def test_inpaint_stage_refills_the_floor_under_a_raised_object_through_floaters(
         render[seen] = 0.08
         write_png(remove / "renders" / f"{cam.name}.png", render)
         depth = np.load(remove / "depth" / f"{cam.name}.npy")
-        depth[seen] *= 0.95
+        depth[sc.masks[i]] *= 0.95  # (the holes' depths are completed from around them)
         np.save(remove / "depth" / f"{cam.name}.npy", depth)
         floaters.append(seen)
     ctx = StageContext.standalone(tmp_path / "inpaint", "inpaint", InpaintParams(), {"remove": remove})
     InpaintStage().run(ctx)
     assert (ctx.out_dir / "plane" / "under.png").is_file(), json.loads((ctx.out_dir / "inpaint.json").read_text())
-    before, after = [], []
     lo, hi = sc.object_bounds
+
+    def under_box(i: int, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The pixels of ``mask`` that see the floor under the box."""
+        ys, xs = np.nonzero(mask)
+        world = sc.cameras[i].unproject(ys, xs, sc.depth_gt[i][ys, xs])
+        keep = np.all((world[:, :2] > lo[:2]) & (world[:, :2] < hi[:2]), axis=1)
+        return ys[keep], xs[keep]
+
+    before, after, holes_err = [], [], []
     for i, cam in enumerate(sc.cameras):
         img = read_image(ctx.out_dir / "images" / f"{cam.name}.png")
-        ys, xs = np.nonzero(floaters[i])
-        world = cam.unproject(ys, xs, sc.depth_gt[i][ys, xs])
-        under = np.all((world[:, :2] > lo[:2]) & (world[:, :2] < hi[:2]), axis=1)  # the floor under the box
-        before.append(np.abs(0.08 - sc.images_gt[i][ys[under], xs[under]]))
-        after.append(np.abs(img[ys[under], xs[under]] - sc.images_gt[i][ys[under], xs[under]]))
+        truth = sc.images_gt[i]
+        ys, xs = under_box(i, floaters[i])
+        before.append(np.abs(0.08 - truth[ys, xs]))
+        after.append(np.abs(img[ys, xs] - truth[ys, xs]))
+        ys, xs = under_box(i, read_mask(remove / "holes" / f"{cam.name}.png"))
+        holes_err.append(np.abs(img[ys, xs] - truth[ys, xs]))
     assert sum(b.size for b in before) > 3000
     before, after = np.concatenate(before).mean(), np.concatenate(after).mean()
     assert after < 0.6 * before, (before, after)  # (0.18 -> 0.08; with the depth test on the floaters 0.18)
+    # the holes' pixels there too, whatever the views' consensus put there: the worst view 0.065 (the
+    # seen pixels alone refilled: 0.138, its consensus taking the others' floaters)
+    assert max(float(e.mean()) for e in holes_err if e.size) < 0.1, [float(e.mean()) for e in holes_err if e.size]
 
 
 def test_standing_hull_takes_a_hull_that_reaches_the_plane_in_part_of_its_silhouette():

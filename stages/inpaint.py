@@ -362,7 +362,8 @@ class InpaintStage(Stage):
     # 7: the plane refitted to the floor seen around the holes, the holes' pixels onto it (plane_rim); the
     # occlusion of seen texels under the hull's silhouette from its edge (PlaneParams.under_edge_ao); 8: that
     # refit trimmed (a wall's foot beside the floor); 9: plane/hole.png written (the fills are as before);
-    # 11: the floor under the object: every mask pixel whose ray meets the plane there takes the texture
+    # 10: the floor under the object taken where the seen mask pixels' rays meet the plane; 11: by every mask
+    # pixel there, the holes' too
     VERSION = 11
     Params = InpaintParams
     inputs = ("remove",)

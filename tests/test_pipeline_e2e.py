@@ -151,6 +151,41 @@ def test_with_every_mask_given_the_fit_leaves_the_object_out(finished_run, tmp_p
     assert deleted["deleted"] > 10 * max(stats["deleted"], 1)
 
 
+def test_evaluate_scores_over_the_input_masks_when_asked(finished_run, tmp_path):
+    """``evaluate.score_masks=input``: the scores cover the masks the run was given (the truth in a
+    benchmark that gives the pipeline only some of them), not the masks stage's. Emulated: the masks
+    stage's masks cut to their left half, as a propagation that missed part of the object."""
+    import shutil
+
+    from sgpor_pipeline.dag import StageContext
+    from sgpor_pipeline.errors import PipelineError
+    from sgpor_pipeline.imageio import write_mask01
+    from sgpor_pipeline.stages.evaluate import EvaluateParams, EvaluateStage
+
+    _, inputs, result = finished_run
+    stage_inputs = {s: result.path(s) for s in EvaluateStage.inputs}
+    cut = tmp_path / "masks"
+    shutil.copytree(result.path("masks"), cut)
+    for path in (cut / "masks").glob("*.png"):
+        mask = read_mask(path)
+        mask[:, mask.shape[1] // 2:] = False
+        write_mask01(path, mask)
+
+    def evaluate(name: str, masks, **params) -> dict:
+        ctx = StageContext.standalone(tmp_path / name, "evaluate", EvaluateParams(features="off", **params),
+                                      {**stage_inputs, "masks": masks})
+        ctx.run_inputs = inputs
+        EvaluateStage().run(ctx)
+        return json.loads((ctx.out_dir / "metrics.json").read_text())["means"]["final"]
+
+    full = evaluate("full", result.path("masks"))
+    half = evaluate("half", cut)
+    truth = evaluate("input", cut, score_masks="input")
+    assert truth == full and half["psnr_bbox"] != full["psnr_bbox"]
+    with pytest.raises(PipelineError, match="score_masks"):
+        evaluate("bad", cut, score_masks="propagated")
+
+
 @pytest.mark.slow
 def test_under_object_is_recorded_and_the_stages_after_it_run(finished_run):
     """``remove.under_object``: the remove stage says in remove.json what it made holes of (or why

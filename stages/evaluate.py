@@ -106,7 +106,8 @@ class EvaluateStage(Stage):
         p: EvaluateParams = ctx.params
         if p.score_masks not in ("masks", "input"):
             raise PipelineError(f"unknown evaluate.score_masks {p.score_masks!r}", fix="use masks or input")
-        sfm = load_sfm(ctx.inputs["sfm"])  # (the input masks at the views' size: ingest undistorted them)
+        # (the input masks at the views' size: ingest undistorted them; the sfm folder is read only for them)
+        sfm = load_sfm(ctx.inputs["sfm"]) if p.score_masks == "input" else None
         remove_dir = ctx.inputs["remove"]
         cameras = [c for c in load_cameras(remove_dir / "cameras.json") if c.image is not None]
         sources = {
@@ -122,7 +123,7 @@ class EvaluateStage(Stage):
                 continue
             truth = read_image(truth_path)
             mask_path = ctx.inputs["masks"] / "masks" / f"{cam.image}.png"
-            if p.score_masks == "input":
+            if sfm is not None:
                 mask_path = sfm.mask_path(cam.image)
                 if mask_path is None:
                     continue

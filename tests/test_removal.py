@@ -33,6 +33,7 @@ from sgpor_pipeline.removal.selection import (
     iou,
     median_spacing,
     refine_mask,
+    render_median_depth,
     render_object_probability,
     select_object,
     tighten_mask,
@@ -622,6 +623,10 @@ def test_grabcut_snaps_a_partial_mask_to_the_object_in_the_photo():
     snapped = grabcut_mask(partial.astype(np.float32), partial, image)
     assert snapped is not None
     assert iou(snapped, disc) > 0.9 > iou(partial, disc), (iou(snapped, disc), iou(partial, disc))
+    # seeded: the same mask whatever drew from OpenCV's global generator before
+    cv2.setRNGSeed(12345)
+    cv2.randu(np.zeros((64, 64), np.float32), 0.0, 1.0)
+    assert np.array_equal(grabcut_mask(partial.astype(np.float32), partial, image), snapped)
     assert grabcut_mask(np.zeros((h, w), np.float32), np.zeros((h, w), bool), image) is None
 
 
@@ -639,6 +644,69 @@ def test_grabcut_additions_are_gated_by_the_given_views(scene_and_model):
     # (a few far pixels are background hidden behind the object from the given view: it cannot
     # rule them out; 9 % here)
     assert kept[far].mean() < 0.15, kept[far].mean()
+
+
+def test_the_given_masks_lifted_surface_finds_the_object_where_floaters_draw_it(scene_and_model):
+    """A sparse capture's fit draws a far view's object with floaters of that view: the object's
+    Gaussians, occluded by them, render nothing there, and the propagated mask missed the object
+    (lund + box from one mask: IoU 0 in views 1-16). The given mask's pixels, lifted at the median
+    depth, land on the object in that view all the same; and in every view they stay on the object."""
+    from sgpor_pipeline.removal.selection import LiftedSurface, lift_mask, splat_surface
+
+    scene, model, truth = scene_and_model
+    given_cam, given_mask = scene.cameras[0], scene.masks[0]
+    tight = tighten_mask(model, given_cam, given_mask, TightParams())[0]  # (as the masks stage lifts it)
+    surface = lift_mask(model, given_cam, tight)
+    assert len(surface) == int((tight & (render_median_depth(model, given_cam) > 0)).sum()) > 100
+    assert iou(splat_surface(surface, given_cam), given_mask) > 0.9
+    for cam, mask in zip(scene.cameras[1:], scene.masks[1:]):
+        lifted = splat_surface(surface, cam)
+        # the given view's side of the object, inside its silhouette in every view
+        assert (lifted & ~cv2_dilate(mask, 1)).sum() <= 0.05 * max(1, lifted.sum()), cam.image
+    # the view nearest the given one (30 degrees round the object) sees much of what it saw
+    near = int(np.argmin([np.linalg.norm(c.center - given_cam.center) for c in scene.cameras[1:]])) + 1
+    cam, mask = scene.cameras[near], scene.masks[near]
+    before = iou(splat_surface(surface, cam), mask)
+    assert before > 0.5
+    # floaters a fifth of the way from that view's camera to the object, in front of it there only
+    means = model.means.detach().numpy().astype(np.float64)
+    centre = means[truth].mean(axis=0)
+    rng = np.random.default_rng(0)
+    spread = 0.5 * np.ptp(means[truth], axis=0).max() / 3
+    floaters = cam.center + (centre - cam.center) / 5 + rng.normal(0, spread / 2, (400, 3))
+    fm = GaussianModel.empty(len(floaters), 0)
+    with torch.no_grad():
+        fm.params["means"].copy_(torch.from_numpy(floaters).float())
+        fm.params["scales"].fill_(float(np.log(spread / 4)))
+        fm.params["opacities"].fill_(3.0)
+    fitted = concat_models(model, fm)
+    is_object = np.concatenate([truth, np.zeros(len(fm), bool)])
+    # (the given view sees the object as before: the floaters' depth nowhere on its mask)
+    assert np.array_equal(render_median_depth(fitted, given_cam)[tight], render_median_depth(model, given_cam)[tight])
+    rendered = refine_mask(render_object_probability(fitted, is_object, cam), scene.images[near], SelectionParams())
+    assert iou(rendered, mask) < 0.2
+    surface = lift_mask(fitted, given_cam, tight)
+    assert iou(splat_surface(surface, cam), mask) > 0.95 * before
+    assert not splat_surface(LiftedSurface.concat([]), cam).any()
+
+
+def test_only_what_reaches_beyond_the_edge_joins_a_mask():
+    """Another cue's slivers along the mask's edge (a pixel's disagreement) are dropped; a part it
+    found that reaches further, away from the mask or touching it, joins whole, with the sliver's
+    pixels right beside it."""
+    from sgpor_pipeline.removal.selection import reaching_beyond
+
+    mask = np.zeros((40, 60), bool)
+    mask[10:30, 10:30] = True
+    extra = np.zeros_like(mask)
+    extra[9:31, 9:31] = True  # the same object, one pixel wider
+    extra[12:18, 45:55] = True  # a part the mask missed, apart from it
+    extra[20:24, 30:40] = True  # a part touching it, 10 px long
+    got = reaching_beyond(extra, mask, 2)
+    assert got[12:18, 45:55].all() and got[20:24, 30:40].all()
+    assert not got[9, 9:31].any() and not got[10:30, 9].any() and not got[mask].any()
+    assert got.sum() == 6 * 10 + 4 * 10 + 4  # (the touching part's sides: 2 px of the sliver each)
+    assert not reaching_beyond(mask, mask, 2).any() and not reaching_beyond(extra, np.zeros_like(mask), 2)[0].any()
 
 
 def cv2_dilate(mask: np.ndarray, r: int) -> np.ndarray:

@@ -133,6 +133,11 @@ def _is_text(tp: Any) -> bool:
     return tp in (str, Path)
 
 
+def _is_text_list(tp: Any) -> bool:
+    """A list or tuple of str or Path annotation: ``--set`` takes comma-separated names."""
+    return get_origin(tp) in (list, tuple) and bool(get_args(tp)) and get_args(tp)[0] in (str, Path)
+
+
 def parse_literal(text: str) -> Any:
     """A command-line value as a TOML literal; anything that is not one is a plain string."""
     try:
@@ -199,7 +204,8 @@ def resolve_config(
                                 fix="for example --set fit.iterations=3000")
         check_stage(stage, "--set")
         value = parse_literal(text)
-        if _is_text(get_type_hints(type(config[stage])).get(field.strip())) and not isinstance(value, str):
+        tp = get_type_hints(type(config[stage])).get(field.strip())
+        if (_is_text(tp) and not isinstance(value, str)) or (_is_text_list(tp) and not isinstance(value, (str, list))):
             value = text  # a name that reads as a number (a view "24") is still a name
         config[stage] = _apply(config[stage], stage, {field: value}, "--set")
     return config

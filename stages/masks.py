@@ -45,6 +45,7 @@ mask (none given: empty) and ``masks.json`` says ``"fit_object_masks": "ignore"`
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -52,6 +53,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from sgpor_pipeline.config import added_param
 from sgpor_pipeline.dag import Stage, StageContext
 from sgpor_pipeline.errors import PipelineError
 from sgpor_pipeline.gaussians.model import GaussianModel
@@ -95,6 +97,9 @@ class MasksParams:
     use_sfm_points: bool = True
     # Use only the first N given masks (0 = all): the benchmark measures propagation from 1, 2, 4.
     max_given: int = 0
+    # Use only the given masks of these views (image names; empty = every given mask), e.g. to measure
+    # propagation from a chosen view with every true mask given for scoring (evaluate.score_masks=input).
+    given_views: tuple[str, ...] = added_param(())
     # Given masks drawn with a margin of background: select the object from their pixels in front of
     # the background around them (selection.tighten_mask), and give the propagated masks the same
     # margin: ``margin`` px (-1 = the median margin measured on the given masks, 0 = none).
@@ -147,12 +152,12 @@ class MasksStage(Stage):
             summary = _write_given_only(ctx.out_dir, model, sfm, _read_given_masks(sfm, 0, ctx.run_inputs.masks))
             ctx.log.info("masks: the fit left the masked pixels out (fit.object_masks=ignore): no object "
                          "Gaussians to select, every view keeps its given mask")
-            if p.max_given > 0:
-                ctx.log.warning(f"masks: max_given={p.max_given} is not used: the fit needed every view's mask "
-                                "(fit.object_masks=ignore)")
+            if p.max_given > 0 or p.given_views:
+                ctx.log.warning(f"masks: max_given={p.max_given} / given_views={list(p.given_views)} are not "
+                                "used: the fit needed every view's mask (fit.object_masks=ignore)")
             ctx.notes.update({k: v for k, v in summary.items() if k != "views"})
             return
-        given_pairs = _read_given_masks(sfm, p.max_given, ctx.run_inputs.masks)
+        given_pairs = _read_given_masks(sfm, p.max_given, ctx.run_inputs.masks, p.given_views)
         sfm_pts = _sfm_points(sfm) if p.use_sfm_points else None
         given, widths = _tighten_given(model, given_pairs, p)
         if p.lift:
@@ -222,10 +227,18 @@ def _selection_params(p: MasksParams) -> SelectionParams:
                            render_threshold=p.render_threshold, guided_radius=p.guided_radius, backend=p.backend)
 
 
-def _read_given_masks(sfm: SfmResult, max_given: int, masks_path: Path | None) -> list[tuple[Camera, np.ndarray]]:
-    """The posed views' non-empty given masks (the first ``max_given``, 0 = all); PipelineError if none."""
+def _read_given_masks(sfm: SfmResult, max_given: int, masks_path: Path | None,
+                      only: Sequence[str] = ()) -> list[tuple[Camera, np.ndarray]]:
+    """The posed views' non-empty given masks (of the views ``only`` names, when it names any; the first
+    ``max_given``, 0 = all); PipelineError if none."""
     given = [(c, read_mask(sfm.mask_path(c.image))) for c in sfm.posed if sfm.mask_path(c.image) is not None]
     given = [(c, m) for c, m in given if m.any()]
+    if only:
+        unknown = sorted(set(only) - {c.image for c, _ in given})
+        if unknown:
+            raise PipelineError(f"masks.given_views names views without a given (non-empty) mask: {unknown}",
+                                path=masks_path, fix="name views whose photo has a mask, or leave it empty")
+        given = [(c, m) for c, m in given if c.image in set(only)]
     if max_given > 0:
         given = given[:max_given]
     if not given:

@@ -42,6 +42,10 @@ def test_defaults_file_and_overrides(tmp_path):
     # a string parameter set to a name that reads as a number (a view called 24) keeps it as text
     named = resolve_config(TYPES, None, ["fit.reference=24", "fit.path=7", "fit.model=1.5"])["fit"]
     assert named.reference == "24" and named.path == Path("7") and named.model == "1.5"
+    # ... and so does a list of names (views 24 and 25)
+    assert resolve_config(TYPES, None, ["fit.views=24"])["fit"].views == ["24"]
+    assert resolve_config(TYPES, None, ["fit.views=24,25"])["fit"].views == ["24", "25"]
+    assert resolve_config(TYPES, None, ['fit.views=["24"]'])["fit"].views == ["24"]
     # ... but a number parameter still rejects text, and an optional number keeps its number
     assert resolve_config(TYPES, None, ["fit.budget=24"])["fit"].budget == 24
 

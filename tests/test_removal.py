@@ -835,3 +835,27 @@ def test_finetune_views_leave_the_seen_background_unsupervised(tmp_path):
     assert (half[band & ~hole] == 0.5).all()
     with pytest.raises(PipelineError, match="seen_weight"):
         FinetuneStage().run(SimpleNamespace(params=FinetuneParams(seen_weight=-1.0)))
+
+
+def test_masks_given_views_picks_the_given_masks_by_name(tmp_path):
+    """``masks.given_views`` uses only the named views' masks (propagation from a chosen view while
+    every true mask is given, for scoring); a name without a given mask is an error naming it."""
+    from sgpor_pipeline.errors import PipelineError
+    from sgpor_pipeline.imageio import write_mask01
+    from sgpor_pipeline.sfm import MASKS_DIR, SfmPoints, SfmResult
+    from sgpor_pipeline.stages.masks import _read_given_masks
+
+    scene = generate_scene(SceneParams(seed=3, n_views=4, width=48, height=36))
+    (tmp_path / MASKS_DIR).mkdir()
+    for cam, mask in zip(scene.cameras, scene.masks):
+        write_mask01(tmp_path / MASKS_DIR / f"{cam.image}.png", mask)
+    empty = SfmPoints(np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0), np.zeros(0, np.int64),
+                      np.zeros(0, np.int64), np.zeros((0, 2)))
+    sfm = SfmResult(tmp_path, list(scene.cameras), empty)
+    names = [c.image for c in scene.cameras]
+    assert [c.image for c, _ in _read_given_masks(sfm, 0, tmp_path)] == names
+    assert [c.image for c, _ in _read_given_masks(sfm, 1, tmp_path)] == names[:1]
+    picked = _read_given_masks(sfm, 0, tmp_path, (names[2],))
+    assert [c.image for c, _ in picked] == [names[2]] and np.array_equal(picked[0][1], scene.masks[2])
+    with pytest.raises(PipelineError, match="view_9"):
+        _read_given_masks(sfm, 0, tmp_path, (names[0], "view_9"))

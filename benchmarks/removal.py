@@ -379,7 +379,13 @@ LUND_SFM_SIZE = 0  # full 1024x768: at 640 px only 15 of the 29 photos register
 INSERTED: dict[str, tuple[str, int, int]] = {
     "lund": ("lund", LUND_SFM_SIZE, 320),
     "statue-box": ("statue", 0, 384),  # a second capture to check what was tuned on lund (the statue stays)
+    # lund + box from ONE given mask (INSERTED_ONE_MASK): its SfM, inserted photos and fit are lund's
+    "lund-1mask": ("lund", LUND_SFM_SIZE, 320),
 }
+# the inserted scenes run from one given mask -> the scene whose folders (SfM, inserted photos) they share.
+# The given mask is the view's where the object is largest without touching the frame (one_mask_view):
+# where a user would paint it, large and whole.
+INSERTED_ONE_MASK = {"lund-1mask": "lund"}
 # protocol (a): scene -> SceneParams fields (the rest are the demo's)
 SYNTHETIC_SCENES: dict[str, dict[str, Any]] = {
     "synthetic": {},  # the demo: a sphere on the rug; about 3 % of its mask pixels no other view sees
@@ -413,7 +419,7 @@ PREFIX = {"synthetic": "synthetic", "synthetic-box": "synthetic_box", "synthetic
           "synthetic-box-cast": "synthetic_box_cast", "synthetic-raised-cast": "synthetic_raised_cast",
           "synthetic-box-1mask": "synthetic_box_1mask", "synthetic-cast": "synthetic_cast",
           "synthetic-raised-cast-1mask": "synthetic_raised_cast_1mask",
-          "lund": "lund_inserted",
+          "lund": "lund_inserted", "lund-1mask": "lund_inserted_1mask",
           "statue-box": "statue_inserted"}
 NOVEL_EVERY = 4  # --novel: every 4th view (from the third, in name order) is a held-out test view
 NOVEL_METRICS = ("psnr_mask", "psnr_bbox", "ssim_mask", "feat_mask")
@@ -785,6 +791,19 @@ def place_object(sfm_dir: Path, cams: list) -> tuple[np.ndarray, float]:
     return pos, size
 
 
+def one_mask_view(masks_dir: Path) -> str:
+    """The view whose mask is largest without touching the image's border (the largest, if all do)."""
+    from sgpor_pipeline.imageio import read_mask
+
+    best, key = "", (False, -1)
+    for f in sorted(masks_dir.glob("*.png")):
+        m = read_mask(f)
+        whole = not (m[0].any() or m[-1].any() or m[:, 0].any() or m[:, -1].any())
+        if (whole, int(m.sum())) > key:
+            best, key = f.stem, (whole, int(m.sum()))
+    return best
+
+
 def protocol_inserted(data: Path, scene: str, out: Path, quick: bool, extra: Sequence[str] = (),
                       novel: bool = False, tag: str = "", methods: Sequence[str] | None = None) -> dict[str, Any]:
     """Protocol (b) on the capture ``INSERTED[scene]``: our SfM on the untouched photos, a box inserted
@@ -798,6 +817,7 @@ def protocol_inserted(data: Path, scene: str, out: Path, quick: bool, extra: Seq
     from sgpor_pipeline.synthetic import insert_object
 
     capture, sfm_size, full_size = INSERTED[scene]
+    root = out / INSERTED_ONE_MASK.get(scene, scene)  # (the SfM run and the inserted photos)
     folder = data / capture / "images"
     if not folder.is_dir():
         return {"scene": scene, "skipped": f"{folder} not found"}
@@ -805,7 +825,7 @@ def protocol_inserted(data: Path, scene: str, out: Path, quick: bool, extra: Seq
     t0 = time.perf_counter()
     # SIFT needs more pixels than the removal: SfM at full size, then the undistorted photos and their
     # cameras are scaled down to ``size`` for the removal run.
-    base_sfm = run_pipeline(out / scene / "sfm_run", RunInputs(images=folder),
+    base_sfm = run_pipeline(root / "sfm_run", RunInputs(images=folder),
                             overrides=[f"ingest.max_size={sfm_size}"], until="sfm")
     sfm_dir = base_sfm.path("sfm")
     cams = [c for c in load_cameras(sfm_dir / "cameras.json") if c.image is not None]
@@ -813,7 +833,7 @@ def protocol_inserted(data: Path, scene: str, out: Path, quick: bool, extra: Seq
     sfm_seconds = time.perf_counter() - t0
     if len(cams) < 3:
         return {"scene": scene, "skipped": f"our SfM registered only {len(cams)} of {n_images} photos"}
-    scene_dir = out / scene / "inserted"
+    scene_dir = root / "inserted"
     stamp = scene_dir / "stamp.json"
     want = json.dumps({"sfm": base_sfm.outcomes["sfm"].key, "seed": 0, "size": size, "version": 3})
     if not (stamp.is_file() and stamp.read_text() == want):
@@ -842,7 +862,12 @@ def protocol_inserted(data: Path, scene: str, out: Path, quick: bool, extra: Seq
     inputs = RunInputs(images=scene_dir / "images", masks=scene_dir / "masks", cameras=scene_dir / "cameras.json",
                        extra={"groundtruth": scene_dir / "groundtruth"})
     base = (["fit.iterations=300", "finetune.iterations=100"] if quick else ["fit.iterations=1500"]) + list(extra)
+    given = one_mask_view(scene_dir / "masks") if scene in INSERTED_ONE_MASK else None
+    if given is not None:
+        base = ["fit.object_masks=fit", f"masks.given_views={given}", "evaluate.score_masks=input", *base]
     r = run_variants(scene, out / scene / "run", inputs, base, out, f"{scene}{tag}_sheet.png", methods)
+    if given is not None:
+        r.update(propagation_iou(Path(r["masks_dir"]), scene_dir / "masks"))
     r["wall_seconds"] += sfm_seconds
     wh = json.loads((scene_dir / "object.json").read_text())["size_px"]
     r["note"] = (f"{len(cams)}/{n_images} photos registered by our SfM at {cams[0].width}x{cams[0].height}, "

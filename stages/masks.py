@@ -11,7 +11,10 @@ Given masks are often drawn generously, with a margin of background (the mip-NeR
 dilated by ~15 px at 520 px): the object is selected from their pixels in FRONT of the background
 carried in from around them (``tighten``, :func:`~sgpor_pipeline.removal.selection.tighten_mask`),
 and the propagated masks get the measured margin back. Without it, the margin's floor seeded the
-selection and the kitchen's propagated masks leaked onto the table (blobs away from the object).
+selection and the kitchen's propagated masks leaked onto the table (blobs away from the object). The
+photo has the last word on the margin (``photo_margin``): a mask that GrabCut from the photo alone
+keeps was drawn on the object's edge, and a poor fit's depth or render in its view does not give it a
+margin (lund + box's view 27, 34 px).
 The same carried background finds the object's far side, which no given view sees: every Gaussian
 inside the given masks and in front of it is selected too (``hidden``); region growing alone did not
 reach it where the fit covers it sparsely (a box from one given mask kept its far side standing).
@@ -70,6 +73,7 @@ from sgpor_pipeline.removal.selection import (
     lifted_additions,
     margin_width,
     mask_confidence,
+    photo_margin,
     refine_mask,
     render_object_probability,
     select_object,
@@ -133,6 +137,12 @@ class MasksParams:
     # object (covers under LIFT_MAX_COVERED of the footprint), and only what reaches beyond the
     # rendered mask (selection.lifted_additions).
     lift: bool = True
+    # A given mask whose photo shows no margin (selection.photo_margin under MIN_MARGIN px: GrabCut from
+    # the photo alone keeps it) was drawn on the object's edge: its margin is that, whatever the fit's
+    # depth and render in its view say, and it is lifted whole. A poor fit's render covered a third of
+    # lund + box's view 27 (its tightening kept 6,036 of 17,959 px) and the measured 34 px margin grew
+    # every propagated mask by 34 px (view 1: 5,225 px for the box's 257).
+    photo_margin: bool = True
     seed: int = 0  # GrabCut's k-means
     backend: str = "auto"
 
@@ -159,10 +169,10 @@ class MasksStage(Stage):
             return
         given_pairs = _read_given_masks(sfm, p.max_given, ctx.run_inputs.masks, p.given_views)
         sfm_pts = _sfm_points(sfm) if p.use_sfm_points else None
-        given, widths = _tighten_given(model, given_pairs, p)
+        given, widths = _tighten_given(model, sfm, given_pairs, p)
         if p.lift:
-            given.surface = LiftedSurface.concat([lift_mask(model, c, m, p.backend)
-                                                  for c, m in zip(given.cams, given.tight)])
+            given.surface = LiftedSurface.concat([lift_mask(model, c, given.lifting(i), p.backend)
+                                                  for i, c in enumerate(given.cams)])
         first = _first_selection(model, sfm, given, sel_params, sfm_pts, ctx.run_inputs.masks, p.hidden)
         propagated = _propagate(ctx, model, sfm, first, given, p, sel_params)
         selection = first
@@ -189,6 +199,7 @@ class _GivenViews:
     masks: list[np.ndarray]
     tight: list[np.ndarray]
     behind: list[np.ndarray | None] | None
+    drawn_tight: list[bool] | None = None  # masks drawn on the object's edge (MasksParams.photo_margin)
     surface: LiftedSurface | None = None  # the tight masks lifted to the world (MasksParams.lift)
     names: set[str] = field(init=False)
     index: dict[str, int] = field(init=False)  # view -> its position in the lists above
@@ -196,6 +207,13 @@ class _GivenViews:
     def __post_init__(self) -> None:
         self.names = {c.image for c in self.cams}
         self.index = {c.image: i for i, c in enumerate(self.cams)}
+
+    def is_drawn_tight(self, i: int) -> bool:
+        return bool(self.drawn_tight and self.drawn_tight[i])
+
+    def lifting(self, i: int) -> np.ndarray:
+        """The pixels of given view ``i`` to lift: the whole mask when it was drawn on the object's edge."""
+        return self.masks[i] if self.is_drawn_tight(i) else self.tight[i]
 
 
 def _write_given_only(out_dir: Path, model: GaussianModel, sfm: SfmResult,
@@ -255,16 +273,23 @@ def _sfm_points(sfm: SfmResult) -> _SfmPoints | None:
     return (pts.xyz, pts.obs_point, pts.obs_view, pts.obs_xy)
 
 
-def _tighten_given(model: GaussianModel, given: list[tuple[Camera, np.ndarray]],
+def _tighten_given(model: GaussianModel, sfm: SfmResult, given: list[tuple[Camera, np.ndarray]],
                    p: MasksParams) -> tuple[_GivenViews, list[float]]:
-    """The given views with their masks tightened (``p.tighten``), and the margin removed from each, px."""
+    """The given views with their masks tightened (``p.tighten``), and the margin of each, px: the one
+    tightening removed, or the photo's (``p.photo_margin``) where that says the mask was drawn tight."""
     cams = [c for c, _ in given]
     masks = [m for _, m in given]
+    drawn_tight, photo = None, [0.0] * len(masks)
+    if p.photo_margin:
+        measured = [photo_margin(m, read_image(sfm.image_path(c.image)), p.grabcut_band, p.seed) for c, m in given]
+        drawn_tight = [w is not None and w < MIN_MARGIN for w in measured]
+        photo = [w or 0.0 for w in measured]
     if not p.tighten:
-        return _GivenViews(cams, masks, masks, None), [0.0] * len(masks)
+        return _GivenViews(cams, masks, masks, None, drawn_tight), [0.0] * len(masks)
     tp = TightParams()
     triples = [tighten_mask(model, c, m, tp, p.backend) for c, m in given]
-    return _GivenViews(cams, masks, [t[0] for t in triples], [t[2] for t in triples]), [t[1] for t in triples]
+    widths = [photo[i] if drawn_tight and drawn_tight[i] else t[1] for i, t in enumerate(triples)]
+    return _GivenViews(cams, masks, [t[0] for t in triples], [t[2] for t in triples], drawn_tight), widths
 
 
 def _first_selection(model: GaussianModel, sfm: SfmResult, given: _GivenViews, sel_params: SelectionParams,
@@ -367,7 +392,7 @@ def _measure_given_margins(model: GaussianModel, sfm: SfmResult, selection: Sele
         given_prob[c.image] = prob
         own = (grabcut_mask(prob, own, image, band=p.grabcut_band, max_growth=p.grabcut_max_growth, seed=p.seed)
                if own.any() else None)
-        if own is not None:
+        if own is not None and not given.is_drawn_tight(i):  # (there the render measures the fit, not the mask)
             widths[i] = max(widths[i], margin_width(m, own & m))
     return widths, given_prob
 
@@ -421,4 +446,5 @@ def _summary(per_view: dict[str, dict[str, Any]], model: GaussianModel, selectio
             "gaussians": len(model), "seeds": selection.seeds, "from_sfm_points": selection.from_points,
             "grown": selection.grown, "given": sorted(given.names),
             "given_margin_px": [round(w, 2) for w in widths], "margin_px": margin,
+            "given_drawn_tight": [given.is_drawn_tight(i) for i in range(len(given.cams))],
             "given_pixels_selecting": [int(t.sum()) for t in given.tight]}

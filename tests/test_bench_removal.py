@@ -366,3 +366,24 @@ def test_plane_fill_psnr_scores_the_plane_textures_fill_against_the_rectified_tr
                                                      "demo_seconds": 100.0}})
     assert summary["synthetic_plane_fill_psnr"] == own
     assert any("plane_fill_psnr" in c and f"ours {own:.2f}" in c for c in checks)
+
+
+def test_the_inserted_one_mask_scene_gives_the_largest_whole_mask(bench, tmp_path):
+    """lund-1mask shares lund's folders and is given the mask of the view where the object is largest
+    without touching the frame (a user paints it large and whole); if every mask touches it, the largest."""
+    from sgpor_pipeline.imageio import write_mask01
+
+    assert bench.INSERTED["lund-1mask"] == bench.INSERTED["lund"] and bench.INSERTED_ONE_MASK["lund-1mask"] == "lund"
+    assert "lund-1mask" in bench.GT_SCENES and "lund-1mask" in bench.PREFIX
+    masks = np.zeros((3, 20, 30), bool)
+    masks[0, 5:9, 5:9] = True  # small, whole
+    masks[1, 4:14, 6:16] = True  # larger, whole
+    masks[2, 0:18, 0:25] = True  # largest, at the border
+    for name, m in zip(("01", "02", "03"), masks):
+        write_mask01(tmp_path / f"{name}.png", m)
+    assert bench.one_mask_view(tmp_path) == "02"
+    write_mask01(tmp_path / "02.png", np.roll(masks[1], 10, axis=0))  # now it touches the border
+    assert bench.one_mask_view(tmp_path) == "01"
+    masks[0, :, 0] = True
+    write_mask01(tmp_path / "01.png", masks[0])
+    assert bench.one_mask_view(tmp_path) == "03"  # every mask touches it

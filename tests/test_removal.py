@@ -630,6 +630,27 @@ def test_grabcut_snaps_a_partial_mask_to_the_object_in_the_photo():
     assert grabcut_mask(np.zeros((h, w), np.float32), np.zeros((h, w), bool), image) is None
 
 
+def test_the_photo_tells_a_mask_drawn_on_the_edge_from_one_drawn_with_a_margin():
+    """``photo_margin``: GrabCut from the given mask alone keeps a mask drawn on the object's edge (a
+    margin under MIN_MARGIN px) and drops the band of one dilated around it (about its width)."""
+    from sgpor_pipeline.removal.selection import photo_margin
+    from sgpor_pipeline.stages.masks import MIN_MARGIN
+
+    rng = np.random.default_rng(1)
+    h, w = 120, 160
+    image = np.empty((h, w, 3), np.float32)
+    image[:] = (0.35, 0.45, 0.6)
+    image += rng.normal(0, 0.04, image.shape).astype(np.float32)
+    yy, xx = np.mgrid[0:h, 0:w]
+    box = (np.abs(yy - 60) < 25) & (np.abs(xx - 80) < 30)
+    image[box] = (0.8, 0.5, 0.2) + rng.normal(0, 0.04, (int(box.sum()), 3))
+    image = image.clip(0, 1)
+    assert photo_margin(box, image) < MIN_MARGIN
+    dilated = cv2_dilate(box, 8)
+    assert 6 < photo_margin(dilated, image) < 10
+    assert photo_margin(np.zeros((h, w), bool), image) is None
+
+
 def test_grabcut_additions_are_gated_by_the_given_views(scene_and_model):
     """Pixels of another view whose surface the given view showed inside its mask pass; pixels of
     floor the given view showed outside its mask do not."""

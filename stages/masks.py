@@ -175,6 +175,11 @@ class MasksStage(Stage):
                                                   for i, c in enumerate(given.cams)])
         first = _first_selection(model, sfm, given, sel_params, sfm_pts, ctx.run_inputs.masks, p.hidden)
         propagated = _propagate(ctx, model, sfm, first, given, p, sel_params)
+        lost = sorted(v for v, (_, _, info) in propagated.items() if info.get("lifted_added"))
+        if lost:
+            ctx.log.info(f"masks: the selection's render lost the object in {len(lost)} of {len(propagated)} views "
+                         f"({', '.join(lost[:8])}{', ...' if len(lost) > 8 else ''}); their masks take the given "
+                         "masks' lifted surface (masks.lift)")
         selection = first
         if p.reselect and p.grabcut and propagated:  # (without the photo's evidence it would be circular)
             selection = _reselect(model, sfm, first, given, propagated, sel_params, sfm_pts)

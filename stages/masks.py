@@ -336,8 +336,10 @@ def _propagate_view(model: GaussianModel, sfm: SfmResult, cam: Camera, selection
         # and its footprint in another view is a shifted ellipse. And only what the render missed by
         # more than an edge's pixel or two, without specks (the slivers along the rendered edge
         # widened statue's masks by 5 % from 4 given views).
-        if covered < LIFT_MAX_COVERED:
+        if footprint.any() and covered < LIFT_MAX_COVERED:
             lifted = lifted_additions(footprint, mask, LIFT_EDGE_PX)
+            # (the render, whose decisiveness the confidence measures, lost the object here)
+            info["confidence"] = round(min(info["confidence"], covered), 4)
         info.update(lifted_pixels=int(footprint.sum()), lifted_covered=round(covered, 3),
                     lifted_added=int(lifted.sum()))
     if p.grabcut:

@@ -605,20 +605,25 @@ def test_a_hole_no_view_sees_is_filled(scene_and_model):
     assert covered and np.mean(covered) > 0.8, covered
 
 
+def _photo_of(obj: np.ndarray, colour: tuple[float, float, float], seed: int) -> np.ndarray:
+    """A photo of an object of one ``colour`` where ``obj`` is, on a blue-grey background, both noisy."""
+    rng = np.random.default_rng(seed)
+    image = np.empty((*obj.shape, 3), np.float32)
+    image[:] = (0.35, 0.45, 0.6)
+    image += rng.normal(0, 0.04, image.shape).astype(np.float32)
+    image[obj] = colour + rng.normal(0, 0.04, (int(obj.sum()), 3))
+    return image.clip(0, 1)
+
+
 def test_grabcut_snaps_a_partial_mask_to_the_object_in_the_photo():
     """The object's far side was missed by the selection (the mask covers 70 % of it): GrabCut on the
     photo completes it without taking the background; a tiny mask is left alone (None)."""
     from sgpor_pipeline.removal.selection import grabcut_mask
 
-    rng = np.random.default_rng(0)
     h, w = 120, 160
-    image = np.empty((h, w, 3), np.float32)
-    image[:] = (0.35, 0.45, 0.6)
-    image += rng.normal(0, 0.04, image.shape).astype(np.float32)
     yy, xx = np.mgrid[0:h, 0:w]
     disc = (yy - 60) ** 2 + (xx - 80) ** 2 < 35 ** 2
-    image[disc] = (0.9, 0.75, 0.1) + rng.normal(0, 0.04, (int(disc.sum()), 3))
-    image = image.clip(0, 1)
+    image = _photo_of(disc, (0.9, 0.75, 0.1), seed=0)
     partial = disc & (xx < 80 + 0.4 * 35)  # the left 70 %
     snapped = grabcut_mask(partial.astype(np.float32), partial, image)
     assert snapped is not None
@@ -636,15 +641,10 @@ def test_the_photo_tells_a_mask_drawn_on_the_edge_from_one_drawn_with_a_margin()
     from sgpor_pipeline.removal.selection import photo_margin
     from sgpor_pipeline.stages.masks import MIN_MARGIN
 
-    rng = np.random.default_rng(1)
     h, w = 120, 160
-    image = np.empty((h, w, 3), np.float32)
-    image[:] = (0.35, 0.45, 0.6)
-    image += rng.normal(0, 0.04, image.shape).astype(np.float32)
     yy, xx = np.mgrid[0:h, 0:w]
     box = (np.abs(yy - 60) < 25) & (np.abs(xx - 80) < 30)
-    image[box] = (0.8, 0.5, 0.2) + rng.normal(0, 0.04, (int(box.sum()), 3))
-    image = image.clip(0, 1)
+    image = _photo_of(box, (0.8, 0.5, 0.2), seed=1)
     assert photo_margin(box, image) < MIN_MARGIN
     dilated = cv2_dilate(box, 8)
     assert 6 < photo_margin(dilated, image) < 10

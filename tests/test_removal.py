@@ -667,6 +667,22 @@ def test_grabcut_additions_are_gated_by_the_given_views(scene_and_model):
     assert kept[far].mean() < 0.15, kept[far].mean()
 
 
+def _with_floaters_before(model: GaussianModel, truth: np.ndarray, cam) -> tuple[GaussianModel, np.ndarray]:
+    """The model with floaters a fifth of the way from ``cam`` to the object (``truth``), in front of it
+    in that view only, as a sparse capture's fit draws a far view's object; and its object flags."""
+    means = model.means.detach().numpy().astype(np.float64)
+    centre = means[truth].mean(axis=0)
+    rng = np.random.default_rng(0)
+    spread = 0.5 * np.ptp(means[truth], axis=0).max() / 3
+    floaters = cam.center + (centre - cam.center) / 5 + rng.normal(0, spread / 2, (400, 3))
+    fm = GaussianModel.empty(len(floaters), 0)
+    with torch.no_grad():
+        fm.params["means"].copy_(torch.from_numpy(floaters).float())
+        fm.params["scales"].fill_(float(np.log(spread / 4)))
+        fm.params["opacities"].fill_(3.0)
+    return concat_models(model, fm), np.concatenate([truth, np.zeros(len(fm), bool)])
+
+
 def test_the_given_masks_lifted_surface_finds_the_object_where_floaters_draw_it(scene_and_model):
     """A sparse capture's fit draws a far view's object with floaters of that view: the object's
     Gaussians, occluded by them, render nothing there, and the propagated mask missed the object
@@ -689,19 +705,7 @@ def test_the_given_masks_lifted_surface_finds_the_object_where_floaters_draw_it(
     cam, mask = scene.cameras[near], scene.masks[near]
     before = iou(splat_surface(surface, cam), mask)
     assert before > 0.5
-    # floaters a fifth of the way from that view's camera to the object, in front of it there only
-    means = model.means.detach().numpy().astype(np.float64)
-    centre = means[truth].mean(axis=0)
-    rng = np.random.default_rng(0)
-    spread = 0.5 * np.ptp(means[truth], axis=0).max() / 3
-    floaters = cam.center + (centre - cam.center) / 5 + rng.normal(0, spread / 2, (400, 3))
-    fm = GaussianModel.empty(len(floaters), 0)
-    with torch.no_grad():
-        fm.params["means"].copy_(torch.from_numpy(floaters).float())
-        fm.params["scales"].fill_(float(np.log(spread / 4)))
-        fm.params["opacities"].fill_(3.0)
-    fitted = concat_models(model, fm)
-    is_object = np.concatenate([truth, np.zeros(len(fm), bool)])
+    fitted, is_object = _with_floaters_before(model, truth, cam)
     # (the given view sees the object as before: the floaters' depth nowhere on its mask)
     assert np.array_equal(render_median_depth(fitted, given_cam)[tight], render_median_depth(model, given_cam)[tight])
     rendered = refine_mask(render_object_probability(fitted, is_object, cam), scene.images[near], SelectionParams())
@@ -880,3 +884,37 @@ def test_masks_given_views_picks_the_given_masks_by_name(tmp_path):
     assert [c.image for c, _ in picked] == [names[2]] and np.array_equal(picked[0][1], scene.masks[2])
     with pytest.raises(PipelineError, match="view_9"):
         _read_given_masks(sfm, 0, tmp_path, (names[0], "view_9"))
+
+
+def test_a_view_whose_render_lost_the_object_takes_its_mask_from_the_lifted_surface(scene_and_model, tmp_path):
+    """The masks stage's propagation in a view where floaters occlude the selected object: the mask
+    is the given mask's lifted footprint snapped by GrabCut (the lifted pixels its sure object, its
+    additions unchecked by the cone), and its confidence says the render lost the object; without
+    the lifted surface the mask misses it."""
+    from sgpor_pipeline.imageio import write_png
+    from sgpor_pipeline.removal.selection import Selection, lift_mask
+    from sgpor_pipeline.sfm import IMAGES_DIR, SfmPoints, SfmResult
+    from sgpor_pipeline.stages.masks import MasksParams, _GivenViews, _propagate_view
+
+    scene, model, truth = scene_and_model
+    given_cam, given_mask = scene.cameras[0], scene.masks[0]
+    near = int(np.argmin([np.linalg.norm(c.center - given_cam.center) for c in scene.cameras[1:]])) + 1
+    cam, mask = scene.cameras[near], scene.masks[near]
+    fitted, is_object = _with_floaters_before(model, truth, cam)
+    (tmp_path / IMAGES_DIR).mkdir()
+    write_png(tmp_path / IMAGES_DIR / f"{cam.image}.png", scene.images[near])
+    empty = SfmPoints(np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0), np.zeros(0, np.int64),
+                      np.zeros(0, np.int64), np.zeros((0, 2)))
+    sfm = SfmResult(tmp_path, list(scene.cameras), empty)
+    selection = Selection(is_object, np.ones(len(is_object), np.float32), int(is_object.sum()), 0, 0)
+    given = _GivenViews([given_cam], [given_mask], [given_mask], None, [True])
+    p, sel_params = MasksParams(), SelectionParams()
+    lost, _, _ = _propagate_view(fitted, sfm, cam, selection, given, p, sel_params)
+    assert iou(lost, mask) < 0.2
+    given.surface = lift_mask(fitted, given_cam, given_mask)
+    found, _, info = _propagate_view(fitted, sfm, cam, selection, given, p, sel_params)
+    assert info["lifted_added"] > 0 and info["lifted_covered"] < 0.5
+    assert info["confidence"] <= info["lifted_covered"]
+    # (GrabCut's additions checked against the given view's cone, which reads this view's depth, the
+    # floaters': 0.59)
+    assert iou(found, mask) > 0.7, iou(found, mask)

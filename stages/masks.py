@@ -35,15 +35,15 @@ Where the selection's render loses the object, the given masks' surface takes ov
 :class:`~sgpor_pipeline.removal.selection.LiftedSurface`): each given mask's pixels (tightened, or all
 of them when drawn on the object's edge) lifted at the fit's median depth and projected into the view.
 A sparse forward capture's fit draws a far view's object with floaters of that view, in front of the
-object's own Gaussians, so their render there is empty. Lund + box from ONE mask, IoU against the true
-masks on the other views (session 38, fit seed 0), before -> with ``lift`` and ``photo_margin``: given
-view 24 (the box 4,495 px there, 257 px in view 1) 0.269 (0 in views 1-16) -> 0.790 (0.70-0.81 there);
-view 27 (the benchmark's ``lund-1mask``) 0.109 -> 0.754; view 28 (the box cut by the frame) 0.225 ->
-0.522 (0.593 with the 4 px margin measured against the fit, without ``photo_margin``: the lifted masks
-miss the faces the given view does not see, and a margin covers some of them); view 14 (the fit's
-depth there is a floater's, 0.6 of the box's) stays poor (0.006 -> 0.298). Statue and room, whose
-renders do not lose the object, are unchanged (0.951 / 0.952 / 0.951 and 0.750 / 0.758 / 0.767 from
-1 / 2 / 4 masks).
+object's own Gaussians, so their render there is empty. There the lifted pixels are GrabCut's sure
+object, and what GrabCut adds (the faces the given view does not see) is not checked against the given
+views' cone, which would read the view's rendered depth: the floaters'. Lund + box from ONE mask, IoU
+against the true masks on the other views (session 38, fit seed 0), before -> with ``lift`` and
+``photo_margin``: given view 24 (the box 4,495 px there, 257 px in view 1) 0.269 (0 in views 1-16) ->
+0.845; view 27 (the benchmark's ``lund-1mask``) 0.109 -> 0.840; view 28 (the box cut by the frame)
+0.225 -> 0.649; view 14 (the fit's depth there is a floater's, 0.6 of the box's) stays poor (0.006 ->
+0.360). Statue and room, whose renders do not lose the object, are unchanged (0.951 / 0.952 / 0.951
+and 0.750 / 0.758 / 0.767 from 1 / 2 / 4 masks).
 
 After a fit that left the given masks' pixels out (``fit.object_masks = "ignore"``, which needs a mask
 for every view) there is no object to select: ``object_ids.npy`` is empty, every view keeps its given

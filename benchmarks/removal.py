@@ -289,7 +289,7 @@ Protocols:
     lifted pixels in the views where the render lost the box. Mask PSNR, lift -> and photo_margin ->
     and GrabCut anchored: ours 14.22 -> 14.96 -> 15.20, delete-only 12.53 -> 12.55 -> 12.48, fsr-refit
     12.34 -> 15.04 -> 15.40, no-sbm 14.25 -> 14.74 -> 14.95, no-rpr 14.22 -> 14.97 -> 15.20 (ours before
-    the lift: 14.25; with every mask given, lund: ours 15.60, fsr-refit 15.69).
+    the lift: 14.25; with every mask given, lund: ours 15.60, fsr-refit 15.48).
     ``statue-box`` (opt-in): the same protocol on the statue capture (29 photos, SfM at their 504x378,
     removal at 384 px; the statue stays, the box hovers in front of it), a second real capture on
     which to check what was measured on lund. JSON prefix ``statue_inserted``.

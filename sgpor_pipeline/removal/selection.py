@@ -299,10 +299,11 @@ def in_front_of(points: np.ndarray, cameras: list[Camera], depths: list[np.ndarr
 
 @dataclass
 class LiftedSurface:
-    """The given masks' visible surface: each (tightened) mask pixel lifted to the world at the fit's
-    median depth there. It is the object wherever the fit put its Gaussians, and projects into every
-    view whatever Gaussians the fit drew the object with in that view (a sparse capture's fit draws a
-    far view's object with floaters of its own, which the object's Gaussians do not render)."""
+    """The given masks' visible surface: each of their pixels (tightened ones, or all of a mask drawn on
+    the object's edge) lifted to the world at the fit's median depth there. It is the object wherever
+    the fit put its Gaussians, and projects into every view whatever Gaussians the fit drew the object
+    with in that view (a sparse capture's fit draws a far view's object with floaters of its own, which
+    the object's Gaussians do not render)."""
 
     points: np.ndarray  # [N,3] world points
     pixel_size: np.ndarray  # [N] the world size of the pixel each was lifted from (its depth / focal)

@@ -327,10 +327,34 @@ class ViewsSection:
             cells.append(row)
         shown = [j for j, col in enumerate(self.columns) if not col.optional or any(r[j] for r in cells)]
         head = "<tr><th>view</th>" + "".join(f"<th>{esc(self.columns[j].title)}</th>" for j in shown) + "</tr>"
+        sources = mask_sources(rc)
         body = "".join(
-            f"<tr><th>{esc(cam.image)}</th>" + "".join(f"<td>{row[j] or '&ndash;'}</td>" for j in shown) + "</tr>"
+            f"<tr><th>{esc(cam.image)}{sources.get(cam.image or '', '')}</th>"
+            + "".join(f"<td>{row[j] or '&ndash;'}</td>" for j in shown) + "</tr>"
             for cam, row in zip(views, cells))
         return f"<table class='views'>{head}{body}</table>"
+
+
+def mask_sources(rc: ReportContext) -> dict[str, str]:
+    """Per view, where the ``masks`` stage's mask came from, as a line under the view's name: given,
+    propagated (with its confidence), or from the given masks' lifted surface where the selection's
+    render lost the object (``masks.lift``). Empty without the stage's ``masks.json``."""
+    info = _read_json(rc.inputs["masks"] / "masks.json") if "masks" in rc.inputs else None
+    views = info.get("views") if isinstance(info, dict) else None
+    if not isinstance(views, dict):
+        return {}
+    out = {}
+    for name, v in views.items():
+        if not isinstance(v, dict):
+            continue
+        what = str(v.get("source", ""))
+        if v.get("lifted_added"):
+            what += ", lifted (the render lost the object)"
+        if what and v.get("confidence") is not None and what != "given":
+            what += f", confidence {float(v['confidence']):.2f}"
+        if what:
+            out[name] = f"<br><span class='meta'>mask: {esc(what)}</span>"
+    return out
 
 
 @dataclass

@@ -649,3 +649,25 @@ def test_report_shows_the_plane_texture_when_the_inpaint_stage_made_one(tmp_path
     (inpaint / "plane" / "plane.json").write_text(json.dumps({"built": True, "shadow": {"strength": 0.42}}))
     html = PlaneSection().render(rc)
     assert html.count("<img") == 4 and "contact shadow" in html and "0.42" in html
+
+
+def test_report_says_where_each_views_mask_came_from(tmp_path):
+    """Under each view's name: given, propagated with its confidence, or lifted where the selection's
+    render lost the object (the masks stage's masks.json); nothing without that file."""
+    from sgpor_pipeline.exporters.report import ReportContext, ViewsSection, mask_sources
+
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    cams = generate_scene(SceneParams(seed=0, n_views=3, width=32, height=24)).cameras
+    rc = ReportContext(inputs={"masks": masks}, export_dir=tmp_path / "export", cameras=list(cams))
+    assert mask_sources(rc) == {}
+    (masks / "masks.json").write_text(json.dumps({"views": {
+        cams[0].image: {"source": "given", "confidence": 1.0},
+        cams[1].image: {"source": "propagated", "confidence": 0.93, "lifted_added": 0},
+        cams[2].image: {"source": "propagated", "confidence": 0.0, "lifted_added": 250}}}))
+    lines = mask_sources(rc)
+    assert "mask: given<" in lines[cams[0].image] and "confidence" not in lines[cams[0].image]
+    assert "propagated, confidence 0.93" in lines[cams[1].image] and "lifted" not in lines[cams[1].image]
+    assert "lifted (the render lost the object), confidence 0.00" in lines[cams[2].image]
+    html = ViewsSection(columns=[]).render(rc)
+    assert all(lines[c.image] in html for c in cams)

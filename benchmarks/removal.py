@@ -419,11 +419,12 @@ SYNTHETIC_SCENES: dict[str, dict[str, Any]] = {
     # under it; what is left of them after the selection is what the plane texture must cover
     "synthetic-raised-cast-1mask": {"object_kind": "raised_box", "object_shadow": "cast"},
 }
-# the scenes whose run is given one mask only: the fit models the object, the masks stage propagates it;
-# their propagated masks' IoU against the truth is reported beside the removal
-# (scored over the true masks, evaluate.score_masks=input: a propagated mask that missed part of the
-# object must not leave that part out of the score)
-ONE_MASK = {scene: ["fit.object_masks=fit", "masks.max_given=1", "evaluate.score_masks=input"]
+# a run from one given mask: the fit models the object, the masks stage propagates it, and it is scored
+# over the true masks (evaluate.score_masks=input: a propagated mask that missed part of the object must
+# not leave that part out of the score); its propagated masks' IoU against the truth is reported beside
+# the removal. Which mask: the first view's (ONE_MASK) or one_mask_view's (INSERTED_ONE_MASK).
+ONE_MASK_RUN = ["fit.object_masks=fit", "evaluate.score_masks=input"]
+ONE_MASK = {scene: [*ONE_MASK_RUN, "masks.max_given=1"]
             for scene in ("synthetic-box-1mask", "synthetic-raised-cast-1mask")}
 GT_SCENES = (*SYNTHETIC_SCENES, *INSERTED)
 PREFIX = {"synthetic": "synthetic", "synthetic-box": "synthetic_box", "synthetic-box-contact": "synthetic_box_contact",
@@ -875,7 +876,7 @@ def protocol_inserted(data: Path, scene: str, out: Path, quick: bool, extra: Seq
     base = (["fit.iterations=300", "finetune.iterations=100"] if quick else ["fit.iterations=1500"]) + list(extra)
     given = one_mask_view(scene_dir / "masks") if scene in INSERTED_ONE_MASK else None
     if given is not None:
-        base = ["fit.object_masks=fit", f"masks.given_views={given}", "evaluate.score_masks=input", *base]
+        base = [*ONE_MASK_RUN, f"masks.given_views={given}", *base]
     r = run_variants(scene, out / scene / "run", inputs, base, out, f"{scene}{tag}_sheet.png", methods)
     if given is not None:
         r.update(propagation_iou(Path(r["masks_dir"]), scene_dir / "masks"))
@@ -1377,7 +1378,8 @@ def main(argv: list[str] | None = None) -> int:
                          "on statue), synthetic-box-contact, synthetic-box-cast (the box with its shadow), "
                          "synthetic-raised-cast (a box on feet, its footprint in the photos), synthetic-box-1mask "
                          "(the box from one given mask), synthetic-cast (the sphere with its shadows), "
-                         "synthetic-raised-cast-1mask (the box on feet from one given mask)")
+                         "synthetic-raised-cast-1mask (the box on feet from one given mask), lund-1mask (lund + "
+                         "box from one given mask)")
     ap.add_argument("--verbose", action="store_true", help="log every stage")
     ap.add_argument("--novel", action="store_true",
                     help="also protocol (d): every method scored at held-out views it never saw (a second run "

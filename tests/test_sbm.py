@@ -469,6 +469,31 @@ def test_reranking_on_the_blocks_own_pixels_costs_their_mean_squared_difference(
         SBMParams(rerank_margin=-2).validate()
 
 
+@pytest.mark.parametrize("seed", [1, 4, 5])
+def test_the_plane_texture_fill_keeps_a_straight_edge_beside_the_hole_out_of_it(seed):
+    """A rug/wood edge that runs along the hole's rim (mip360 room's plane texture): the plane fill's
+    parameters (inpaint.plane_rerank_margin 0, re-ranking on the block's own known pixels) paste no wood
+    into the hole. With the feature context's window (-1, the views' own fills) these scenes got 10-23
+    wood pixels there, a copy of the edge a few pixels off."""
+    from sgpor_pipeline.stages.inpaint import InpaintParams
+
+    rng = np.random.default_rng(seed)
+    h = w = 120
+    yy, xx = np.mgrid[0:h, 0:w]
+    grey = 0.75 + 0.05 * cv2.GaussianBlur(rng.standard_normal((h, w)).astype(np.float32), (0, 0), 1.5)
+    grain = 0.05 * cv2.GaussianBlur(rng.standard_normal((h, w)).astype(np.float32), (0, 0), 1.0, sigmaY=6.0)
+    image = np.repeat(grey[..., None], 3, 2)
+    wood = xx > 68 + 0.2 * (yy - 60)
+    image[wood] = np.stack([0.8 + grain, 0.55 + grain, 0.25 + grain], -1)[wood]
+    hole = (yy - 60) ** 2 + (xx - 50) ** 2 < 18 ** 2  # its rim touches the edge
+    assert not (hole & wood).any()
+    p = InpaintParams().plane_sbm()
+    assert p.rerank_margin == 0 and p.block_size == InpaintParams().sbm().block_size
+    bank = build_source_bank(["plane"], [image], [hole], [hole], p)
+    out = inpaint_view(image, hole, bank, p).image
+    assert ((out[..., 0] - out[..., 2] > 0.25) & hole).sum() == 0
+
+
 def test_hole_content_of_the_render_is_ignored(scene):
     names, renders, holes = scene_inputs(scene)
     with_object = [scene.images_gt[i].copy() for i in range(len(names))]

@@ -955,3 +955,13 @@ def test_a_targets_candidates_are_distinct_blocks(scene):
             cc = c[ok][np.isfinite(c[ok])]
             assert (np.diff(cc) >= 0).all()
     assert (~listed).any()  # (rerank 5: this scene's shortlists do repeat blocks)
+
+
+def test_inpaint_stage_rejects_a_plane_rerank_margin_below_minus_one(tmp_path):
+    """A bad value is reported, naming the option, before the stage reads anything."""
+    from sgpor_pipeline.stages.inpaint import InpaintParams, InpaintStage
+
+    ctx = StageContext.standalone(tmp_path, "inpaint", InpaintParams(plane_rerank_margin=-3),
+                                  {"remove": tmp_path / "none"})
+    with pytest.raises(PipelineError, match="inpaint.plane_rerank_margin"):
+        InpaintStage().run(ctx)

@@ -473,7 +473,7 @@ def test_reranking_on_the_blocks_own_pixels_costs_their_mean_squared_difference(
 def test_the_plane_texture_fill_keeps_a_straight_edge_beside_the_hole_out_of_it(seed):
     """A rug/wood edge that runs along the hole's rim (mip360 room's plane texture): the plane fill's
     parameters (inpaint.plane_rerank_margin 0, re-ranking on the block's own known pixels) paste no wood
-    into the hole. With the feature context's window (-1, the views' own fills) these scenes got 10-23
+    into the hole. With the feature context's window (-1, the views' own fills) these scenes got 11-23
     wood pixels there, a copy of the edge a few pixels off."""
     from sgpor_pipeline.stages.inpaint import InpaintParams
 

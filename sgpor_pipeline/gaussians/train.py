@@ -400,14 +400,27 @@ def render_view(model: GaussianModel, camera: Camera, sh_degree: int | None = No
 
 def evaluate(model: GaussianModel, views: Sequence[TrainView], sh_degree: int | None = None,
              backend: str = "auto", background: Sequence[float] = (0.0, 0.0, 0.0)) -> dict[str, float]:
-    """Mean PSNR and SSIM of the renders of ``views`` against their images."""
-    if not views:
-        return {"psnr": float("nan"), "ssim": float("nan")}
+    """Mean PSNR and SSIM of the renders of ``views`` against their images; a view with a loss weight
+    is scored where it was trained, weighted alike (fit.object_masks=ignore: outside the object masks,
+    which the fit never saw; over them kitchen's fit scored 15.9 dB)."""
     ps, ss = [], []
     for v in views:
         r = render_view(model, v.camera, sh_degree, backend, background)
-        ps.append(psnr(r, v.image))
-        ss.append(ssim_metric(r, v.image))
+        if v.weight is None:
+            ps.append(psnr(r, v.image))
+            ss.append(ssim_metric(r, v.image))
+            continue
+        w = v.weight.to(r.device)
+        total = float(w.sum()) * 3
+        if total <= 0:  # (nothing of the view was trained)
+            continue
+        mse = float((((r.clamp(0, 1) - v.image) ** 2) * w[..., None]).sum()) / total
+        ps.append(float("inf") if mse <= 0 else -10.0 * math.log10(mse))
+        with torch.no_grad():
+            m = ssim_map(r.clamp(0, 1).permute(2, 0, 1)[None], v.image.permute(2, 0, 1)[None])[0]
+        ss.append(float((m * w).sum()) / total)
+    if not ps:
+        return {"psnr": float("nan"), "ssim": float("nan")}
     return {"psnr": float(np.mean(ps)), "ssim": float(np.mean(ss))}
 
 

@@ -260,14 +260,15 @@ def _read_given_masks(sfm: SfmResult, max_given: int, masks_path: Path | None,
                       only: Sequence[str] = ()) -> list[tuple[Camera, np.ndarray]]:
     """The posed views' non-empty given masks (of the views ``only`` names, when it names any; the first
     ``max_given``, 0 = all); PipelineError if none."""
-    given = [(c, read_mask(sfm.mask_path(c.image))) for c in sfm.posed if sfm.mask_path(c.image) is not None]
+    named = set(only)
+    given = [(c, read_mask(sfm.mask_path(c.image))) for c in sfm.posed
+             if sfm.mask_path(c.image) is not None and (not named or c.image in named)]
     given = [(c, m) for c, m in given if m.any()]
-    if only:
-        unknown = sorted(set(only) - {c.image for c, _ in given})
+    if named:
+        unknown = sorted(named - {c.image for c, _ in given})
         if unknown:
             raise PipelineError(f"masks.given_views names views without a given (non-empty) mask: {unknown}",
                                 path=masks_path, fix="name views whose photo has a mask, or leave it empty")
-        given = [(c, m) for c, m in given if c.image in set(only)]
     if max_given > 0:
         given = given[:max_given]
     if not given:
@@ -296,12 +297,13 @@ def _tighten_given(model: GaussianModel, sfm: SfmResult, given: list[tuple[Camer
         measured = [photo_margin(m, im, p.grabcut_band, p.seed) for m, im in zip(masks, photos)]
         drawn_tight = [w is not None and w < MIN_MARGIN for w in measured]
         photo = [w or 0.0 for w in measured]
-    if not p.tighten:
-        return _GivenViews(cams, masks, masks, None, drawn_tight, photos), [0.0] * len(masks)
-    tp = TightParams()
-    triples = [tighten_mask(model, c, m, tp, p.backend) for c, m in given]
-    widths = [photo[i] if drawn_tight and drawn_tight[i] else t[1] for i, t in enumerate(triples)]
-    return _GivenViews(cams, masks, [t[0] for t in triples], [t[2] for t in triples], drawn_tight, photos), widths
+    tight, behind, widths = masks, None, [0.0] * len(masks)
+    if p.tighten:
+        tp = TightParams()
+        triples = [tighten_mask(model, c, m, tp, p.backend) for c, m in given]
+        tight, behind = [t[0] for t in triples], [t[2] for t in triples]
+        widths = [photo[i] if drawn_tight and drawn_tight[i] else t[1] for i, t in enumerate(triples)]
+    return _GivenViews(cams, masks, tight, behind, drawn_tight, photos), widths
 
 
 def _first_selection(model: GaussianModel, sfm: SfmResult, given: _GivenViews, sel_params: SelectionParams,

@@ -533,14 +533,18 @@ def fit_scene(sfm_dir: Path, out_dir: Path, params: FitParams, checkpoint_dir: P
     curve = {"curve": trainer.curve, "events": trainer.events, "budget_history": summary["budget_history"],
              "resumed_from_iteration": summary["resumed_from_iteration"]}
     (out_dir / "curve.json").write_text(json.dumps(curve, indent=1))
-    which = "training-view" if result.get("heldout_is_training") else "held-out"
-    if object_masks == "ignore":
-        which += " (outside the object masks)"
-    title = (f"fit: {summary['count']} Gaussians, {which} PSNR {summary['heldout_psnr']:.2f} dB, "
+    title = (f"fit: {summary['count']} Gaussians, {score_label(result)} PSNR {summary['heldout_psnr']:.2f} dB, "
              f"{result['seconds']:.0f} s")
     _plot_curve(out_dir / "curve.png", trainer.curve, title)
     (out_dir / "fit.json").write_text(json.dumps(result, indent=1))
     return result
+
+
+def score_label(result: dict[str, Any]) -> str:
+    """Which pixels fit.json's PSNR/SSIM score: held-out or training views, and with the masks left out
+    (object_masks ignore: the views' loss weights leave them out of the score too) only outside them."""
+    which = "training-view" if result.get("heldout_is_training") else "held-out"
+    return which + (" (outside the object masks)" if result.get("object_masks") == "ignore" else "")
 
 
 def write_known_sfm(folder: Path, cameras: list, images: np.ndarray, depths: np.ndarray | None,
@@ -619,8 +623,5 @@ class FitStage(Stage):
             scene_extent=res["scene_extent"], training_resolution=res["training_resolution"],
             resumed_from_iteration=res["resumed_from_iteration"], rollbacks=len(res["rollbacks"]))
         psnr = res["heldout_psnr"]
-        which = "training-view" if res.get("heldout_is_training") else "held-out"
-        if res.get("object_masks") == "ignore":  # (the views' weights leave the masks out of the score)
-            which += " (outside the object masks)"
-        ctx.log.info(f"fit: {res['count']} Gaussians ({res['stop_reason']}); {which} PSNR "
+        ctx.log.info(f"fit: {res['count']} Gaussians ({res['stop_reason']}); {score_label(res)} PSNR "
                      f"{psnr:.2f} dB, SSIM {res['heldout_ssim']:.3f}; {res['seconds']:.0f} s")

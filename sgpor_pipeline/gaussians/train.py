@@ -367,13 +367,19 @@ def photometric_loss(render: torch.Tensor, target: torch.Tensor, lambda_dssim: f
     return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - s)
 
 
-def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
-    mse = float(((a.clamp(0, 1) - b) ** 2).mean())
+def psnr(a: torch.Tensor, b: torch.Tensor, weight: torch.Tensor | None = None) -> float:
+    """PSNR of HxWx3 images; with ``weight`` ([H,W], >= 0) of their weighted mean squared error."""
+    sq = (a.clamp(0, 1) - b) ** 2
+    mse = float(sq.mean()) if weight is None else float((sq * weight[..., None]).sum()) / (float(weight.sum()) * 3)
     return float("inf") if mse <= 0 else -10.0 * math.log10(mse)
 
 
-def ssim_metric(a: torch.Tensor, b: torch.Tensor) -> float:
-    """Mean SSIM of two HxWx3 images (kornia.metrics.ssim, window 11)."""
+def ssim_metric(a: torch.Tensor, b: torch.Tensor, weight: torch.Tensor | None = None) -> float:
+    """Mean SSIM of two HxWx3 images (kornia.metrics.ssim, window 11); with ``weight`` ([H,W], >= 0) the
+    weighted mean of the same map (:func:`ssim_mean`)."""
+    if weight is not None:
+        with torch.no_grad():
+            return float(ssim_mean(a.clamp(0, 1).permute(2, 0, 1), b.permute(2, 0, 1), weight))
     import kornia
 
     return float(kornia.metrics.ssim(a.clamp(0, 1).permute(2, 0, 1)[None].contiguous(),
@@ -405,20 +411,13 @@ def evaluate(model: GaussianModel, views: Sequence[TrainView], sh_degree: int | 
     which the fit never saw; over them kitchen's fit scored 15.9 dB)."""
     ps, ss = [], []
     for v in views:
+        w = v.weight
+        if w is not None and float(w.sum()) <= 0:  # (nothing of the view was trained)
+            continue
         r = render_view(model, v.camera, sh_degree, backend, background)
-        if v.weight is None:
-            ps.append(psnr(r, v.image))
-            ss.append(ssim_metric(r, v.image))
-            continue
-        w = v.weight.to(r.device)
-        total = float(w.sum()) * 3
-        if total <= 0:  # (nothing of the view was trained)
-            continue
-        mse = float((((r.clamp(0, 1) - v.image) ** 2) * w[..., None]).sum()) / total
-        ps.append(float("inf") if mse <= 0 else -10.0 * math.log10(mse))
-        with torch.no_grad():
-            m = ssim_map(r.clamp(0, 1).permute(2, 0, 1)[None], v.image.permute(2, 0, 1)[None])[0]
-        ss.append(float((m * w).sum()) / total)
+        w = None if w is None else w.to(r.device)
+        ps.append(psnr(r, v.image, w))
+        ss.append(ssim_metric(r, v.image, w))
     if not ps:
         return {"psnr": float("nan"), "ssim": float("nan")}
     return {"psnr": float(np.mean(ps)), "ssim": float(np.mean(ss))}

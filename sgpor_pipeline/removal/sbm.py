@@ -50,6 +50,7 @@ from .features import BlockFeatures, CellLayout, Descriptors, make_backend
 BLEND_MODES = ("poisson", "feather")
 METRICS = ("cosine", "l2")
 ORDERS = ("onion", "priority")
+LABEL_PENALTY = 4e6  # retrieval score lost by a source of another structure cell (below everything else)
 SENTINEL = -1.0  # colour of invalid source pixels during re-ranking (never matches real colours)
 UINT8_TO_FLOAT = to_float32(np.arange(256, dtype=np.uint8))  # (the kernel reads 8-bit views through it)
 
@@ -219,6 +220,10 @@ class SourceBank:
     seconds: float = 0.0
     object_masks: list[np.ndarray] = field(default_factory=list)
     log_depth: np.ndarray | None = None  # [Ns] mean log rendered depth of each source block (NaN: unknown)
+    # per view int32 cell labels (removal.structure.cell_labels; FREE = any) and [Ns] the label at each
+    # source block's centre; None without structure
+    labels: list[np.ndarray] | None = None
+    block_label: np.ndarray | None = None
     _padded: dict[int, np.ndarray] = field(default_factory=dict)
     _free_padded: dict[tuple[int, int], np.ndarray] = field(default_factory=dict)
     _coarser: SourceBank | None = None
@@ -287,9 +292,12 @@ def block_log_depth(depth: np.ndarray | None, use: np.ndarray, corners: np.ndarr
 def build_source_bank(names: list[str], images: list[np.ndarray], object_masks: list[np.ndarray],
                       holes: list[np.ndarray], params: SBMParams,
                       features: BlockFeatures | None = None,
-                      depths: Sequence[np.ndarray | None] | None = None) -> SourceBank:
+                      depths: Sequence[np.ndarray | None] | None = None,
+                      labels: Sequence[np.ndarray] | None = None) -> SourceBank:
     """Describe every object-free block of every view (``images``: float in [0, 1], or uint8, kept so;
-    object masks; hole masks; ``depths``: each view's rendered depth, for ``params.depth_weight``)."""
+    object masks; hole masks; ``depths``: each view's rendered depth, for ``params.depth_weight``;
+    ``labels``: each view's structure cells (:func:`~sgpor_pipeline.removal.structure.cell_labels`),
+    which :func:`inpaint_view` with ``labels`` matches)."""
     t0 = time.perf_counter()
     params.validate()
     features = features or make_features(params)
@@ -334,9 +342,14 @@ def build_source_bank(names: list[str], images: list[np.ndarray], object_masks: 
     f = features.standardizer(f)
     sw = (f * w[..., None]).reshape(len(f), -1).astype(np.float32)
     wsn = (w * (f * f).sum(-1)).astype(np.float32)
+    labs = block_label = None
+    if labels is not None:
+        labs = [np.asarray(lab, np.int32) for lab in labels]
+        c = s // 2
+        block_label = np.array([labs[v][y + c, x + c] for v, y, x in pos.tolist()], np.int32)
     return SourceBank(list(names), imgs, valid, free, pos, sw, w.astype(np.float32), wsn, features, stride,
                       time.perf_counter() - t0, [np.asarray(m, bool) for m in object_masks],
-                      logd if depths is not None else None)
+                      logd if depths is not None else None, labs, block_label)
 
 
 def _half_size(hw: tuple[int, int]) -> tuple[int, int]:
@@ -355,7 +368,7 @@ def _shrink_any(mask: np.ndarray, wh: tuple[int, int]) -> np.ndarray:
 
 def retrieve(bank: SourceBank, desc: Descriptors, k: int, metric: str = "cosine", chunk: int = 16384,
              min_overlap: float = 0.3, max_elements: int = 1 << 24, target_log_depth: np.ndarray | None = None,
-             depth_weight: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+             depth_weight: float = 0.0, target_label: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Top-k source blocks per target by weighted cosine (or -L2) over cells, all by matrix products.
 
     sim(t, s) = sum_c wt_c ws_c <t_c, s_c> / sqrt(sum_c wt_c ws_c |t_c|^2 * sum_c wt_c ws_c |s_c|^2)
@@ -365,7 +378,9 @@ def retrieve(bank: SourceBank, desc: Descriptors, k: int, metric: str = "cosine"
     ``max_elements`` floats (a layer of a large hole has thousands of targets: 0.85 GB at lund's
     960 px before). Candidates whose shared cell weight is below ``min_overlap`` of the target's are
     ranked last. With ``depth_weight`` > 0, ``target_log_depth`` [Nt] and the bank's ``log_depth``, a
-    score loses depth_weight x |log depth difference| (nothing where either depth is unknown).
+    score loses depth_weight x |log depth difference| (nothing where either depth is unknown). With
+    ``target_label`` [Nt] and the bank's ``block_label``, a source of another structure cell ranks below
+    every source of the target's own (FREE on either side: no constraint).
     Returns (indices into the bank [Nt,k], scores [Nt,k]; higher is better), best first.
     """
     import torch
@@ -381,9 +396,12 @@ def retrieve(bank: SourceBank, desc: Descriptors, k: int, metric: str = "cosine"
     pool = min(len(bank), 2 * k)  # over-select, then drop low-overlap pairs
     guided = depth_weight > 0 and target_log_depth is not None and bank.log_depth is not None
     TD = torch.from_numpy(np.asarray(target_log_depth, np.float32).reshape(-1)) if guided else torch.zeros(nt)
+    labelled = target_label is not None and bank.block_label is not None
+    TL = (torch.from_numpy(np.asarray(target_label, np.int64).reshape(-1)) if labelled
+          else torch.zeros(nt, dtype=torch.int64))
 
     def top_sources(T: torch.Tensor, TN: torch.Tensor, wt: torch.Tensor,
-                    td: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+                    td: torch.Tensor, tl: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         best_s = torch.full((len(T), 0), -np.inf)
         best_i = torch.zeros((len(T), 0), dtype=torch.int64)
         for a in range(0, len(bank), chunk):
@@ -400,6 +418,10 @@ def retrieve(bank: SourceBank, desc: Descriptors, k: int, metric: str = "cosine"
             if guided:
                 sd = torch.from_numpy(bank.log_depth[a:b])
                 score.sub_((td[:, None] - sd[None, :]).abs_().nan_to_num_(0.0).mul_(depth_weight))
+            if labelled:  # below the low-overlap penalty (1e6) applied after
+                sl = torch.from_numpy(bank.block_label[a:b].astype(np.int64))
+                other = (tl[:, None] != sl[None, :]) & (tl[:, None] >= 0) & (sl[None, :] >= 0)
+                score.sub_(other.float().mul_(LABEL_PENALTY))
             kk = min(pool, b - a)
             ps, pi = torch.topk(score, kk, dim=1)
             cat_s = torch.cat([best_s, ps], 1)
@@ -410,7 +432,7 @@ def retrieve(bank: SourceBank, desc: Descriptors, k: int, metric: str = "cosine"
 
     rows = max(1, max_elements // chunk)
     with torch.no_grad():
-        parts = [top_sources(T[t:t + rows], TN[t:t + rows], wt[t:t + rows], TD[t:t + rows])
+        parts = [top_sources(T[t:t + rows], TN[t:t + rows], wt[t:t + rows], TD[t:t + rows], TL[t:t + rows])
                  for t in range(0, nt, rows)]
     idx = torch.cat([i for _, i in parts]).numpy()
     sc = torch.cat([s for s, _ in parts]).numpy().astype(np.float32)
@@ -614,14 +636,14 @@ def _best_shifts(bank: SourceBank, res: np.ndarray, pos: np.ndarray, sims: np.nd
 
 
 def match_blocks(image: np.ndarray, known: np.ndarray, targets: np.ndarray, bank: SourceBank, params: SBMParams,
-                 target_log_depth: np.ndarray | None = None
+                 target_log_depth: np.ndarray | None = None, target_label: np.ndarray | None = None
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[float, float, float]]:
     """Ranked source blocks for the target blocks at ``targets`` [T,2] of ``image``.
 
     Descriptors use the ``known`` pixels only (bool, or float weights in [0, 1]: a guide's pixels count
     partly); the feature shortlist (``rerank`` long) is re-ranked by masked colour SSD over the known
     context with a +-``shift`` alignment search; ``target_log_depth`` [T] guides the shortlist
-    (``params.depth_weight``). Returns
+    (``params.depth_weight``); ``target_label`` [T] keeps it to the targets' structure cells. Returns
     (positions [T,k,3] (view, y, x), colour cost [T,k], feature similarity [T,k],
     (seconds describing, retrieving, re-ranking)).
     """
@@ -654,7 +676,8 @@ def match_blocks(image: np.ndarray, known: np.ndarray, targets: np.ndarray, bank
         desc = bank.features.describe_maps(bank.features.backend.maps(image), known, targets)
     t1 = time.perf_counter()
     idx, sc = retrieve(bank, desc, max(k, params.rerank), params.metric, params.chunk,
-                       target_log_depth=target_log_depth, depth_weight=params.depth_weight)
+                       target_log_depth=target_log_depth, depth_weight=params.depth_weight,
+                       target_label=target_label)
     t2 = time.perf_counter()
     if params.rerank > 0:
         P = rpad + s
@@ -752,14 +775,30 @@ def paste_block(bank: SourceBank, pos: np.ndarray, cost: np.ndarray, block: int,
     return out
 
 
+def _label_agreement(target: np.ndarray, bank: SourceBank, pos: np.ndarray, block: int) -> np.ndarray:
+    """Per pixel of a pasted block: 1 where the best source's pixel lies in the target pixel's
+    structure cell (or either is FREE), else 1e-3 (a pixel no source of its cell reaches still gets
+    a value)."""
+    v, sy, sx = (int(a) for a in pos[0])
+    if v < 0:
+        return np.ones(target.shape, np.float32)
+    src = bank.labels[v][sy:sy + block, sx:sx + block]
+    agree = (src == target) | (src < 0) | (target < 0)
+    return np.where(agree, 1.0, 1e-3).astype(np.float32)
+
+
 def inpaint_view(image: np.ndarray, hole: np.ndarray, bank: SourceBank, params: SBMParams,
-                 known: np.ndarray | None = None, depth: np.ndarray | None = None) -> SBMResult:
+                 known: np.ndarray | None = None, depth: np.ndarray | None = None,
+                 labels: np.ndarray | None = None) -> SBMResult:
     """Complete the ``hole`` pixels of ``image`` (float RGB) from the bank's source blocks.
 
     ``known``: hole pixels already filled (e.g. projected from a reference view); they are kept and
     count as valid context. ``depth``: the view's completed depth, which guides retrieval with
-    ``params.depth_weight`` (and a bank built with depths). With ``params.levels`` > 1 the hole starts
-    from :func:`coarse_guide`.
+    ``params.depth_weight`` (and a bank built with depths). ``labels``: the view's structure cells
+    (:func:`~sgpor_pipeline.removal.structure.cell_labels`, with a bank built with labels): a target
+    block takes sources of the cell at its centre, and a pixel mainly the pasted pixels whose source
+    lies in its own cell (others weigh ``1e-3``), so straight borders continue through the hole. With
+    ``params.levels`` > 1 the hole starts from :func:`coarse_guide`.
     Returns an :class:`SBMResult`.
     """
     t0 = time.perf_counter()
@@ -776,6 +815,10 @@ def inpaint_view(image: np.ndarray, hole: np.ndarray, bank: SourceBank, params: 
     nt = len(targets)
     target_logd = (block_log_depth(depth, todo, targets, s, min_share=0.0)
                    if params.depth_weight > 0 and depth is not None and bank.log_depth is not None else None)
+    labelled = labels is not None and bank.labels is not None
+    if labelled:
+        labels = np.asarray(labels, np.int32)
+        target_label = labels[targets[:, 0] + s // 2, targets[:, 1] + s // 2]
     cand = np.full((nt, k, 3), -1, np.int64)
     cost = np.full((nt, k), np.nan, np.float32)
     sim = np.full((nt, k), np.nan, np.float32)
@@ -808,15 +851,17 @@ def inpaint_view(image: np.ndarray, hole: np.ndarray, bank: SourceBank, params: 
         # this layer's targets are described on the current image (filled neighbours included)
         ta = time.perf_counter()
         pos, cst, sm, tm = match_blocks(cur, known_now if weight_now is None else weight_now, targets[lay], bank,
-                                        params, None if target_logd is None else target_logd[lay])
+                                        params, None if target_logd is None else target_logd[lay],
+                                        target_label[lay] if labelled else None)
         cand[lay, :pos.shape[1]] = pos
         cost[lay, :pos.shape[1]] = cst
         sim[lay, :pos.shape[1]] = sm
         layer_of[lay] = n_layers
         for j, b in enumerate(lay):
             ty, tx = int(targets[b, 0]), int(targets[b, 1])
-            acc[ty:ty + s, tx:tx + s] += fw[:, :, None] * paste_block(bank, pos[j], cst[j], s, params)
-            wsum[ty:ty + s, tx:tx + s] += fw
+            wb = fw if not labelled else fw * _label_agreement(labels[ty:ty + s, tx:tx + s], bank, pos[j], s)
+            acc[ty:ty + s, tx:tx + s] += wb[:, :, None] * paste_block(bank, pos[j], cst[j], s, params)
+            wsum[ty:ty + s, tx:tx + s] += wb
         t_feat += tm[0]
         t_ret += tm[1]
         t_rr += time.perf_counter() - ta - tm[0] - tm[1]

@@ -1,0 +1,217 @@
+"""Straight structure across a hole: the lines that run into it, and the cells they cut it into.
+
+Man-made planes (a table with mats, a floor with a rug, tiles) are bounded by straight edges. A fill
+that grows from the hole's rim in layers lets each region of the rim advance at one speed, so where
+two regions meet inside the hole their border wanders (mip360 kitchen from one mask: blobs of the
+orange mat in the wood between the mats). Here the straight edges near the hole are found on the
+known image (OpenCV's LSD on a lightly blurred grey image, segments on the same line merged), kept
+when they are long, have contrast across them and reach the hole, and extended through it. The lines
+cut the image into cells (the side of every line); :func:`~sgpor_pipeline.removal.sbm.inpaint_view`
+with ``labels`` then fills each target block from source blocks of its own cell, and each pixel mainly
+from the blocks of its cell, so the edges continue straight through the hole and meet at corners.
+
+Curved borders (an ellipse, a round rug) give no long segment and nothing changes there.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from sgpor_pipeline.errors import PipelineError
+
+FREE = -1  # label of a pixel whose cell has no known pixels near the hole: no constraint there
+
+
+@dataclass
+class StructureParams:
+    min_length: float = 0.0  # px of a line's segments together; 0 = 2 x block
+    reach: float = 0.0  # a line's nearest segment end lies within this many px of the hole; 0 = block
+    min_contrast: float = 0.08  # mean RGB difference (L2, in [0, 1] units) across the line, 3 px each side
+    max_lines: int = 8  # the longest this many lines (2^8 cells at most)
+    merge_angle: float = 2.0  # degrees: segments this close in angle ...
+    merge_distance: float = 1.5  # ... whose ends lie this close (px) to a line extend it
+    blur: float = 1.0  # Gaussian sigma (px) before the detector (woven or grainy texture)
+    min_cell_pixels: int = 0  # known pixels a cell needs near the hole to constrain it; 0 = block^2
+    near: float = 0.0  # "near the hole": within this many px; 0 = 3 x block
+
+    def validate(self) -> None:
+        if self.max_lines < 1 or self.max_lines > 16:
+            raise PipelineError(f"max_lines must be in 1..16 (got {self.max_lines})", fix="use e.g. 8")
+        if min(self.min_length, self.reach, self.min_contrast, self.blur, self.near) < 0 or self.min_cell_pixels < 0:
+            raise PipelineError("structure lengths, contrast and blur must be >= 0", fix="use the defaults")
+
+
+@dataclass
+class Line:
+    """n . p = rho, n a unit normal (x, y); ``length`` the segments' total length (px)."""
+
+    normal: np.ndarray
+    rho: float
+    length: float
+    contrast: float = 0.0
+    segments: list[np.ndarray] = field(default_factory=list)  # [4] x0, y0, x1, y1 each
+
+    def side(self, h: int, w: int) -> np.ndarray:
+        ys, xs = np.mgrid[0:h, 0:w]
+        return (xs * self.normal[0] + ys * self.normal[1] - self.rho) > 0
+
+    def to_dict(self) -> dict:
+        return {"normal": [float(self.normal[0]), float(self.normal[1])], "rho": float(self.rho),
+                "length": float(self.length), "contrast": float(self.contrast), "segments": len(self.segments)}
+
+
+def _segments(image: np.ndarray, valid: np.ndarray, blur: float) -> np.ndarray:
+    """LSD segments [M,4] (x0, y0, x1, y1) lying on ``valid`` pixels (2 px in), on a grey image whose
+    invalid pixels are filled smoothly (so the rim of the hole makes no edge)."""
+    u8 = np.clip(np.asarray(image, np.float32) * 255 + 0.5, 0, 255).astype(np.uint8)
+    grey = cv2.cvtColor(u8, cv2.COLOR_RGB2GRAY)
+    if (~valid).any():
+        grey = cv2.inpaint(grey, (~valid).astype(np.uint8), 3, cv2.INPAINT_TELEA)
+    if blur > 0:
+        grey = cv2.GaussianBlur(grey, (0, 0), blur)
+    lines = cv2.createLineSegmentDetector().detect(grey)[0]
+    if lines is None:
+        return np.zeros((0, 4), np.float32)
+    inner = cv2.erode(valid.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    h, w = valid.shape
+    out = []
+    for x0, y0, x1, y1 in lines.reshape(-1, 4).astype(np.float64):
+        # the runs of the segment on valid pixels (the smooth fill may carry an edge into the hole)
+        n = max(2, int(np.ceil(np.hypot(x1 - x0, y1 - y0))) + 1)
+        t = np.linspace(0.0, 1.0, n)
+        px, py = x0 + t * (x1 - x0), y0 + t * (y1 - y0)
+        ok = inner[np.clip(np.rint(py), 0, h - 1).astype(int), np.clip(np.rint(px), 0, w - 1).astype(int)]
+        edges = np.flatnonzero(np.diff(np.r_[0, ok.astype(np.int8), 0]))
+        for a, b in zip(edges[::2], edges[1::2]):
+            if b - a >= 4:
+                out.append((px[a], py[a], px[b - 1], py[b - 1]))
+    return np.array(out, np.float32).reshape(-1, 4)
+
+
+def _merge(seg: np.ndarray, angle_deg: float, dist: float) -> list[Line]:
+    """Greedy: the longest segment starts a line; a segment of about its angle whose ends lie near it joins."""
+    d = seg[:, 2:] - seg[:, :2]
+    length = np.hypot(d[:, 0], d[:, 1])
+    order = np.argsort(-length, kind="stable")
+    lines: list[Line] = []
+    cos_tol = np.cos(np.deg2rad(angle_deg))
+    for i in order:
+        if length[i] <= 0:
+            continue
+        u = d[i] / length[i]
+        for ln in lines:
+            direction = np.array([ln.normal[1], -ln.normal[0]])
+            if abs(float(u @ direction)) < cos_tol:
+                continue
+            e = np.abs(seg[i, :2] @ ln.normal - ln.rho), np.abs(seg[i, 2:] @ ln.normal - ln.rho)
+            if max(e) <= dist:
+                ln.length += float(length[i])
+                ln.segments.append(seg[i])
+                break
+        else:
+            n = np.array([-u[1], u[0]])
+            lines.append(Line(n, float(seg[i, :2] @ n), float(length[i]), segments=[seg[i]]))
+    return lines
+
+
+def _contrast(image: np.ndarray, valid: np.ndarray, line: Line, offset: float = 3.0) -> float:
+    """Mean colour difference (L2) between points ``offset`` px either side of the line's segments."""
+    h, w = valid.shape
+    diffs = []
+    for s in line.segments:
+        n = max(2, int(np.hypot(s[2] - s[0], s[3] - s[1])))
+        t = np.linspace(0.0, 1.0, n)
+        px, py = s[0] + t * (s[2] - s[0]), s[1] + t * (s[3] - s[1])
+        a = np.rint([px + offset * line.normal[0], py + offset * line.normal[1]]).astype(int)
+        b = np.rint([px - offset * line.normal[0], py - offset * line.normal[1]]).astype(int)
+        ok = ((a[0] >= 0) & (a[0] < w) & (a[1] >= 0) & (a[1] < h) & (b[0] >= 0) & (b[0] < w) & (b[1] >= 0)
+              & (b[1] < h))
+        a, b = a[:, ok], b[:, ok]
+        ok = valid[a[1], a[0]] & valid[b[1], b[0]]
+        if ok.any():
+            diffs.append(image[a[1][ok], a[0][ok]] - image[b[1][ok], b[0][ok]])
+    if not diffs:
+        return 0.0
+    return float(np.linalg.norm(np.concatenate(diffs).mean(axis=0)))
+
+
+def hole_lines(image: np.ndarray, known: np.ndarray, hole: np.ndarray, block: int,
+               params: StructureParams | None = None) -> list[Line]:
+    """The straight edges of the ``known`` part of ``image`` (float RGB in [0, 1]) that run into
+    ``hole``: long enough, with contrast across them, a segment end near the hole, the line through
+    it. Longest first, at most ``max_lines``."""
+    p = params or StructureParams()
+    p.validate()
+    hole = np.asarray(hole, bool)
+    known = np.asarray(known, bool) & ~hole
+    if not hole.any() or not known.any():
+        return []
+    img = np.asarray(image, np.float32)
+    min_len = p.min_length or 2.0 * block
+    reach = p.reach or float(block)
+    seg = _segments(img, known, p.blur)
+    if not len(seg):
+        return []
+    to_hole = cv2.distanceTransform((~hole).astype(np.uint8), cv2.DIST_L2, 5)
+    hy, hx = np.nonzero(hole)
+    h, w = hole.shape
+    out = []
+    for ln in _merge(seg, p.merge_angle, p.merge_distance):
+        if ln.length < min_len:
+            continue
+        if np.abs(hx * ln.normal[0] + hy * ln.normal[1] - ln.rho).min() > 1.0:  # it misses the hole
+            continue
+        ends = np.concatenate([s.reshape(2, 2) for s in ln.segments])
+        ex = np.clip(np.rint(ends[:, 0]), 0, w - 1).astype(int)
+        ey = np.clip(np.rint(ends[:, 1]), 0, h - 1).astype(int)
+        if to_hole[ey, ex].min() > reach:
+            continue
+        ln.contrast = _contrast(img, known, ln)
+        if ln.contrast < p.min_contrast:
+            continue
+        out.append(ln)
+    out.sort(key=lambda ln: -ln.length)
+    return out[: p.max_lines]
+
+
+def cell_labels(shape: tuple[int, int], lines: list[Line], known: np.ndarray, hole: np.ndarray, block: int,
+                params: StructureParams | None = None) -> np.ndarray:
+    """int32 label per pixel: the sides of ``lines`` as bits (0 without lines). A cell with fewer than
+    ``min_cell_pixels`` known pixels near the hole gets :data:`FREE` (nothing to fill it from)."""
+    p = params or StructureParams()
+    h, w = shape
+    lab = np.zeros((h, w), np.int32)
+    for i, ln in enumerate(lines):
+        lab |= ln.side(h, w).astype(np.int32) << i
+    if not lines:
+        return lab
+    near = cv2.distanceTransform((~np.asarray(hole, bool)).astype(np.uint8), cv2.DIST_L2, 5) <= (p.near or 3 * block)
+    support = near & np.asarray(known, bool) & ~np.asarray(hole, bool)
+    counts = np.bincount(lab[support], minlength=1 << len(lines))
+    need = p.min_cell_pixels or block * block
+    weak = counts < need
+    lab[weak[lab]] = FREE
+    return lab
+
+
+def draw_lines(image: np.ndarray, hole: np.ndarray, lines: list[Line]) -> np.ndarray:
+    """A picture of the lines: ``image`` with the hole in blue, each line's segments in yellow and its
+    extension through the hole in cyan (float RGB)."""
+    out = np.array(image, np.float32)
+    hole = np.asarray(hole, bool)
+    out[hole] = 0.5 * out[hole] + 0.5 * np.array([0.0, 0.0, 1.0], np.float32)
+    h, w = hole.shape
+    for ln in lines:
+        d = np.array([ln.normal[1], -ln.normal[0]])
+        c = ln.normal * ln.rho
+        a, b = c - 2 * (h + w) * d, c + 2 * (h + w) * d
+        ext = np.zeros((h, w), np.uint8)
+        cv2.line(ext, (int(round(a[0])), int(round(a[1]))), (int(round(b[0])), int(round(b[1]))), 1, 1)
+        out[(ext > 0) & hole] = (0.0, 1.0, 1.0)
+        for s in ln.segments:
+            p0, p1 = (int(round(s[0])), int(round(s[1]))), (int(round(s[2])), int(round(s[3])))
+            cv2.line(out, p0, p1, (1.0, 1.0, 0.0), 1)
+    return out

@@ -4,7 +4,8 @@
                                  [--scenes synthetic,synthetic-box,lund,statue,room[,statue-box,
                                            synthetic-box-contact,synthetic-box-cast,
                                            synthetic-raised-cast,synthetic-box-1mask,synthetic-cast,
-                                           synthetic-raised-cast-1mask,lund-1mask]]
+                                           synthetic-raised-cast-1mask,lund-1mask,
+                                           synthetic-box-edge,synthetic-box-corner]]
                                  [--set STAGE.PARAM=VALUE ...]   (overrides for every variant of (a) and (b))
                                  [--novel]   (+ the novel-view protocol (d) on the scenes of (a) and (b))
                                  [--fit-seeds 0,1,2]   (every method on each seed's fit; targets on the mean)
@@ -427,6 +428,10 @@ SYNTHETIC_SCENES: dict[str, dict[str, Any]] = {
     # synthetic-raised-cast from ONE given mask: the fit models the box and the shadowed floor seen
     # under it; what is left of them after the selection is what the plane texture must cover
     "synthetic-raised-cast-1mask": {"object_kind": "raised_box", "object_shadow": "cast"},
+    # synthetic-box with the rug moved so that its edge, or its corner, runs under the box: a straight
+    # border through what the box hides (as the mats on mip360 kitchen's table); inpaint.plane_structure
+    "synthetic-box-edge": {"object_kind": "box", "rug_place": "edge"},
+    "synthetic-box-corner": {"object_kind": "box", "rug_place": "corner"},
 }
 # a run from one given mask: the fit models the object, the masks stage propagates it, and it is scored
 # over the true masks (evaluate.score_masks=input: a propagated mask that missed part of the object must
@@ -440,6 +445,7 @@ PREFIX = {"synthetic": "synthetic", "synthetic-box": "synthetic_box", "synthetic
           "synthetic-box-cast": "synthetic_box_cast", "synthetic-raised-cast": "synthetic_raised_cast",
           "synthetic-box-1mask": "synthetic_box_1mask", "synthetic-cast": "synthetic_cast",
           "synthetic-raised-cast-1mask": "synthetic_raised_cast_1mask",
+          "synthetic-box-edge": "synthetic_box_edge", "synthetic-box-corner": "synthetic_box_corner",
           "lund": "lund_inserted", "lund-1mask": "lund_inserted_1mask",
           "statue-box": "statue_inserted"}
 NOVEL_EVERY = 4  # --novel: every 4th view (from the third, in name order) is a held-out test view
@@ -1388,7 +1394,8 @@ def main(argv: list[str] | None = None) -> int:
                          "synthetic-raised-cast (a box on feet, its footprint in the photos), synthetic-box-1mask "
                          "(the box from one given mask), synthetic-cast (the sphere with its shadows), "
                          "synthetic-raised-cast-1mask (the box on feet from one given mask), lund-1mask (lund + "
-                         "box from one given mask)")
+                         "box from one given mask), synthetic-box-edge, synthetic-box-corner (the rug's edge or "
+                         "corner under the box)")
     ap.add_argument("--verbose", action="store_true", help="log every stage")
     ap.add_argument("--novel", action="store_true",
                     help="also protocol (d): every method scored at held-out views it never saw (a second run "

@@ -32,7 +32,7 @@ import functools
 import json
 import logging
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -86,6 +86,10 @@ class SceneParams:
     n_background_objects: int = 6
     object_kind: str = "random"  # "box", "sphere", "cylinder", "raised_box" or "random"
     rug: bool = True  # a textured rug on the floor under the object (makes the hole non-trivial)
+    # Where the rug lies: "centre" (the object stands well inside it), "edge" (one of its long edges
+    # passes under the object's centre) or "corner" (its corner lies there): straight borders that run
+    # through what the object hides, as mats on a table do.
+    rug_place: str = "centre"
     shadows: bool = True  # hard shadows cast by the background objects (never by the object)
     # How the object darkens the background in ``images`` (never in ``images_gt``), as in a real
     # photo: "none"; "contact" (its ambient occlusion: the floor darkens where it stands); "cast"
@@ -653,6 +657,14 @@ def _build_layout(p: SceneParams, rng: np.random.Generator):
         surfaces.append(_Surface("rug", "plane", _texture(rug_tex, rng, size), rug_c, rug_half, rug_rot,
                                  fit=True, mesh=_quad(corners)))
     obj_c = np.array([*rng.uniform(-0.2, 0.2, 2), base + half[2]])
+    if p.rug and p.rug_place != "centre":  # (after every draw: the rest of the scene stays the same)
+        if p.rug_place not in ("edge", "corner"):
+            raise ValueError(f"rug_place must be 'centre', 'edge' or 'corner', got {p.rug_place!r}")
+        reach = rug_half * (np.array([0.0, 1.0, 0.0]) if p.rug_place == "edge" else np.array([1.0, 1.0, 0.0]))
+        rug_c = np.array([*(obj_c[:2] - (rug_rot @ reach)[:2]), base])
+        corners = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]]) * rug_half @ rug_rot.T + rug_c
+        rug = next(i for i, sf in enumerate(surfaces) if sf.name == "rug")
+        surfaces[rug] = replace(surfaces[rug], center=rug_c, mesh=_quad(corners))
     obj = _Surface("object", kind, _texture(obj_tex_name, rng, size, tint=False), obj_c, half, rot,
                    fit=True, mesh=_primitive_mesh(kind, half, obj_c, rot))
 

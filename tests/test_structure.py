@@ -171,3 +171,21 @@ def test_rug_place_puts_the_rugs_edge_or_corner_under_the_object():
         assert not np.array_equal(sc.images_gt, centre.images_gt)
     with pytest.raises(ValueError, match="rug_place"):
         generate_scene(SceneParams(**small, rug_place="middle"))
+
+
+def test_an_edge_that_ends_at_the_hole_is_not_continued():
+    """mip360 room's case: a rug's corner at the hole's rim (its top edge reaches the hole, its side
+    runs away from it) beside a dark box whose corner the hole hides. The box's two edges are continued
+    to their corner; the rug's edge, which crosses the box's side inside the hole but bounds no region
+    with it, is not (before, the two were taken for one corner and the box's colour filled the rug's)."""
+    rng = np.random.default_rng(7)
+    yy, xx = np.mgrid[0:N, 0:N]
+    hole = (yy - 80) ** 2 + (xx - 80) ** 2 < 25 ** 2
+    img = np.repeat((0.75 + grain(rng))[..., None], 3, 2)
+    rug = (xx < 54) & (yy > 84 + 0.15 * (54 - xx))  # its corner (54, 84) on the rim, its edges run away
+    img[rug] = 0.2 + grain(rng)[rug][:, None]
+    box = (xx > 95 + 0.3 * (yy - 100)) & (yy > 60)  # its top-left corner in the hole
+    img[box & ~hole] = 0.05 + grain(rng)[box & ~hole][:, None]
+    lines = hole_lines(img, ~hole, hole, 15)
+    normals = sorted(tuple(np.round(np.abs(ln.normal), 1)) for ln in lines)
+    assert normals == [(0.0, 1.0), (1.0, 0.3)], [ln.to_dict() for ln in lines]  # the box's top and side

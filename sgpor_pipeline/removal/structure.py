@@ -138,11 +138,81 @@ def _contrast(image: np.ndarray, valid: np.ndarray, line: Line, offset: float = 
     return float(np.linalg.norm(np.concatenate(diffs).mean(axis=0)))
 
 
+def _entries(image: np.ndarray, known: np.ndarray, hole: np.ndarray, line: Line, block: int,
+             min_contrast: float, offset: float = 3.0) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Where the line enters the hole with its edge there: for each end of each run of hole pixels
+    along the line, the known pixels over the last ``block`` px before it must differ across the line
+    (mean colour difference >= ``min_contrast``, measured ``offset`` px either side). Returns those
+    entries: (point (x, y), mean colour on the normal's side, on the other)."""
+    h, w = hole.shape
+    d = np.array([line.normal[1], -line.normal[0]])
+    t = np.arange(-(h + w), h + w + 1, dtype=np.float64)
+    pts = line.normal * line.rho + t[:, None] * d
+    inside = (pts[:, 0] >= 0) & (pts[:, 0] <= w - 1) & (pts[:, 1] >= 0) & (pts[:, 1] <= h - 1)
+    t, pts = t[inside], pts[inside]
+    if not len(t):
+        return []
+    on_hole = hole[np.rint(pts[:, 1]).astype(int), np.rint(pts[:, 0]).astype(int)]
+    edges = np.flatnonzero(np.diff(np.r_[0, on_hole.astype(np.int8), 0]))
+    found = []
+    for start, stop in zip(edges[::2], edges[1::2]):  # a run of hole pixels [start, stop)
+        for entry, before in ((start, np.arange(start - block - 2, start - 2)),
+                              (stop - 1, np.arange(stop + 2, stop + block + 2))):
+            before = before[(before >= 0) & (before < len(t))]
+            if len(before) < block // 2:
+                continue
+            q = pts[before]
+            a = np.rint(q + offset * line.normal).astype(int)
+            b = np.rint(q - offset * line.normal).astype(int)
+            ok = ((a[:, 0] >= 0) & (a[:, 0] < w) & (a[:, 1] >= 0) & (a[:, 1] < h) & (b[:, 0] >= 0) & (b[:, 0] < w)
+                  & (b[:, 1] >= 0) & (b[:, 1] < h))
+            a, b = a[ok], b[ok]
+            ok = known[a[:, 1], a[:, 0]] & known[b[:, 1], b[:, 0]]
+            if ok.sum() < block // 2:
+                continue
+            plus, minus = image[a[ok, 1], a[ok, 0]].mean(axis=0), image[b[ok, 1], b[ok, 0]].mean(axis=0)
+            if np.linalg.norm(plus - minus) >= min_contrast:
+                found.append((pts[entry], plus, minus))
+    return found
+
+
+def _corner(a: tuple[Line, tuple], b: tuple[Line, tuple], hole: np.ndarray, tolerance: int = 3) -> bool:
+    """Whether two lines, each with one entry into the hole (``(line, entry)``), are the two borders of
+    one region whose corner the hole hides: they cross within ``tolerance`` px of a hole pixel; their
+    sides pair up by colour at the entries (each side like one side of the other line, clearly more than
+    like its other side); and for one of the two regions so paired, each line enters on that region's
+    side of the other (the region's edges run from their entries to the corner)."""
+    (la, (pa, a_plus, a_minus)), (lb, (pb, b_plus, b_minus)) = a, b
+    m = np.array([la.normal, lb.normal])
+    if abs(np.linalg.det(m)) < np.sin(np.deg2rad(10.0)):  # (about parallel)
+        return False
+    x, y = np.linalg.solve(m, [la.rho, lb.rho])
+    h, w = hole.shape
+    y0, y1 = int(max(0, np.floor(y) - tolerance)), int(min(h, np.ceil(y) + tolerance + 1))
+    x0, x1 = int(max(0, np.floor(x) - tolerance)), int(min(w, np.ceil(x) + tolerance + 1))
+    if not (y0 < y1 and x0 < x1 and hole[y0:y1, x0:x1].any()):
+        return False
+    same = max(np.linalg.norm(a_plus - b_plus), np.linalg.norm(a_minus - b_minus))
+    cross = max(np.linalg.norm(a_plus - b_minus), np.linalg.norm(a_minus - b_plus))
+    if min(same, cross) > 0.5 * max(same, cross):  # the sides do not pair up clearly
+        return False
+    sign_b_of_a = 1.0 if same < cross else -1.0  # b's side (of its normal) holding a's + side's colour
+    side_a_of_b = float(pb @ la.normal - la.rho)  # where b enters, relative to a
+    side_b_of_a = float(pa @ lb.normal - lb.rho)
+    for region in (1.0, -1.0):  # a's + side (and its partner on b), then a's - side
+        if side_a_of_b * region > 0 and side_b_of_a * region * sign_b_of_a > 0:
+            return True
+    return False
+
+
 def hole_lines(image: np.ndarray, known: np.ndarray, hole: np.ndarray, block: int,
                params: StructureParams | None = None) -> list[Line]:
-    """The straight edges of the ``known`` part of ``image`` (float RGB in [0, 1]) that run into
-    ``hole``: long enough, with contrast across them, a segment end near the hole, the line through
-    it. Longest first, at most ``max_lines``."""
+    """The straight edges of the ``known`` part of ``image`` (float RGB in [0, 1]) that run through
+    ``hole``: long enough, with contrast across them, a segment end near the hole, and the edge there
+    where the line enters the hole on both sides (a border that passes under the object), or on one
+    side where it meets another such line inside the hole (a hidden corner). An edge that stops short
+    of the hole (a rug's border ending at its corner beside it) or that ends at the hole (an object's
+    side the hole cuts off) is not continued. Longest first, at most ``max_lines``."""
     p = params or StructureParams()
     p.validate()
     hole = np.asarray(hole, bool)
@@ -158,7 +228,8 @@ def hole_lines(image: np.ndarray, known: np.ndarray, hole: np.ndarray, block: in
     to_hole = cv2.distanceTransform((~hole).astype(np.uint8), cv2.DIST_L2, 5)
     hy, hx = np.nonzero(hole)
     h, w = hole.shape
-    out = []
+    through: list[Line] = []
+    one_sided: list[tuple[Line, tuple]] = []
     for ln in _merge(seg, p.merge_angle, p.merge_distance):
         if ln.length < min_len:
             continue
@@ -172,8 +243,13 @@ def hole_lines(image: np.ndarray, known: np.ndarray, hole: np.ndarray, block: in
         ln.contrast = _contrast(img, known, ln)
         if ln.contrast < p.min_contrast:
             continue
-        out.append(ln)
-    out.sort(key=lambda ln: -ln.length)
+        entries = _entries(img, known, hole, ln, block, p.min_contrast)
+        if len(entries) >= 2:
+            through.append(ln)
+        elif len(entries) == 1:
+            one_sided.append((ln, entries[0]))
+    corners = [a[0] for a in one_sided if any(_corner(a, b, hole) for b in one_sided if b is not a)]
+    out = sorted(through + corners, key=lambda ln: -ln.length)
     return out[: p.max_lines]
 
 

@@ -189,3 +189,20 @@ def test_an_edge_that_ends_at_the_hole_is_not_continued():
     lines = hole_lines(img, ~hole, hole, 15)
     normals = sorted(tuple(np.round(np.abs(ln.normal), 1)) for ln in lines)
     assert normals == [(0.0, 1.0), (1.0, 0.3)], [ln.to_dict() for ln in lines]  # the box's top and side
+
+
+def test_an_edge_that_comes_out_a_few_px_off_is_still_continued():
+    """The edge leaves the hole 4 px off the line fitted on its other side (a slightly bent mat border,
+    or the angle of a short segment, as on mip360 kitchen's orange mat): the line is turned through both
+    entries and continued, where the entry test alone found one entry and no corner."""
+    rng = np.random.default_rng(8)
+    yy, xx = np.mgrid[0:N, 0:N]
+    orange = (yy - 80) > 0.7 * (xx - 80) + np.where(xx > 80, 4.0, 0.0)
+    g = grain(rng)
+    img = np.where(orange[..., None], np.stack([0.85 + g, 0.5 + g, 0.35 + g], -1),
+                   np.stack([0.2 + g, 0.45 + g, 0.5 + g], -1)).astype(np.float32)
+    hole = (yy - 80) ** 2 + (xx - 80) ** 2 < 30 ** 2
+    lines = hole_lines(img, ~hole, hole, 15)
+    assert len(lines) >= 1
+    for x, y in ((52.0, 80 - 0.7 * 28), (108.0, 80 + 0.7 * 28 + 4)):  # where the edge meets the rim
+        assert min(abs(x * ln.normal[0] + y * ln.normal[1] - ln.rho) for ln in lines) < 2.5

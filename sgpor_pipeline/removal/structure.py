@@ -176,6 +176,32 @@ def _entries(image: np.ndarray, known: np.ndarray, hole: np.ndarray, line: Line,
     return found
 
 
+def _realigned(image: np.ndarray, known: np.ndarray, hole: np.ndarray, line: Line, entry: np.ndarray, block: int,
+               min_contrast: float, search: int = 6) -> Line | None:
+    """A line with one entry whose edge may come out on the far side a few px off (its angle, fitted on
+    one side, is a little off across a wide hole): the same line shifted by up to ``search`` px at each
+    other end of the hole along it; where the shifted line has its edge there, the line through both
+    entries (None when no shift finds one)."""
+    n, d = line.normal, np.array([line.normal[1], -line.normal[0]])
+    best: tuple[float, np.ndarray] | None = None
+    for shift in range(-search, search + 1):
+        moved = Line(n, line.rho + shift, line.length)
+        for point, plus, minus in _entries(image, known, hole, moved, block, min_contrast):
+            if abs(float((point - entry) @ d)) < 2 * block:  # (the entry it already has)
+                continue
+            c = float(np.linalg.norm(plus - minus))
+            if best is None or c > best[0]:
+                best = (c, point)
+    if best is None:
+        return None
+    u = best[1] - entry
+    u = u / max(float(np.linalg.norm(u)), 1e-9)
+    normal = np.array([-u[1], u[0]])
+    if normal @ n < 0:
+        normal = -normal
+    return Line(normal, float(entry @ normal), line.length, line.contrast, line.segments)
+
+
 def _corner(a: tuple[Line, tuple], b: tuple[Line, tuple], hole: np.ndarray, tolerance: int = 3) -> bool:
     """Whether two lines, each with one entry into the hole (``(line, entry)``), are the two borders of
     one region whose corner the hole hides: they cross within ``tolerance`` px of a hole pixel; their
@@ -244,6 +270,10 @@ def hole_lines(image: np.ndarray, known: np.ndarray, hole: np.ndarray, block: in
         if ln.contrast < p.min_contrast:
             continue
         entries = _entries(img, known, hole, ln, block, p.min_contrast)
+        if len(entries) == 1:  # its edge may come out of the hole a few px off the line
+            turned = _realigned(img, known, hole, ln, entries[0][0], block, p.min_contrast)
+            if turned is not None and len(_entries(img, known, hole, turned, block, p.min_contrast)) >= 2:
+                ln, entries = turned, _entries(img, known, hole, turned, block, p.min_contrast)
         if len(entries) >= 2:
             through.append(ln)
         elif len(entries) == 1:

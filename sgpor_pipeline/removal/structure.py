@@ -5,7 +5,10 @@ that grows from the hole's rim in layers lets each region of the rim advance at 
 two regions meet inside the hole their border wanders (mip360 kitchen from one mask: blobs of the
 orange mat in the wood between the mats). Here the straight edges near the hole are found on the
 known image (OpenCV's LSD on a lightly blurred grey image, segments on the same line merged), kept
-when they are long, have contrast across them and reach the hole, and extended through it. The lines
+when they are long, have contrast across them and their edge meets the hole on both sides (a border
+passing under the object; a few px off on the far side, the line is turned through both), or on one
+side as one of two borders of a region whose corner the hole hides; they are extended through it (an
+edge that stops at the hole's rim, or beside it, is not). The lines
 cut the image into cells (the side of every line); :func:`~sgpor_pipeline.removal.sbm.inpaint_view`
 with ``labels`` then fills each target block from source blocks of its own cell, and each pixel mainly
 from the blocks of its cell, so the edges continue straight through the hole and meet at corners.

@@ -206,3 +206,32 @@ def test_an_edge_that_comes_out_a_few_px_off_is_still_continued():
     assert len(lines) >= 1
     for x, y in ((52.0, 80 - 0.7 * 28), (108.0, 80 + 0.7 * 28 + 4)):  # where the edge meets the rim
         assert min(abs(x * ln.normal[0] + y * ln.normal[1] - ln.rho) for ln in lines) < 2.5
+
+
+def test_inpaint_stage_view_structure_continues_the_edge_in_each_views_own_fill(tmp_path):
+    """inpaint.view_structure with the views filling their holes themselves (thick_reference none): the
+    views with the rug's edge through their hole are listed in inpaint.json, and the fills come closer to
+    the truth in the masks (23.89 -> 24.14 dB here)."""
+    import json
+
+    from sgpor_pipeline.dag import StageContext
+    from sgpor_pipeline.imageio import read_image
+    from sgpor_pipeline.removal.multiview import write_remove_fixture
+    from sgpor_pipeline.stages.inpaint import InpaintParams, InpaintStage
+    from sgpor_pipeline.synthetic import SceneParams, generate_scene
+
+    sc = generate_scene(SceneParams(seed=0, object_kind="box", rug_place="edge", n_views=8, width=256, height=192))
+    remove = write_remove_fixture(sc, tmp_path / "remove", holes="mask")
+    score, report = {}, {}
+    for on in (False, True):
+        ctx = StageContext.standalone(tmp_path / str(on), "inpaint",
+                                      InpaintParams(thick_reference="none", view_structure=on), {"remove": remove})
+        InpaintStage().run(ctx)
+        report[on] = json.loads((ctx.out_dir / "inpaint.json").read_text())
+        sq = [((read_image(ctx.out_dir / "images" / f"{c.name}.png") - sc.images_gt[i]) ** 2)[sc.masks[i]]
+              for i, c in enumerate(sc.cameras)]
+        score[on] = -10 * np.log10(np.concatenate(sq).mean())
+    assert report[False]["view_structure"] is None
+    lines = report[True]["view_structure"]
+    assert len(lines) >= 4 and all(1 <= n <= 3 for n in lines.values())
+    assert score[True] > score[False] + 0.1, score

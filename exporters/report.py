@@ -494,7 +494,8 @@ class MetricsSection:
 class PlaneSection:
     """The inpaint stage's texture of the plane under the object (``plane/``, inpaint.thick_reference =
     plane): the views' colours rectified, and with its hole filled, side by side, and its numbers; with
-    inpaint.lift_shadow also the texture as seen and the contact shadow divided out of it."""
+    inpaint.lift_shadow also the texture as seen and the contact shadow divided out of it; with straight
+    edges continued through its hole (inpaint.plane_structure) the picture of those lines."""
 
     title: str = "The plane under the object, as one texture"
 
@@ -506,6 +507,8 @@ class PlaneSection:
         for name, caption in (("texture_as_seen.png", "the views' colours, with the object's contact shadow"),
                               ("shading.png", "the contact shadow found (inpaint.lift_shadow; white: none)"),
                               ("texture.png", "the views' colours, rectified (black: no view saw it)"),
+                              ("structure.png", "the straight edges continued through its hole (yellow: seen, "
+                                                "cyan: continued; inpaint.plane_structure)"),
                               ("filled.png", "its hole filled, as every view takes it")):
             path = folder / "plane" / name
             if path.is_file():
@@ -520,6 +523,9 @@ class PlaneSection:
         if isinstance(shadow, dict):  # inpaint.lift_shadow: the strength found, or why none
             found = _fmt(shadow["strength"]) if "strength" in shadow else shadow.get("reason", "")
             rows.append(("contact shadow", found))
+        structure = info.get("structure") if isinstance(info, dict) else None
+        if isinstance(structure, dict):  # inpaint.plane_structure: how many lines were continued
+            rows.append(("straight edges continued", _fmt(len(structure.get("lines", [])))))
         table = kv_table(rows) if rows else ""
         return "".join(figs) + table
 
@@ -583,8 +589,8 @@ REPORT_STAGES = ("fit", "masks", "remove", "inpaint", "refine") if SCENE_STAGE =
 
 class ReportExporter(Exporter):
     name = "report"
-    VERSION = 4  # 2: evaluate's metrics as tables (and metrics.json beside the report); 3: the plane texture;
-    # 4: its contact shadow (inpaint.lift_shadow)
+    VERSION = 5  # 2: evaluate's metrics as tables (and metrics.json beside the report); 3: the plane texture;
+    # 4: its contact shadow (inpaint.lift_shadow); 5: its straight edges (inpaint.plane_structure)
     needs = ("ingest", CAMERAS_STAGE, SCENE_STAGE, *REPORT_STAGES)
     optional_needs = ("evaluate",)  # when the run has ground truth; its key then enters export's key
     description = ("report.html (+ report/ PNGs): inputs, masks, renders, training curve, metrics (with ground "

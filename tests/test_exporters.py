@@ -649,6 +649,11 @@ def test_report_shows_the_plane_texture_when_the_inpaint_stage_made_one(tmp_path
     (inpaint / "plane" / "plane.json").write_text(json.dumps({"built": True, "shadow": {"strength": 0.42}}))
     html = PlaneSection().render(rc)
     assert html.count("<img") == 4 and "contact shadow" in html and "0.42" in html
+    # with inpaint.plane_structure: the lines continued through its hole, and how many
+    write_png(inpaint / "plane" / "structure.png", rng.uniform(0, 1, (40, 60, 3)).astype(np.float32))
+    (inpaint / "plane" / "plane.json").write_text(json.dumps({"built": True, "structure": {"lines": [{}, {}]}}))
+    html = PlaneSection().render(rc)
+    assert html.count("<img") == 5 and "straight edges continued" in html and "<td>2</td>" in html
 
 
 def test_report_says_where_each_views_mask_came_from(tmp_path):

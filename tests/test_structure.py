@@ -235,3 +235,23 @@ def test_inpaint_stage_view_structure_continues_the_edge_in_each_views_own_fill(
     lines = report[True]["view_structure"]
     assert len(lines) >= 4 and all(1 <= n <= 3 for n in lines.values())
     assert score[True] > score[False] + 0.1, score
+
+
+def test_the_reranking_keeps_a_small_cells_few_sources_first():
+    """A cell with fewer source blocks than the feature shortlist (16): the shortlist ends with other
+    cells' blocks, and the colour re-ranking must not promote them over the cell's own."""
+    from sgpor_pipeline.removal.sbm import match_blocks
+
+    img, orange, hole = two_regions(9)
+    lab = np.zeros(hole.shape, np.int32)
+    lab[:15, :15] = 1  # a small cell in a corner: a few source blocks
+    p = SBMParams(shift=0)  # (an aligning shift may move a block's centre out of so small a cell)
+    bank = build_source_bank(["t"], [img], [hole], [hole], p, labels=[lab])
+    own = int((bank.block_label == 1).sum())
+    assert 1 <= own < p.rerank
+    targets = np.array([[100, 100]])  # an orange block: its colours match the other cell best
+    pos, cost, _, _ = match_blocks(img, ~hole, targets, bank, p, target_label=np.array([1]))
+    c = p.block_size // 2
+    got = lab[pos[0, :, 1] + c, pos[0, :, 2] + c]
+    n = min(own, pos.shape[1])
+    assert (got[:n] == 1).all(), (got, own)

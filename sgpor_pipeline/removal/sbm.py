@@ -692,6 +692,13 @@ def match_blocks(image: np.ndarray, known: np.ndarray, targets: np.ndarray, bank
                        corners[:, 1, None, None] + np.arange(rwin)[None, None, :]].sum(axis=(1, 2), dtype=np.float64)
         res = _shift_costs(bank, img_p, known_p, corners, cpos, rpad, rwin, r,
                            params.rerank_threads or max(1, torch.get_num_threads()))
+        if target_label is not None and bank.block_label is not None:
+            # a cell with fewer sources than the shortlist: the others' blocks (ranked after them) stay
+            # last here too, unless no source of its own cell was found at all
+            src = bank.block_label[idx]
+            tl = np.asarray(target_label).reshape(-1, 1)
+            other = (src != tl) & (src >= 0) & (tl >= 0)
+            res[other & ~other.all(axis=1, keepdims=True)] = np.inf
         p_, c_, s_ = _best_shifts(bank, res, cpos, sc, msum, r, kk)
         pos[:, :p_.shape[1]], cost[:, :p_.shape[1]], sim[:, :p_.shape[1]] = p_, c_, s_
     else:

@@ -107,7 +107,7 @@ from sgpor_pipeline.removal.plane import (
     shading_into_view,
 )
 from sgpor_pipeline.removal.sbm import SBMParams, build_source_bank, free_blocks
-from sgpor_pipeline.removal.structure import FREE, cell_labels, draw_lines, hole_lines
+from sgpor_pipeline.removal.structure import FREE, draw_lines, structure_cells
 from sgpor_pipeline.scene import Camera
 
 
@@ -149,8 +149,8 @@ class InpaintParams:
     # there: a hidden corner) are extended through it, and each block is filled from the texture on the
     # same side of every such line, each texel mainly from pasted texels of its own side. mip360 kitchen
     # from one mask: the table's gap between the mats and the mat's stripe continue straight through the
-    # texture's hole, where the plain fill pasted orange mat into the gap (its renders keep orange patches
-    # there: they come from the background the fit put under the bulldozer, seen texels, not this fill).
+    # texture's hole, where the plain fill pasted orange mat into the gap (and the final renders showed
+    # orange patches there; they are gone).
     # benchmarks/removal.py, fit seed 0, mask PSNR of ours off -> on [the plane fill]: synthetic-box-edge
     # (the rug's long edge under the box) 29.05 -> 30.60 [25.88 -> 30.20] (no-sbm 28.41), -corner 30.79 ->
     # 30.79 [30.24 -> 29.94] (no-sbm 30.29). No line reaches the holes of the other synthetic scenes (their
@@ -506,10 +506,8 @@ class InpaintStage(Stage):
                 for i, v in enumerate(data.views):
                     lab = np.full(holes[i].shape, FREE, np.int32)
                     if holes[i].any():
-                        img = v.context()
-                        lines = hole_lines(img, ~holes[i], holes[i], sbm.block_size)
-                        if lines:
-                            cells = cell_labels(holes[i].shape, lines, ~holes[i], holes[i], sbm.block_size)
+                        lines, cells = structure_cells(v.context(), ~holes[i], holes[i], sbm.block_size)
+                        if cells is not None:
                             lab = np.where(cells >= 0, i * CELLS_PER_VIEW + cells, FREE).astype(np.int32)
                             lines_by_view[v.name] = len(lines)
                     out.append(lab)
@@ -706,10 +704,9 @@ class InpaintStage(Stage):
                     tsbm = p.plane_sbm()
                     labels = None
                     if uses_sbm and p.plane_structure:
-                        lines = hole_lines(tex.image, tex.seen, tex.hole, tsbm.block_size)
+                        lines, labels = structure_cells(tex.image, tex.seen, tex.hole, tsbm.block_size)
                         info["structure"] = {"lines": [ln.to_dict() for ln in lines]}
-                        if lines:
-                            labels = cell_labels(tex.hole.shape, lines, tex.seen, tex.hole, tsbm.block_size)
+                        if labels is not None:
                             info["structure"]["cells_in_hole"] = int(len(np.unique(labels[tex.hole])))
                             write_png(folder / "structure.png", draw_lines(tex.image, tex.hole, lines))
                     tb = build_source_bank([PLANE_NAME], [tex.image], [~tex.seen], [tex.hole], tsbm,

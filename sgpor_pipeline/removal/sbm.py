@@ -46,6 +46,7 @@ from sgpor_pipeline.imageio import to_float32
 
 from . import linsolve
 from .features import BlockFeatures, CellLayout, Descriptors, make_backend
+from .structure import other_cells
 
 BLEND_MODES = ("poisson", "feather")
 METRICS = ("cosine", "l2")
@@ -420,8 +421,7 @@ def retrieve(bank: SourceBank, desc: Descriptors, k: int, metric: str = "cosine"
                 score.sub_((td[:, None] - sd[None, :]).abs_().nan_to_num_(0.0).mul_(depth_weight))
             if labelled:  # below the low-overlap penalty (1e6) applied after
                 sl = torch.from_numpy(bank.block_label[a:b].astype(np.int64))
-                other = (tl[:, None] != sl[None, :]) & (tl[:, None] >= 0) & (sl[None, :] >= 0)
-                score.sub_(other.float().mul_(LABEL_PENALTY))
+                score.sub_(other_cells(tl[:, None], sl[None, :]).float().mul_(LABEL_PENALTY))
             kk = min(pool, b - a)
             ps, pi = torch.topk(score, kk, dim=1)
             cat_s = torch.cat([best_s, ps], 1)
@@ -695,9 +695,7 @@ def match_blocks(image: np.ndarray, known: np.ndarray, targets: np.ndarray, bank
         if target_label is not None and bank.block_label is not None:
             # a cell with fewer sources than the shortlist: the others' blocks (ranked after them) stay
             # last here too, unless no source of its own cell was found at all
-            src = bank.block_label[idx]
-            tl = np.asarray(target_label).reshape(-1, 1)
-            other = (src != tl) & (src >= 0) & (tl >= 0)
+            other = other_cells(bank.block_label[idx], np.asarray(target_label).reshape(-1, 1))
             res[other & ~other.all(axis=1, keepdims=True)] = np.inf
         p_, c_, s_ = _best_shifts(bank, res, cpos, sc, msum, r, kk)
         pos[:, :p_.shape[1]], cost[:, :p_.shape[1]], sim[:, :p_.shape[1]] = p_, c_, s_
@@ -789,9 +787,7 @@ def _label_agreement(target: np.ndarray, bank: SourceBank, pos: np.ndarray, bloc
     v, sy, sx = (int(a) for a in pos[0])
     if v < 0:
         return np.ones(target.shape, np.float32)
-    src = bank.labels[v][sy:sy + block, sx:sx + block]
-    agree = (src == target) | (src < 0) | (target < 0)
-    return np.where(agree, 1.0, 1e-3).astype(np.float32)
+    return np.where(other_cells(bank.labels[v][sy:sy + block, sx:sx + block], target), 1e-3, 1.0).astype(np.float32)
 
 
 def inpaint_view(image: np.ndarray, hole: np.ndarray, bank: SourceBank, params: SBMParams,

@@ -120,22 +120,39 @@ def _merge(seg: np.ndarray, angle_deg: float, dist: float) -> list[Line]:
     return lines
 
 
+def _sides(image: np.ndarray, known: np.ndarray, points: np.ndarray, normal: np.ndarray,
+           offset: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
+    """The colours ``offset`` px either side of ``points`` [K,2] (x, y) along ``normal``: (on its side,
+    on the other), [M,3] each, for the points whose two pixels are both in the image and ``known``."""
+    h, w = known.shape
+    a = np.rint(points + offset * normal).astype(int)
+    b = np.rint(points - offset * normal).astype(int)
+    ok = ((a[:, 0] >= 0) & (a[:, 0] < w) & (a[:, 1] >= 0) & (a[:, 1] < h) & (b[:, 0] >= 0) & (b[:, 0] < w)
+          & (b[:, 1] >= 0) & (b[:, 1] < h))
+    a, b = a[ok], b[ok]
+    ok = known[a[:, 1], a[:, 0]] & known[b[:, 1], b[:, 0]]
+    return image[a[ok, 1], a[ok, 0]], image[b[ok, 1], b[ok, 0]]
+
+
+def _pairing(a_plus: np.ndarray, a_minus: np.ndarray, b_plus: np.ndarray, b_minus: np.ndarray
+             ) -> tuple[float, float]:
+    """How far two edges' side colours are apart paired the same way (+ with +) and crosswise: the
+    larger difference of each pairing."""
+    same = max(np.linalg.norm(a_plus - b_plus), np.linalg.norm(a_minus - b_minus))
+    cross = max(np.linalg.norm(a_plus - b_minus), np.linalg.norm(a_minus - b_plus))
+    return float(same), float(cross)
+
+
 def _contrast(image: np.ndarray, valid: np.ndarray, line: Line, offset: float = 3.0) -> float:
     """Mean colour difference (L2) between points ``offset`` px either side of the line's segments."""
-    h, w = valid.shape
     diffs = []
     for s in line.segments:
         n = max(2, int(np.hypot(s[2] - s[0], s[3] - s[1])))
         t = np.linspace(0.0, 1.0, n)
-        px, py = s[0] + t * (s[2] - s[0]), s[1] + t * (s[3] - s[1])
-        a = np.rint([px + offset * line.normal[0], py + offset * line.normal[1]]).astype(int)
-        b = np.rint([px - offset * line.normal[0], py - offset * line.normal[1]]).astype(int)
-        ok = ((a[0] >= 0) & (a[0] < w) & (a[1] >= 0) & (a[1] < h) & (b[0] >= 0) & (b[0] < w) & (b[1] >= 0)
-              & (b[1] < h))
-        a, b = a[:, ok], b[:, ok]
-        ok = valid[a[1], a[0]] & valid[b[1], b[0]]
-        if ok.any():
-            diffs.append(image[a[1][ok], a[0][ok]] - image[b[1][ok], b[0][ok]])
+        plus, minus = _sides(image, valid, np.stack([s[0] + t * (s[2] - s[0]), s[1] + t * (s[3] - s[1])], 1),
+                             line.normal, offset)
+        if len(plus):
+            diffs.append(plus - minus)
     if not diffs:
         return 0.0
     return float(np.linalg.norm(np.concatenate(diffs).mean(axis=0)))
@@ -164,16 +181,10 @@ def _entries(image: np.ndarray, known: np.ndarray, hole: np.ndarray, line: Line,
             before = before[(before >= 0) & (before < len(t))]
             if len(before) < block // 2:
                 continue
-            q = pts[before]
-            a = np.rint(q + offset * line.normal).astype(int)
-            b = np.rint(q - offset * line.normal).astype(int)
-            ok = ((a[:, 0] >= 0) & (a[:, 0] < w) & (a[:, 1] >= 0) & (a[:, 1] < h) & (b[:, 0] >= 0) & (b[:, 0] < w)
-                  & (b[:, 1] >= 0) & (b[:, 1] < h))
-            a, b = a[ok], b[ok]
-            ok = known[a[:, 1], a[:, 0]] & known[b[:, 1], b[:, 0]]
-            if ok.sum() < block // 2:
+            plus, minus = _sides(image, known, pts[before], line.normal, offset)
+            if len(plus) < block // 2:
                 continue
-            plus, minus = image[a[ok, 1], a[ok, 0]].mean(axis=0), image[b[ok, 1], b[ok, 0]].mean(axis=0)
+            plus, minus = plus.mean(axis=0), minus.mean(axis=0)
             if np.linalg.norm(plus - minus) >= min_contrast:
                 found.append((pts[entry], plus, minus))
     return found
@@ -195,8 +206,7 @@ def _realigned(image: np.ndarray, known: np.ndarray, hole: np.ndarray, line: Lin
             if abs(float((point - at) @ d)) < 2 * block:  # (the entry it already has)
                 continue
             c = float(np.linalg.norm(plus - minus))
-            same = max(np.linalg.norm(plus - e_plus), np.linalg.norm(minus - e_minus))
-            cross = max(np.linalg.norm(plus - e_minus), np.linalg.norm(minus - e_plus))
+            same, cross = _pairing(plus, minus, e_plus, e_minus)
             # about the contrast of the entry it has, its sides paired the same way (mip360 kitchen's
             # orange mat: contrast 0.151 against 0.107, same-side colours 0.129 apart, cross 0.222; the
             # floor's speck beyond a rug's hidden corner: 0.164 against 0.326, 0.192 / 0.354)
@@ -230,8 +240,7 @@ def _corner(a: tuple[Line, tuple], b: tuple[Line, tuple], hole: np.ndarray, tole
     x0, x1 = int(max(0, np.floor(x) - tolerance)), int(min(w, np.ceil(x) + tolerance + 1))
     if not (y0 < y1 and x0 < x1 and hole[y0:y1, x0:x1].any()):
         return False
-    same = max(np.linalg.norm(a_plus - b_plus), np.linalg.norm(a_minus - b_minus))
-    cross = max(np.linalg.norm(a_plus - b_minus), np.linalg.norm(a_minus - b_plus))
+    same, cross = _pairing(a_plus, a_minus, b_plus, b_minus)
     if min(same, cross) > 0.5 * max(same, cross):  # the sides do not pair up clearly
         return False
     sign_b_of_a = 1.0 if same < cross else -1.0  # b's side (of its normal) holding a's + side's colour
@@ -284,8 +293,9 @@ def hole_lines(image: np.ndarray, known: np.ndarray, hole: np.ndarray, block: in
         entries = _entries(img, known, hole, ln, block, p.min_contrast)
         if len(entries) == 1:  # its edge may come out of the hole a few px off the line
             turned = _realigned(img, known, hole, ln, entries[0], block, p.min_contrast)
-            if turned is not None and len(_entries(img, known, hole, turned, block, p.min_contrast)) >= 2:
-                ln, entries = turned, _entries(img, known, hole, turned, block, p.min_contrast)
+            through_both = [] if turned is None else _entries(img, known, hole, turned, block, p.min_contrast)
+            if len(through_both) >= 2:
+                ln, entries = turned, through_both
         if len(entries) >= 2:
             through.append(ln)
         elif len(entries) == 1:
@@ -313,6 +323,19 @@ def cell_labels(shape: tuple[int, int], lines: list[Line], known: np.ndarray, ho
     weak = counts < need
     lab[weak[lab]] = FREE
     return lab
+
+
+def structure_cells(image: np.ndarray, known: np.ndarray, hole: np.ndarray, block: int,
+                    params: StructureParams | None = None) -> tuple[list[Line], np.ndarray | None]:
+    """:func:`hole_lines` and, when there are any, their :func:`cell_labels` (else None)."""
+    lines = hole_lines(image, known, hole, block, params)
+    return lines, (cell_labels(np.shape(hole), lines, known, hole, block, params) if lines else None)
+
+
+def other_cells(a, b):
+    """Where labels ``a`` and ``b`` (numpy arrays or torch tensors, broadcast) name different cells;
+    :data:`FREE` on either side matches any."""
+    return (a != b) & (a >= 0) & (b >= 0)
 
 
 def draw_lines(image: np.ndarray, hole: np.ndarray, lines: list[Line]) -> np.ndarray:

@@ -178,6 +178,8 @@ class InpaintParams:
     levels: int = added_param(1)  # coarse to fine: SBMParams.levels (1 = full size only)
     guide_weight: float = added_param(0.5)  # SBMParams.guide_weight
     paste_top: int = added_param(1)  # > 1: a target pastes the weighted mean of its best candidates (SBMParams)
+    overlap: Literal["mean", "seam"] = added_param("mean")  # SBMParams.overlap in each view's own fill
+    plane_overlap: Literal["mean", "seam"] = added_param("mean")  # SBMParams.overlap in the plane texture's fill
     paste_temperature: float = added_param(1.0)  # SBMParams.paste_temperature
     depth_weight: float = added_param(0.0)  # SBMParams.depth_weight: retrieval guided by the completed depth
     # The method (DESIGN.md section 7): views agree by construction. Mask PSNR / feat, multi-view vs
@@ -324,12 +326,13 @@ class InpaintParams:
                          order=self.order, priority_share=self.priority_share, levels=self.levels,
                          guide_weight=self.guide_weight, paste_top=self.paste_top,
                          paste_temperature=self.paste_temperature, depth_weight=self.depth_weight,
-                         seed=self.seed)
+                         overlap=self.overlap, seed=self.seed)
 
     def plane_sbm(self) -> SBMParams:
         """SBM's parameters for the plane texture's fill."""
         sbm = self.sbm()
-        return replace(sbm, rerank_margin=self.plane_rerank_margin, order=self.plane_order)
+        return replace(sbm, rerank_margin=self.plane_rerank_margin, order=self.plane_order,
+                       overlap=self.plane_overlap)
 
     def carry_rim(self) -> int:
         """``carry_max_rim`` resolved: the block size for -1."""

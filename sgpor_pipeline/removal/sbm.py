@@ -33,7 +33,7 @@ The paper's step (DESIGN.md section 7), CPU-first:
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -49,6 +49,7 @@ from .features import BlockFeatures, CellLayout, Descriptors, make_backend
 from .structure import other_cells
 
 BLEND_MODES = ("poisson", "feather")
+OVERLAPS = ("mean", "seam")
 METRICS = ("cosine", "l2")
 ORDERS = ("onion", "priority")
 LABEL_PENALTY = 4e6  # retrieval score lost by a source of another structure cell (below everything else)
@@ -120,6 +121,13 @@ class SBMParams:
     # (tests/test_sbm.py; truth 0.046, FSR 0.031): 0.033 -> 0.026 (0.024 with equal weights).
     paste_top: int = 1
     paste_temperature: float = 1.0  # 0 = equal weights
+    # Where overlapping target blocks meet (stride 5 for 15 px blocks: every pixel lies in about nine):
+    # "mean" averages their pasted pixels with tent weights, which also averages fine texture of
+    # sources that are a pixel or two out of phase (a woven mat becomes smooth); "seam" takes each
+    # pixel from one block (:class:`SeamComposite`: the first layer's block that reached it, of those
+    # the nearest centre) and joins the blocks in the gradient domain, so texture stays as sharp as
+    # its sources.
+    overlap: str = "mean"
     # Depth guidance: a candidate's feature similarity loses depth_weight x |log(d_source / d_target)|,
     # d_target the completed depth of the target block's hole pixels and d_source the rendered depth of
     # the source block (both need depths: :func:`build_source_bank` ``depths``, :func:`inpaint_view`
@@ -154,6 +162,8 @@ class SBMParams:
             raise PipelineError(f"priority_share must be in (0, 1] (got {self.priority_share})", fix="use e.g. 0.25")
         if self.blend not in BLEND_MODES:
             raise PipelineError(f"unknown blend mode {self.blend!r}", fix=f"use one of {', '.join(BLEND_MODES)}")
+        if self.overlap not in OVERLAPS:
+            raise PipelineError(f"unknown overlap mode {self.overlap!r}", fix=f"use one of {', '.join(OVERLAPS)}")
         if self.rerank_margin < -1:
             raise PipelineError(f"rerank_margin must be >= -1 (got {self.rerank_margin})",
                                 fix="use -1 (the feature context's window) or a margin in pixels")
@@ -487,8 +497,14 @@ def feather(block: int) -> np.ndarray:
     return np.outer(t, t).astype(np.float32)
 
 
-def poisson_blend(image: np.ndarray, guide: np.ndarray, region: np.ndarray) -> np.ndarray:
-    """Solve lap(f) = lap(guide) in ``region`` with f = image on its border (Neumann at image borders)."""
+def poisson_blend(image: np.ndarray, guide: np.ndarray | None, region: np.ndarray,
+                  differences: Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None = None,
+                  ) -> np.ndarray:
+    """Solve lap(f) = lap(guide) in ``region`` with f = image on its border (Neumann at image borders).
+
+    ``differences(py, px, qy, qx)`` [m,3], when given, is the guide's difference f(p) - f(q) between
+    neighbouring pixels instead of ``guide[p] - guide[q]`` (a guide field that is no image: the blocks
+    of a :class:`SeamComposite`)."""
     import scipy.sparse as sp
     from scipy.sparse.linalg import factorized
 
@@ -509,7 +525,8 @@ def poisson_blend(image: np.ndarray, guide: np.ndarray, region: np.ndarray) -> n
         p = np.nonzero(inside)[0]
         qy, qx = qy[inside], qx[inside]
         diag[p] += 1
-        rhs[p] += guide[ys[p], xs[p]] - guide[qy, qx]
+        rhs[p] += (guide[ys[p], xs[p]] - guide[qy, qx] if differences is None
+                   else differences(ys[p], xs[p], qy, qx))
         q = idx[qy, qx]
         inner = q >= 0
         rows.append(p[inner])
@@ -526,6 +543,65 @@ def poisson_blend(image: np.ndarray, guide: np.ndarray, region: np.ndarray) -> n
         for ch in range(image.shape[2]):
             out[ys, xs, ch] = solve(rhs[:, ch])
     return np.clip(out, 0.0, 1.0)
+
+
+class SeamComposite:
+    """Overlapping pasted blocks joined at seams (``SBMParams.overlap="seam"``), as in exemplar-based
+    completion: a pixel filled by an earlier onion layer keeps its value (the later blocks were matched
+    against it); a new pixel belongs to the block of this layer with the highest paste weight there
+    (the tent weights: the nearest centre). The blend's guide difference across a seam is the mean of
+    the two blocks' own differences, so each block's texture is kept whole, not averaged with its
+    neighbours'. The caller marks a layer's pixels ``locked`` once the layer is pasted."""
+
+    def __init__(self, shape: tuple[int, int], corners: np.ndarray, block: int):
+        self.corners = np.asarray(corners, np.int64).reshape(-1, 2)
+        self.block = block
+        self.best = np.zeros(shape, np.float32)  # the owner's paste weight per pixel (0: none)
+        self.owner = np.full(shape, -1, np.int64)
+        self.blocks = np.zeros((len(self.corners), block, block, 3), np.float32)
+        self.locked = np.zeros(shape, bool)  # pixels filled by an earlier layer: kept
+
+    def paste(self, index: int, pixels: np.ndarray, weight: np.ndarray) -> None:
+        ty, tx = (int(a) for a in self.corners[index])
+        s = self.block
+        self.blocks[index] = pixels
+        best = self.best[ty:ty + s, tx:tx + s]
+        win = (weight > best) & ~self.locked[ty:ty + s, tx:tx + s]
+        best[win] = weight[win]
+        self.owner[ty:ty + s, tx:tx + s][win] = index
+
+    def _local(self, who: np.ndarray, y: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        c = self.corners[np.maximum(who, 0)]
+        ly, lx = y - c[:, 0], x - c[:, 1]
+        inside = (who >= 0) & (ly >= 0) & (ly < self.block) & (lx >= 0) & (lx < self.block)
+        return inside, np.clip(ly, 0, self.block - 1), np.clip(lx, 0, self.block - 1)
+
+    def write(self, image: np.ndarray, where: np.ndarray) -> np.ndarray:
+        """``image`` with its ``where`` pixels that have an owner set to the owner's pixel; returns
+        those pixels (bool HxW)."""
+        got = where & (self.owner >= 0)
+        ys, xs = np.nonzero(got)
+        who = self.owner[ys, xs]
+        _, ly, lx = self._local(who, ys, xs)
+        image[ys, xs] = self.blocks[who, ly, lx]
+        return got
+
+    def differences(self, image: np.ndarray) -> Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
+        """The guide's differences p - q for :func:`poisson_blend`: the mean over the owners of p and of
+        q of their block's own difference where the block holds both pixels, else ``image``'s."""
+        def diff(py: np.ndarray, px: np.ndarray, qy: np.ndarray, qx: np.ndarray) -> np.ndarray:
+            acc = np.zeros((len(py), 3), np.float64)
+            n = np.zeros(len(py), np.float64)
+            for who in (self.owner[py, px], self.owner[qy, qx]):  # (the same owner: its difference)
+                in_p, lyp, lxp = self._local(who, py, px)
+                in_q, lyq, lxq = self._local(who, qy, qx)
+                both = in_p & in_q
+                w = np.maximum(who, 0)
+                acc[both] += self.blocks[w, lyp, lxp][both] - self.blocks[w, lyq, lxq][both]
+                n += both
+            own = image[py, px] - image[qy, qx]
+            return np.where(n[:, None] > 0, acc / np.maximum(n, 1)[:, None], own)
+        return diff
 
 
 # --------------------------------------------------------------------------------------------------
@@ -833,6 +909,7 @@ def inpaint_view(image: np.ndarray, hole: np.ndarray, bank: SourceBank, params: 
     weight_now = None if coarse is None else np.where(known_now, 1.0, params.guide_weight).astype(np.float32)
     acc = np.zeros((h, w, 3), np.float32)
     wsum = np.zeros((h, w), np.float32)
+    seams = SeamComposite((h, w), targets, s) if params.overlap == "seam" else None
     fw = feather(s)
     pending = np.ones(nt, bool)
     by, bx = np.meshgrid(np.arange(s), np.arange(s), indexing="ij")
@@ -863,13 +940,20 @@ def inpaint_view(image: np.ndarray, hole: np.ndarray, bank: SourceBank, params: 
         for j, b in enumerate(lay):
             ty, tx = int(targets[b, 0]), int(targets[b, 1])
             wb = fw if not labelled else fw * _label_agreement(labels[ty:ty + s, tx:tx + s], bank, pos[j], s)
-            acc[ty:ty + s, tx:tx + s] += wb[:, :, None] * paste_block(bank, pos[j], cst[j], s, params)
+            pixels = paste_block(bank, pos[j], cst[j], s, params)
+            if seams is not None:
+                seams.paste(b, pixels, wb)
+            acc[ty:ty + s, tx:tx + s] += wb[:, :, None] * pixels
             wsum[ty:ty + s, tx:tx + s] += wb
         t_feat += tm[0]
         t_ret += tm[1]
         t_rr += time.perf_counter() - ta - tm[0] - tm[1]
         newly = todo & (wsum > 0)
-        cur[newly] = acc[newly] / wsum[newly][:, None]
+        if seams is None:
+            cur[newly] = acc[newly] / wsum[newly][:, None]
+        else:
+            seams.write(cur, todo)
+            seams.locked |= seams.owner >= 0
         known_now = known_now | newly
         if weight_now is not None:
             weight_now[newly] = 1.0
@@ -881,8 +965,11 @@ def inpaint_view(image: np.ndarray, hole: np.ndarray, bank: SourceBank, params: 
         cur[left] = cv2.inpaint(u8, left.astype(np.uint8), 3, cv2.INPAINT_TELEA)[left].astype(np.float32) / 255
     out = cur
     if params.blend == "poisson" and todo.any():
-        guide = np.where(wsum[..., None] > 0, acc / np.maximum(wsum, 1e-12)[..., None], cur)
-        out = poisson_blend(cur, guide.astype(np.float32), todo).astype(np.float32)
+        if seams is None:
+            guide = np.where(wsum[..., None] > 0, acc / np.maximum(wsum, 1e-12)[..., None], cur)
+            out = poisson_blend(cur, guide.astype(np.float32), todo).astype(np.float32)
+        else:
+            out = poisson_blend(cur, None, todo, seams.differences(cur)).astype(np.float32)
     info = {"targets": int(nt), "layers": n_layers, "coarse_guide": coarse is not None, "hole_pixels": int(todo.sum()),
             "fallback_pixels": int(left.sum()), "seconds": time.perf_counter() - t0,
             "seconds_features": t_feat, "seconds_retrieval": t_ret, "seconds_rerank_paste": t_rr}

@@ -75,13 +75,13 @@ def test_cell_labels_are_the_sides_of_the_lines_and_free_without_known_pixels():
     assert (cell_labels(hole.shape, [], ~hole, hole, 15) == 0).all()
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_a_fill_by_cells_continues_the_border_through_the_hole(seed):
+@pytest.mark.parametrize("seed,overlap", [(0, "mean"), (1, "mean"), (2, "mean"), (0, "seam"), (2, "seam")])
+def test_a_fill_by_cells_continues_the_border_through_the_hole(seed, overlap):
     """Without cells the two colours meet where the rim's layers do; with them each hole pixel takes the
     colour of its side of the edge. Here the plain fill puts 1.7-4.5 % of the hole on the wrong side,
-    the fill by cells 0.3 %."""
+    the fill by cells 0.3 % (pixels from one block each, ``overlap="seam"``: the same)."""
     img, orange, hole = two_regions(seed, slope=[0.7, -0.4, 1.6][seed])
-    p = SBMParams(rerank_margin=0)
+    p = SBMParams(rerank_margin=0, overlap=overlap)
     wrong = {}
     for with_cells in (False, True):
         labels = cell_labels(hole.shape, hole_lines(img, ~hole, hole, 15), ~hole, hole, 15) if with_cells else None
@@ -94,7 +94,8 @@ def test_a_fill_by_cells_continues_the_border_through_the_hole(seed):
     assert wrong[True] < 0.01 and wrong[True] < 0.5 * wrong[False], wrong
 
 
-def test_a_fill_by_cells_turns_at_a_hidden_corner():
+@pytest.mark.parametrize("overlap", ["mean", "seam"])
+def test_a_fill_by_cells_turns_at_a_hidden_corner(overlap):
     """A rug's corner under the hole: both its edges run into the hole, and the cells they make fill the
     rug only inside both (the corner stays a corner)."""
     rng = np.random.default_rng(5)
@@ -108,7 +109,7 @@ def test_a_fill_by_cells_turns_at_a_hidden_corner():
     lines = hole_lines(img, ~hole, hole, 15)
     assert len(lines) == 2
     labels = cell_labels(hole.shape, lines, ~hole, hole, 15)
-    p = SBMParams(rerank_margin=0)
+    p = SBMParams(rerank_margin=0, overlap=overlap)
     bank = build_source_bank(["t"], [img], [hole], [hole], p, labels=[labels])
     out = inpaint_view(img, hole, bank, p, labels=labels).image
     looks_rug = out[..., 1] < 0.4

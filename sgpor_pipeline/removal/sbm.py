@@ -53,6 +53,7 @@ OVERLAPS = ("mean", "seam")
 METRICS = ("cosine", "l2")
 ORDERS = ("onion", "priority")
 LABEL_PENALTY = 4e6  # retrieval score lost by a source of another structure cell (below everything else)
+OTHER_CELL_WEIGHT = 1e-3  # paste weight of a pasted pixel whose source lies in another structure cell
 SENTINEL = -1.0  # colour of invalid source pixels during re-ranking (never matches real colours)
 UINT8_TO_FLOAT = to_float32(np.arange(256, dtype=np.uint8))  # (the kernel reads 8-bit views through it)
 
@@ -551,7 +552,7 @@ class SeamComposite:
     against it); a new pixel belongs to the block of this layer with the highest paste weight there
     (the tent weights: the nearest centre). The blend's guide difference across a seam is the mean of
     the two blocks' own differences, so each block's texture is kept whole, not averaged with its
-    neighbours'. The caller marks a layer's pixels ``locked`` once the layer is pasted."""
+    neighbours'. The caller ends each layer (:meth:`end_layer`)."""
 
     def __init__(self, shape: tuple[int, int], corners: np.ndarray, block: int):
         self.corners = np.asarray(corners, np.int64).reshape(-1, 2)
@@ -559,16 +560,23 @@ class SeamComposite:
         self.best = np.zeros(shape, np.float32)  # the owner's paste weight per pixel (0: none)
         self.owner = np.full(shape, -1, np.int64)
         self.blocks = np.zeros((len(self.corners), block, block, 3), np.float32)
+        self.weights = np.zeros((len(self.corners), block, block), np.float32)  # each block's paste weights
         self.locked = np.zeros(shape, bool)  # pixels filled by an earlier layer: kept
 
     def paste(self, index: int, pixels: np.ndarray, weight: np.ndarray) -> None:
         ty, tx = (int(a) for a in self.corners[index])
         s = self.block
         self.blocks[index] = pixels
+        self.weights[index] = weight
         best = self.best[ty:ty + s, tx:tx + s]
         win = (weight > best) & ~self.locked[ty:ty + s, tx:tx + s]
         best[win] = weight[win]
         self.owner[ty:ty + s, tx:tx + s][win] = index
+
+    def end_layer(self) -> None:
+        """Keep the pixels pasted so far, except those only a block of another structure cell reached
+        (a later block of their own cell takes them)."""
+        self.locked |= self.best > OTHER_CELL_WEIGHT
 
     def _local(self, who: np.ndarray, y: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         c = self.corners[np.maximum(who, 0)]
@@ -588,15 +596,17 @@ class SeamComposite:
 
     def differences(self, image: np.ndarray) -> Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray]:
         """The guide's differences p - q for :func:`poisson_blend`: the mean over the owners of p and of
-        q of their block's own difference where the block holds both pixels, else ``image``'s."""
+        q of their block's own difference where the block holds both pixels (from sources of their
+        structure cells), else ``image``'s."""
         def diff(py: np.ndarray, px: np.ndarray, qy: np.ndarray, qx: np.ndarray) -> np.ndarray:
             acc = np.zeros((len(py), 3), np.float64)
             n = np.zeros(len(py), np.float64)
             for who in (self.owner[py, px], self.owner[qy, qx]):  # (the same owner: its difference)
                 in_p, lyp, lxp = self._local(who, py, px)
                 in_q, lyq, lxq = self._local(who, qy, qx)
-                both = in_p & in_q
                 w = np.maximum(who, 0)
+                both = (in_p & in_q & (self.weights[w, lyp, lxp] > OTHER_CELL_WEIGHT)
+                        & (self.weights[w, lyq, lxq] > OTHER_CELL_WEIGHT))
                 acc[both] += self.blocks[w, lyp, lxp][both] - self.blocks[w, lyq, lxq][both]
                 n += both
             own = image[py, px] - image[qy, qx]
@@ -863,7 +873,8 @@ def _label_agreement(target: np.ndarray, bank: SourceBank, pos: np.ndarray, bloc
     v, sy, sx = (int(a) for a in pos[0])
     if v < 0:
         return np.ones(target.shape, np.float32)
-    return np.where(other_cells(bank.labels[v][sy:sy + block, sx:sx + block], target), 1e-3, 1.0).astype(np.float32)
+    return np.where(other_cells(bank.labels[v][sy:sy + block, sx:sx + block], target),
+                    OTHER_CELL_WEIGHT, 1.0).astype(np.float32)
 
 
 def inpaint_view(image: np.ndarray, hole: np.ndarray, bank: SourceBank, params: SBMParams,
@@ -953,7 +964,7 @@ def inpaint_view(image: np.ndarray, hole: np.ndarray, bank: SourceBank, params: 
             cur[newly] = acc[newly] / wsum[newly][:, None]
         else:
             seams.write(cur, todo)
-            seams.locked |= seams.owner >= 0
+            seams.end_layer()
         known_now = known_now | newly
         if weight_now is not None:
             weight_now[newly] = 1.0

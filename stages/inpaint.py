@@ -71,6 +71,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Literal
 
+import cv2
 import numpy as np
 
 from sgpor_pipeline.config import added_param
@@ -98,6 +99,7 @@ from sgpor_pipeline.removal.multiview import (
 from sgpor_pipeline.removal.plane import (
     PLANE_NAME,
     PlaneParams,
+    blend_into_view,
     contact_shading,
     grown,
     plane_depth,
@@ -180,6 +182,8 @@ class InpaintParams:
     paste_top: int = added_param(1)  # > 1: a target pastes the weighted mean of its best candidates (SBMParams)
     overlap: Literal["mean", "seam"] = added_param("mean")  # SBMParams.overlap in each view's own fill
     plane_overlap: Literal["mean", "seam"] = added_param("mean")  # SBMParams.overlap in the plane texture's fill
+    blend_reach: float = added_param(0.0)  # SBMParams.blend_reach in each view's own fill (0: everywhere)
+    plane_blend_reach: float = added_param(0.0)  # SBMParams.blend_reach in the plane texture's fill
     paste_temperature: float = added_param(1.0)  # SBMParams.paste_temperature
     depth_weight: float = added_param(0.0)  # SBMParams.depth_weight: retrieval guided by the completed depth
     # The method (DESIGN.md section 7): views agree by construction. Mask PSNR / feat, multi-view vs
@@ -304,6 +308,11 @@ class InpaintParams:
     # (seed 1: 26.35 -> 25.88; its fill of the hole is darker, from a dark rim the occlusion leaves);
     # lund and statue-box build no texture. 0: off.
     plane_rim: int = 25
+    # Each view takes the plane texture's fill shifted to its own colours on the plane around its hole
+    # (Poisson image editing: the texture's differences inside, the view's pixels next to it as
+    # boundary values). One texture serves every view, but a woven mat or a glossy floor looks lighter
+    # or darker from each side: mip360 kitchen's mat fill showed as a darker patch.
+    plane_blend: bool = added_param(False)
     depth_tol: float = 0.02
     seed: int = 0
     # diffusion backend (see sgpor_pipeline.removal.diffusion); "" = $SGPOR_DIFFUSION_MODEL
@@ -326,13 +335,13 @@ class InpaintParams:
                          order=self.order, priority_share=self.priority_share, levels=self.levels,
                          guide_weight=self.guide_weight, paste_top=self.paste_top,
                          paste_temperature=self.paste_temperature, depth_weight=self.depth_weight,
-                         overlap=self.overlap, seed=self.seed)
+                         overlap=self.overlap, blend_reach=self.blend_reach, seed=self.seed)
 
     def plane_sbm(self) -> SBMParams:
         """SBM's parameters for the plane texture's fill."""
         sbm = self.sbm()
         return replace(sbm, rerank_margin=self.plane_rerank_margin, order=self.plane_order,
-                       overlap=self.plane_overlap)
+                       overlap=self.plane_overlap, blend_reach=self.plane_blend_reach)
 
     def carry_rim(self) -> int:
         """``carry_max_rim`` resolved: the block size for -1."""
@@ -584,6 +593,16 @@ class InpaintStage(Stage):
             return gather_from_views(loaded, view.camera, depth, planar_parts(holes[i], depth, p.carry_max_misfit),
                                      p.projection, p.depth_tol)
 
+        def blended_into_view(i: int, image: np.ndarray, colours: np.ndarray, got: np.ndarray) -> np.ndarray:
+            """The plane texture's colours for view i's ``got`` pixels, shifted to the view's own colours
+            on the plane around them (:func:`blend_into_view`; ``plane_blend``)."""
+            view, tex = data.views[i], state["plane"]
+            ring = cv2.dilate(got.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool) & ~holes[i]
+            snap = p.plane().rim_band if p.plane_rim > 0 else 0.0
+            ring_cols, ring_got = sample_into_view(tex["image"], tex["camera"], tex["depth"], tex["normal"],
+                                                   view.camera, view.depth(), ring, p.depth_tol, snap)
+            return blend_into_view(image, colours, got & holes[i], ring_cols, ring_got)
+
         def relight_view(out: Path, i: int, factor: np.ndarray) -> int:
             """Divide the contact shadow out of view i's image on the plane: outside its hole, and in the
             part of its hole that did not take the (already relit) plane texture; with the texels under the
@@ -634,6 +653,8 @@ class InpaintStage(Stage):
             view = data.views[i]
             image, hole = view.context(), holes[i]
             prior = carried(i, sources, thick_only) if sources else None
+            if sources == [PLANE_SOURCE] and p.plane_blend and prior is not None and prior[1].any():
+                prior = (blended_into_view(i, image, *prior), prior[1])
             labels = view_labels()
             img, filled_from, res = fill_view(image, hole, "sbm" if uses_sbm else backend,
                                               bank() if uses_sbm else None, sbm, prior,

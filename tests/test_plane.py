@@ -9,6 +9,7 @@ import pytest
 
 from sgpor_pipeline.removal.plane import (
     PlaneParams,
+    blend_into_view,
     fit_plane,
     footprint,
     plane_camera,
@@ -651,3 +652,24 @@ def test_standing_hull_takes_a_hull_that_reaches_the_plane_in_part_of_its_silhou
     hovering = np.zeros_like(cols)
     hovering[20:30, 10:50, 10:50] = True
     assert standing_hull(hovering, top=1.0, min_standing=0.25)[0] is None
+
+
+def test_blend_into_view_shifts_the_texture_to_the_views_tone_and_keeps_its_detail():
+    """The view sees the plane 0.1 lighter than the texture (a mat's sheen from its side): the
+    texture's fill takes the view's tone from the ring around it and keeps its own detail; a part of
+    the hole with no ring keeps the texture's colours."""
+    rng = np.random.default_rng(0)
+    h, w = 80, 100
+    texture = (0.4 + 0.1 * rng.random((h, w, 1)) * np.ones(3)).astype(np.float32)
+    view = np.clip(texture + 0.1, 0, 1).astype(np.float32)
+    yy, xx = np.mgrid[0:h, 0:w]
+    got = (yy - 40) ** 2 + (xx - 35) ** 2 < 15 ** 2
+    island = np.zeros((h, w), bool)
+    island[30:40, 75:85] = True  # (beside pixels that are not on the plane: no ring)
+    ring = (cv2.dilate(got.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool) & ~got)
+    out = blend_into_view(view, texture, got | island, texture, ring)
+    assert out.dtype == np.float32 and np.array_equal(out[~(got | island)], view[~(got | island)])
+    assert abs(float((out - view)[got].mean())) < 0.01  # the view's tone
+    detail = np.diff(out, axis=1)[got[:, 1:] & got[:, :-1]]
+    assert np.allclose(detail, np.diff(texture, axis=1)[got[:, 1:] & got[:, :-1]], atol=0.02)
+    assert np.allclose(out[island], texture[island], atol=0.01)  # no ring: the texture's colours

@@ -12,7 +12,7 @@ import pytest
 from sgpor_pipeline.dag import StageContext
 from sgpor_pipeline.errors import PipelineError
 from sgpor_pipeline.gaussians import _raster_cpu
-from sgpor_pipeline.imageio import read_image, read_mask
+from sgpor_pipeline.imageio import read_image, read_labels, read_mask, write_png
 from sgpor_pipeline.removal.features import (
     BlockFeatures,
     CellLayout,
@@ -1132,3 +1132,53 @@ def test_inpaint_params_overlap_reaches_the_views_and_the_plane_texture():
     assert p.sbm().overlap == "seam" and p.plane_sbm().overlap == "mean"
     with pytest.raises(PipelineError, match="overlap"):
         SBMParams(overlap="median").validate()
+
+
+def test_blend_reach_keeps_a_dark_rim_from_tinting_the_whole_fill():
+    """A shadow band around the hole (the removed object's): the Poisson blend's membrane carries the
+    band's darkness into the whole fill; with ``blend_reach`` the correction fades within a few px of
+    the rim and the interior keeps its sources' colours."""
+    image = _gravel(3, size=160)
+    truth = image.copy()
+    yy, xx = np.mgrid[0:160, 0:160]
+    r = np.sqrt((yy - 80.0) ** 2 + (xx - 80.0) ** 2)
+    hole = r < 30
+    band = (r >= 30) & (r < 34)
+    image[band] *= 0.6  # dark at the rim only
+    deep = r < 15
+    tone = {}
+    for reach in (0.0, 5.0):
+        p = SBMParams(blend_reach=reach)
+        bank = build_source_bank(["v"], [image], [hole | band], [hole], p)
+        out = inpaint_view(image, hole, bank, p).image
+        assert np.array_equal(out[~hole], image[~hole])
+        tone[reach] = float(out[deep].mean() - truth[~hole & ~band].mean())
+    assert tone[0.0] < -0.03, tone  # the membrane darkens the middle
+    assert abs(tone[5.0]) < 0.5 * abs(tone[0.0]), tone
+    with pytest.raises(PipelineError, match="blend_reach"):
+        SBMParams(blend_reach=-1).validate()
+
+
+def test_inpaint_stage_plane_blend_gives_each_view_the_plane_fill_in_its_own_tone(scene, tmp_path):
+    """One view sees everything 0.12 lighter (a glossy floor from its side): the plane texture's fill,
+    one for all views, is darker than that view's floor around its hole; with plane_blend it takes the
+    view's tone there and the other views keep theirs."""
+    from sgpor_pipeline.stages.inpaint import InpaintParams, InpaintStage
+
+    remove = write_remove_fixture(scene, tmp_path / "remove", holes="mask")
+    names = sorted(p.stem for p in (remove / "renders").glob("*.png"))
+    holes = {n: read_mask(remove / "holes" / f"{n}.png") for n in names}
+    lit = max(names, key=lambda n: holes[n].sum())
+    path = remove / "renders" / f"{lit}.png"
+    write_png(path, np.clip(read_image(path) + np.where(holes[lit][..., None], 0.0, 0.12), 0, 1).astype(np.float32))
+    offsets = {}
+    for blend in (False, True):
+        ctx = StageContext.standalone(tmp_path / str(blend), "inpaint",
+                                      InpaintParams(thick_reference="plane", plane_blend=blend), {"remove": remove})
+        InpaintStage().run(ctx)
+        filled = read_labels(ctx.out_dir / "filled_from" / f"{lit}.png") == 1
+        img = read_image(ctx.out_dir / "images" / f"{lit}.png")
+        ring = cv2.dilate(holes[lit].astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool) & ~holes[lit]
+        edge = filled & ~cv2.erode(holes[lit].astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
+        offsets[blend] = float(img[edge].mean() - img[ring].mean())
+    assert offsets[False] < -0.06 and abs(offsets[True]) < 0.5 * abs(offsets[False]), offsets

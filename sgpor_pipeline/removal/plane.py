@@ -450,6 +450,24 @@ def sample_into_view(texture: np.ndarray, vcam: Camera, vdepth: np.ndarray, norm
                                "backward", depth_tol)
 
 
+def blend_into_view(image: np.ndarray, colours: np.ndarray, got: np.ndarray, texture_ring: np.ndarray,
+                    ring: np.ndarray, anchor: float = 1e-3) -> np.ndarray:
+    """The texture's ``colours`` for a view's hole pixels ``got`` shifted smoothly to the view's own
+    colours around them (Poisson image editing): inside, the texture's differences; at the ``ring``
+    (known pixels beside ``got`` where the texture was sampled too, ``texture_ring``), the view's
+    ``image``. A woven mat or a glossy floor looks lighter or darker from each side, and one texture
+    for all views cannot; its fill then showed as a darker patch in views that saw the mat lighter.
+    Elsewhere around ``got`` (the rest of the hole, pixels off the plane) nothing is imposed; ``anchor``
+    keeps a part with no ring at the texture's colours. Returns HxWx3 float32 (``got`` changed only)."""
+    from .sbm import poisson_blend
+
+    guide = np.where(ring[..., None], texture_ring, colours).astype(np.float32)
+    base = np.asarray(image, np.float32).copy()
+    base[got] = colours[got]
+    out = poisson_blend(base, guide, got, boundary=ring & ~got, anchor=anchor)
+    return out.astype(np.float32)
+
+
 @dataclass
 class UnderObject:
     """Where the removed object stood on a plane: what lay under it, in every view."""

@@ -86,6 +86,12 @@ class SBMParams:
     rerank: int = 16  # feature shortlist re-ranked by masked colour SSD; 0 = pure feature retrieval
     shift: int = -1  # alignment search radius in pixels while re-ranking; -1 = source_stride // 2 + 1
     blend: str = "poisson"  # "poisson" or "feather"
+    # How far into the hole the Poisson blend's correction reaches: 0 = everywhere (its membrane spreads
+    # any offset between the rim and the pasted blocks over the whole hole); > 0 = it fades as
+    # exp(-d / blend_reach) with the distance d (px) from the nearest known pixel, so the rim is seamless
+    # and the interior keeps its sources' colours. A rim darker than the sources (the removed object's
+    # shadow, dark texels of the fit at its foot) tinted the whole fill of mip360 kitchen's mat.
+    blend_reach: float = 0.0
     peel: int = 0  # onion-peel layer depth: targets within this many px of the unknown region's rim; 0 = stride
     # "onion": a layer's targets are filled together (every part of the rim advances at one speed);
     # "priority": of each layer, first the blocks where strong edges of the known image meet the rim
@@ -163,6 +169,9 @@ class SBMParams:
             raise PipelineError(f"priority_share must be in (0, 1] (got {self.priority_share})", fix="use e.g. 0.25")
         if self.blend not in BLEND_MODES:
             raise PipelineError(f"unknown blend mode {self.blend!r}", fix=f"use one of {', '.join(BLEND_MODES)}")
+        if not (self.blend_reach >= 0 and np.isfinite(self.blend_reach)):
+            raise PipelineError(f"blend_reach must be a finite number >= 0 (got {self.blend_reach})",
+                                fix="use 0 (the blend reaches everywhere) or a distance in pixels, e.g. 15")
         if self.overlap not in OVERLAPS:
             raise PipelineError(f"unknown overlap mode {self.overlap!r}", fix=f"use one of {', '.join(OVERLAPS)}")
         if self.rerank_margin < -1:
@@ -500,12 +509,14 @@ def feather(block: int) -> np.ndarray:
 
 def poisson_blend(image: np.ndarray, guide: np.ndarray | None, region: np.ndarray,
                   differences: Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None = None,
-                  ) -> np.ndarray:
+                  boundary: np.ndarray | None = None, anchor: float = 0.0) -> np.ndarray:
     """Solve lap(f) = lap(guide) in ``region`` with f = image on its border (Neumann at image borders).
 
     ``differences(py, px, qy, qx)`` [m,3], when given, is the guide's difference f(p) - f(q) between
     neighbouring pixels instead of ``guide[p] - guide[q]`` (a guide field that is no image: the blocks
-    of a :class:`SeamComposite`)."""
+    of a :class:`SeamComposite`). ``boundary`` (bool HxW): the pixels outside ``region`` that hold f
+    (the others are Neumann, as the image border; default: all). ``anchor`` > 0 adds
+    anchor x (f - guide)^2 per pixel, so a part of the region with no boundary keeps the guide."""
     import scipy.sparse as sp
     from scipy.sparse.linalg import factorized
 
@@ -523,6 +534,9 @@ def poisson_blend(image: np.ndarray, guide: np.ndarray | None, region: np.ndarra
     for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
         qy, qx = ys + dy, xs + dx
         inside = (qy >= 0) & (qy < h) & (qx >= 0) & (qx < w)
+        if boundary is not None:
+            qyc, qxc = np.clip(qy, 0, h - 1), np.clip(qx, 0, w - 1)
+            inside &= region[qyc, qxc] | boundary[qyc, qxc]
         p = np.nonzero(inside)[0]
         qy, qx = qy[inside], qx[inside]
         diag[p] += 1
@@ -533,6 +547,9 @@ def poisson_blend(image: np.ndarray, guide: np.ndarray | None, region: np.ndarra
         rows.append(p[inner])
         cols.append(q[inner])
         rhs[p[~inner]] += image[qy[~inner], qx[~inner]]
+    if anchor > 0:
+        diag += anchor
+        rhs += anchor * np.asarray(guide, np.float64)[ys, xs]
     rows_a = np.concatenate(rows + [np.arange(n)])
     cols_a = np.concatenate(cols + [np.arange(n)])
     vals = np.concatenate([-np.ones(sum(len(r) for r in rows)), diag])
@@ -981,6 +998,10 @@ def inpaint_view(image: np.ndarray, hole: np.ndarray, bank: SourceBank, params: 
             out = poisson_blend(cur, guide.astype(np.float32), todo).astype(np.float32)
         else:
             out = poisson_blend(cur, None, todo, seams.differences(cur)).astype(np.float32)
+        if params.blend_reach > 0:
+            d = cv2.distanceTransform(todo.astype(np.uint8), cv2.DIST_L2, 3)
+            fade = np.exp(-d[todo] / params.blend_reach)[:, None]
+            out[todo] = np.clip(cur[todo] + fade * (out[todo] - cur[todo]), 0.0, 1.0)
     info = {"targets": int(nt), "layers": n_layers, "coarse_guide": coarse is not None, "hole_pixels": int(todo.sum()),
             "fallback_pixels": int(left.sum()), "seconds": time.perf_counter() - t0,
             "seconds_features": t_feat, "seconds_retrieval": t_ret, "seconds_rerank_paste": t_rr}

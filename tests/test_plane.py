@@ -673,3 +673,28 @@ def test_blend_into_view_shifts_the_texture_to_the_views_tone_and_keeps_its_deta
     detail = np.diff(out, axis=1)[got[:, 1:] & got[:, :-1]]
     assert np.allclose(detail, np.diff(texture, axis=1)[got[:, 1:] & got[:, :-1]], atol=0.02)
     assert np.allclose(out[island], texture[island], atol=0.01)  # no ring: the texture's colours
+
+
+def test_render_rim_takes_the_renders_only_texels_beside_the_hole_into_it(views):
+    """Every view's pixels in a ring around the common disc are the fit's render there (inside the object
+    mask, outside the hole), darker than the floor. render_rim: the texels only renders coloured, within
+    that many texels of the hole, join the hole; the floor's colours stay beyond them."""
+    cams = [v[0] for v in views]
+    depths = [v[2] for v in views]
+    holes = [disc_in_view(c, d, (0.0, 0.0), 0.25) for c, d in zip(cams, depths)]
+    rings = [disc_in_view(c, d, (0.0, 0.0), 0.32) & ~h for c, d, h in zip(cams, depths, holes)]
+    images = [np.where(r[..., None], 0.3 * v[1], v[1]).astype(np.float32) for v, r in zip(views, rings)]
+    out = {}
+    for rim in (0, 4):
+        tex, why = plane_texture(cams, images, [~h for h in holes], depths, holes, PlaneParams(render_rim=rim),
+                                 depth_tol=0.01, rendered=rings)
+        assert tex is not None, why
+        out[rim] = tex
+    grown = out[4].hole & ~out[0].hole
+    assert out[0].hole.sum() < out[4].hole.sum() and not (out[0].hole & ~out[4].hole).any()
+    dark = out[0].seen & (out[0].image.mean(-1) < 0.3)  # the rendered ring's texels
+    assert grown[dark].mean() > 0.5  # the ring's texels next to the hole joined it
+    ys, xs = np.nonzero(grown)
+    r = np.hypot(*out[4].camera.unproject(ys, xs, out[4].depth[ys, xs])[:, :2].T)
+    assert r.max() < 0.34  # not beyond the rendered ring
+    assert out[0].info["hole_texels"] < out[4].info["hole_texels"]

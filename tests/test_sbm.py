@@ -1125,11 +1125,13 @@ def test_poisson_blend_with_the_guides_own_differences_is_the_guide_blend():
     assert np.allclose(a, b, atol=1e-6)
 
 
-def test_inpaint_params_overlap_reaches_the_views_and_the_plane_texture():
+def test_inpaint_params_reach_the_views_and_the_plane_texture():
     from sgpor_pipeline.stages.inpaint import InpaintParams
 
-    p = InpaintParams(overlap="seam", plane_overlap="mean")
+    p = InpaintParams(overlap="seam", plane_overlap="mean", blend_reach=3.0)
     assert p.sbm().overlap == "seam" and p.plane_sbm().overlap == "mean"
+    assert p.sbm().blend_reach == 3.0 and p.plane_sbm().blend_reach == 15.0  # (the plane's default)
+    assert InpaintParams(plane_render_rim=5).plane().render_rim == 5
     with pytest.raises(PipelineError, match="overlap"):
         SBMParams(overlap="median").validate()
 

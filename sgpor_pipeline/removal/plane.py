@@ -67,6 +67,9 @@ class PlaneParams:
     footprint_quantile: float = 0.2  # texel size: this quantile of the views' pixel footprints on the plane
     votes: int = 5  # a texel's colour: the median of at most this many views that see it, finest first
     vote_ratio: float = 2.0  # ... whose pixel footprint there is at most this x the finest one's
+    # texels within this many of the hole that only the views' renders coloured (``rendered``: inside their
+    # object masks, outside their holes) join it; 0: off (the inpaint stage's plane_render_rim)
+    render_rim: int = 0
     shadow_grow: float = 0.02  # the object's silhouette on the plane is grown by this x the texture's side
     # the object's contact shadow (:func:`contact_shading`): lifted when ``lift_shadow``
     lift_shadow: bool = False
@@ -304,16 +307,18 @@ def rim_dark_share(image: np.ndarray, hole: np.ndarray, seen: np.ndarray, rim: i
 
 def plane_texture(cameras: list[Camera], images: list[np.ndarray], knowns: list[np.ndarray],
                   depths: list[np.ndarray], parts: list[np.ndarray], params: PlaneParams,
-                  depth_tol: float = 0.02, under: tuple[Camera, np.ndarray] | None = None
-                  ) -> tuple[PlaneTexture | None, str]:
+                  depth_tol: float = 0.02, under: tuple[Camera, np.ndarray] | None = None,
+                  rendered: list[np.ndarray] | None = None) -> tuple[PlaneTexture | None, str]:
     """The texture of the plane under the views' thick planar hole ``parts`` (see the module doc).
 
     ``images``: what the views show (the remove stage's context images); ``knowns``: their pixels that
     may give colour (outside the holes); ``depths``: their completed depths. ``under``, when given, is
     the removed object's silhouette on the plane (:func:`under_object`: a camera looking straight down
     and its mask): the texels under it, grown by ``shadow_grow``, are part of the hole, whatever the
-    views saw there (its contact shadow, seen through its gaps). Returns (texture, "") or (None, why
-    not: too few points, or the parts do not lie on one plane)."""
+    views saw there (its contact shadow, seen through its gaps). ``rendered`` (per view, bool HxW): the
+    pixels of ``images`` that are the fit's render, not the photo; with ``params.render_rim`` the texels
+    beside the hole that only those coloured join the hole. Returns (texture, "") or (None, why not: too
+    few points, or the parts do not lie on one plane)."""
     fitted, why = fit_hole_plane(cameras, depths, parts, params.sample_points, params.max_rms,
                                  [~k for k in knowns], params.rim, params.rim_band)
     if fitted is None:
@@ -338,6 +343,7 @@ def plane_texture(cameras: list[Camera], images: list[np.ndarray], knowns: list[
     kept_feet = np.full((votes, h * w), np.inf, np.float32)
     cols = np.zeros((votes, h * w, 3), np.float32)
     views = np.full((votes, h * w), -1, np.int32)
+    rflag = np.zeros((votes, h * w), bool)
     everything = np.ones((h, w), bool)
     for j, cam in enumerate(cameras):
         if cam is None:
@@ -348,12 +354,19 @@ def plane_texture(cameras: list[Camera], images: list[np.ndarray], knowns: list[
         if not len(idx):
             continue
         fp = footprint(cam, world[idx], plane.normal).astype(np.float32)
+        if rendered is not None:
+            px = np.clip(cam.pixels(world[idx])[0], 0, [cam.width - 1, cam.height - 1])
+            rf = np.asarray(rendered[j], bool)[px[:, 1], px[:, 0]]
+        else:
+            rf = np.zeros(len(idx), bool)
         better = fp < kept_feet[-1, idx]  # finer than the coarsest kept
-        idx, fp = idx[better], fp[better]
+        idx, fp, rf = idx[better], fp[better], rf[better]
         f = np.concatenate([kept_feet[:, idx], fp[None]])  # [votes + 1, n]
         c = np.concatenate([cols[:, idx], col.reshape(-1, 3)[idx][None]])
         v = np.concatenate([views[:, idx], np.full((1, len(idx)), j, np.int32)])
+        r = np.concatenate([rflag[:, idx], rf[None]])
         order = np.argsort(f, axis=0, kind="stable")[:votes]
+        rflag[:, idx] = np.take_along_axis(r, order, 0)
         kept_feet[:, idx] = np.take_along_axis(f, order, 0)
         cols[:, idx] = np.take_along_axis(c, order[..., None], 0)
         views[:, idx] = np.take_along_axis(v, order, 0)
@@ -384,6 +397,13 @@ def plane_texture(cameras: list[Camera], images: list[np.ndarray], knowns: list[
     foot = cv2.morphologyEx(foot, cv2.MORPH_CLOSE, k)
     foot = cv2.dilate(foot, k) > 0
     hole = (foot | blocked) & ~seen
+    if params.render_rim > 0 and rendered is not None and hole.any():
+        render_only = (seen.ravel() & ~(ok & ~rflag).any(0)).reshape(h, w)
+        kr = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * params.render_rim + 1,) * 2)
+        grow = render_only & (cv2.dilate(hole.astype(np.uint8), kr) > 0)
+        hole |= grow
+        seen &= ~grow
+        best_view[grow.ravel()] = -1
     image = colour.reshape(h, w, 3)
     other = ~seen & ~hole
     if other.any() and seen.any():  # harmless context (kept out of the source blocks by the caller)

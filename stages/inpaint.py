@@ -732,7 +732,8 @@ class InpaintStage(Stage):
             tex, why = plane_texture([v.camera for v in data.views], data.contexts8(),
                                      [~h for h in holes], data.depths(), thick,
                                      pp, p.depth_tol, under=under,
-                                     rendered=[v.mask() & ~h for v, h in zip(data.views, holes)])
+                                     rendered=[v.mask() & ~h for v, h in zip(data.views, holes)]
+                                     if pp.render_rim > 0 else None)
             info: dict[str, Any] = {"built": tex is not None, "reason": why}
             if tex is not None:
                 if pp.lift_shadow:

@@ -354,7 +354,7 @@ def plane_texture(cameras: list[Camera], images: list[np.ndarray], knowns: list[
         if not len(idx):
             continue
         fp = footprint(cam, world[idx], plane.normal).astype(np.float32)
-        if rendered is not None:
+        if rendered is not None and params.render_rim > 0:
             px = np.clip(cam.pixels(world[idx])[0], 0, [cam.width - 1, cam.height - 1])
             rf = np.asarray(rendered[j], bool)[px[:, 1], px[:, 0]]
         else:

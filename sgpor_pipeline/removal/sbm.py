@@ -23,9 +23,10 @@ The paper's step (DESIGN.md section 7), CPU-first:
    best are kept per target: RPR's "next-best sources".
 5. The target's best source block (or, with ``paste_top`` > 1, its best sources' weighted mean:
    :func:`paste_block`) is pasted with a feathered (tent) weight into the target block; overlaps
-   average. ``blend="poisson"`` then solves a Poisson equation over the hole with the pasted
-   content's gradients as guidance and the known pixels around the hole as boundary values, which
-   removes seams and lighting offsets between source and target.
+   average (``overlap="seam"``: each pixel from one block, :class:`SeamComposite`). ``blend="poisson"``
+   then solves a Poisson equation over the hole with the pasted content's gradients as guidance and
+   the known pixels around the hole as boundary values, which removes seams and lighting offsets
+   between source and target; ``blend_reach`` limits its correction to a band along the rim.
 
 ``fsr_inpaint`` is the OpenCV baseline (xphoto FSR; its mask is NON-ZERO = VALID).
 """

@@ -183,7 +183,7 @@ class InpaintParams:
     # Overlapping target blocks (SBMParams.overlap): "mean" averages them, "seam" takes each pixel from
     # one block and joins them in the gradient domain, so fine texture (mip360 kitchen's woven mats,
     # grass) keeps its grain: single views of kitchen and statue, high-frequency energy in the hole
-    # against the truth's 0.40-0.74 -> 0.77-1.04, hole PSNR 1.0-1.5 dB lower. Not the default: the
+    # against the truth's 0.40-0.74 -> 0.79-1.07, hole PSNR 0.9-1.9 dB lower. Not the default: the
     # pipeline's fills are fused across views and re-fitted, and there it loses. benchmarks/removal.py,
     # fit seed 0, ours mask PSNR / feat, mean -> seam in the views and the plane texture: synthetic
     # 26.53 / 0.047 -> 26.40 / 0.048, lund + box 15.60 / 0.170 -> 15.45 / 0.171, synthetic-box 27.93 /

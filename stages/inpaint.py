@@ -613,18 +613,22 @@ class InpaintStage(Stage):
             carry[y0:y0 + crop.shape[0], x0:x0 + crop.shape[1]] = crop
             return read_rgb8(items[names[j]] / "image.png"), sv.camera, sv.depth(), carry
 
+        # (a plane refitted to the floor around the holes: their completed depths snap onto it)
+        plane_snap = p.plane().rim_band if p.plane_rim > 0 else 0.0
+
+        def from_plane(view, depth: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            """The filled plane texture's colours for the view's ``target`` pixels on it, and which."""
+            tex = state["plane"]
+            return sample_into_view(tex["image"], tex["camera"], tex["depth"], tex["normal"], view.camera,
+                                    depth, target, p.depth_tol, plane_snap)
+
         def carried(i: int, sources: list[int], thick_only: bool = False):
             """What the already-filled ``sources`` views carry into view i (see :func:`carrier`), or the
             filled plane texture (``sources == [PLANE_SOURCE]``)."""
             if sources == [PLANE_SOURCE]:
                 view = data.views[i]
                 depth = view.depth()
-                target = planar_parts(holes[i], depth, p.carry_max_misfit)
-                tex = state["plane"]
-                # (a plane refitted to the floor around the holes: their completed depths snap onto it)
-                snap = p.plane().rim_band if p.plane_rim > 0 else 0.0
-                return sample_into_view(tex["image"], tex["camera"], tex["depth"], tex["normal"], view.camera,
-                                        depth, target, p.depth_tol, snap)
+                return from_plane(view, depth, planar_parts(holes[i], depth, p.carry_max_misfit))
             loaded = [c for c in (carrier(j, thick_only) for j in sources) if c is not None]
             if not loaded:
                 return None
@@ -636,11 +640,9 @@ class InpaintStage(Stage):
         def blended_into_view(i: int, image: np.ndarray, colours: np.ndarray, got: np.ndarray) -> np.ndarray:
             """The plane texture's colours for view i's ``got`` pixels, shifted to the view's own colours
             on the plane around them (:func:`blend_into_view`; ``plane_blend``)."""
-            view, tex = data.views[i], state["plane"]
+            view = data.views[i]
             ring = cv2.dilate(got.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool) & ~holes[i]
-            snap = p.plane().rim_band if p.plane_rim > 0 else 0.0
-            ring_cols, ring_got = sample_into_view(tex["image"], tex["camera"], tex["depth"], tex["normal"],
-                                                   view.camera, view.depth(), ring, p.depth_tol, snap)
+            ring_cols, ring_got = from_plane(view, view.depth(), ring)
             return blend_into_view(image, colours, got & holes[i], ring_cols, ring_got)
 
         def relight_view(out: Path, i: int, factor: np.ndarray) -> int:

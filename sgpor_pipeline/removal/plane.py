@@ -343,7 +343,8 @@ def plane_texture(cameras: list[Camera], images: list[np.ndarray], knowns: list[
     kept_feet = np.full((votes, h * w), np.inf, np.float32)
     cols = np.zeros((votes, h * w, 3), np.float32)
     views = np.full((votes, h * w), -1, np.int32)
-    rflag = np.zeros((votes, h * w), bool)
+    track = rendered is not None and params.render_rim > 0  # which kept votes are renders (render_rim)
+    rflag = np.zeros((votes, h * w) if track else (0, 0), bool)
     everything = np.ones((h, w), bool)
     for j, cam in enumerate(cameras):
         if cam is None:
@@ -354,19 +355,16 @@ def plane_texture(cameras: list[Camera], images: list[np.ndarray], knowns: list[
         if not len(idx):
             continue
         fp = footprint(cam, world[idx], plane.normal).astype(np.float32)
-        if rendered is not None and params.render_rim > 0:
-            px = np.clip(cam.pixels(world[idx])[0], 0, [cam.width - 1, cam.height - 1])
-            rf = np.asarray(rendered[j], bool)[px[:, 1], px[:, 0]]
-        else:
-            rf = np.zeros(len(idx), bool)
         better = fp < kept_feet[-1, idx]  # finer than the coarsest kept
-        idx, fp, rf = idx[better], fp[better], rf[better]
+        idx, fp = idx[better], fp[better]
         f = np.concatenate([kept_feet[:, idx], fp[None]])  # [votes + 1, n]
         c = np.concatenate([cols[:, idx], col.reshape(-1, 3)[idx][None]])
         v = np.concatenate([views[:, idx], np.full((1, len(idx)), j, np.int32)])
-        r = np.concatenate([rflag[:, idx], rf[None]])
         order = np.argsort(f, axis=0, kind="stable")[:votes]
-        rflag[:, idx] = np.take_along_axis(r, order, 0)
+        if track:
+            px = np.clip(cam.pixels(world[idx])[0], 0, [cam.width - 1, cam.height - 1])
+            rf = np.asarray(rendered[j], bool)[px[:, 1], px[:, 0]]
+            rflag[:, idx] = np.take_along_axis(np.concatenate([rflag[:, idx], rf[None]]), order, 0)
         kept_feet[:, idx] = np.take_along_axis(f, order, 0)
         cols[:, idx] = np.take_along_axis(c, order[..., None], 0)
         views[:, idx] = np.take_along_axis(v, order, 0)
@@ -397,7 +395,7 @@ def plane_texture(cameras: list[Camera], images: list[np.ndarray], knowns: list[
     foot = cv2.morphologyEx(foot, cv2.MORPH_CLOSE, k)
     foot = cv2.dilate(foot, k) > 0
     hole = (foot | blocked) & ~seen
-    if params.render_rim > 0 and rendered is not None and hole.any():
+    if track and hole.any():
         render_only = (seen.ravel() & ~(ok & ~rflag).any(0)).reshape(h, w)
         kr = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * params.render_rim + 1,) * 2)
         grow = render_only & (cv2.dilate(hole.astype(np.uint8), kr) > 0)

@@ -972,7 +972,8 @@ def inpaint_view(image: np.ndarray, hole: np.ndarray, bank: SourceBank, params: 
             pixels = paste_block(bank, pos[j], cst[j], s, params)
             if seams is not None:
                 seams.paste(b, pixels, wb)
-            acc[ty:ty + s, tx:tx + s] += wb[:, :, None] * pixels
+            else:
+                acc[ty:ty + s, tx:tx + s] += wb[:, :, None] * pixels
             wsum[ty:ty + s, tx:tx + s] += wb
         t_feat += tm[0]
         t_ret += tm[1]

@@ -52,7 +52,7 @@ from sgpor_pipeline.errors import PipelineError
 from sgpor_pipeline.gaussians.model import GaussianModel
 from sgpor_pipeline.gaussians.ply import read_ply, write_ply
 from sgpor_pipeline.gaussians.rasterizer import rasterization
-from sgpor_pipeline.gaussians.strategy import Strategy
+from sgpor_pipeline.gaussians.strategy import ADCParams, ADCStrategy, Strategy
 from sgpor_pipeline.gaussians.train import Trainer, TrainParams, make_view, render_view, scene_extent, stage_device
 from sgpor_pipeline.hashing import hash_obj
 from sgpor_pipeline.imageio import read_mask, read_rgb8, write_png
@@ -101,6 +101,15 @@ class FinetuneParams:
     # iterations) on an H200 machine: 7.3 s on its GPU, 22.6 s on its 16 CPU cores (42.8 s on our 2); mask
     # PSNR of the final renders the same to 0.01 dB (the two sets of renders agree to 60.6 dB in the masks).
     device: str = added_param("auto")
+    # Densification of the trainable Gaussians (ADC: clone / split where the screen-space gradient
+    # exceeds densify_grad2d, prune the transparent), up to this many new Gaussians as a fraction of
+    # the trainable count; 0 = off (the re-fit only moves and recolours the Gaussians it has).
+    # benchmarks/removal.py, fit seed 0, ours mask PSNR / feat, 0 -> 0.5: synthetic 26.53 / 0.047 -> 26.50 /
+    # 0.046, synthetic-box 27.88 -> 27.86, lund + box 15.60 / 0.170 -> 15.33 / 0.199, statue-box 22.33 ->
+    # 22.31. mip360 kitchen (every mask): the renders keep no more of the mats' weave (high-frequency
+    # energy in two views' holes 0.0163 / 0.0144 -> 0.0158 / 0.0146; 32k Gaussians added). Off.
+    densify_budget: float = added_param(0.0)
+    densify_grad2d: float = added_param(0.0002)
 
     def sds(self) -> sd.SDSParams:
         return sd.SDSParams(prompt=self.sds_prompt, guidance=self.sds_guidance, min_t=self.sds_min_t,
@@ -126,22 +135,46 @@ def _masks_grad(mask: torch.Tensor):
 
 
 class FocusStrategy(Strategy):
-    """No densification; zeroes the gradients of the Gaussians outside ``trainable`` (a bool mask).
+    """Zeroes the gradients of the Gaussians outside ``trainable`` (a bool mask); no densification,
+    unless ``densify`` is given: then that ADC strategy clones, splits and prunes among the trainable
+    Gaussians only (its copies are trainable, the others never change) up to the trainer's cap.
 
-    The hook is attached to each parameter tensor once (marked on the tensor); a NaN rollback
-    replaces the tensors, so it is attached to the new ones."""
+    The hook is attached to each parameter tensor once (marked on the tensor); a NaN rollback or a
+    densification step replaces the tensors, so it is attached to the new ones, with the mask then
+    current (``state["eligible"]`` when densifying: it follows the Gaussians and is checkpointed)."""
 
     name = "focus"
 
-    def __init__(self, trainable: torch.Tensor):
+    def __init__(self, trainable: torch.Tensor, densify: ADCStrategy | None = None):
         super().__init__(cap=int(trainable.numel()))
         self.trainable = trainable
+        self.densify = densify
+
+    def initialize_state(self, model: GaussianModel, scene_extent: float) -> dict[str, Any]:
+        if self.densify is None:
+            return super().initialize_state(model, scene_extent)
+        state = self.densify.initialize_state(model, scene_extent)
+        state["eligible"] = self.trainable.to(model.device).clone()
+        return state
+
+    def is_growing(self, step: int) -> bool:
+        return self.densify is not None and self.densify.is_growing(step)
+
+    def step_post_backward(self, model: GaussianModel, optimizers: dict, state: dict, step: int,
+                           info: dict[str, Any], lr: float = 0.0) -> dict[str, int] | None:
+        if self.densify is None:
+            return None
+        self.densify.cap = self.cap  # (the trainer sets the budget on this strategy)
+        return self.densify.step_post_backward(model, optimizers, state, step, info, lr)
 
     def step_pre_backward(self, model: GaussianModel, optimizers: dict, state: dict, step: int,
                           info: dict[str, Any]) -> None:
+        if self.densify is not None:
+            super().step_pre_backward(model, optimizers, state, step, info)  # keeps means2d's gradient
+        trainable = state.get("eligible", self.trainable)
         for p in model.params.values():
             if not getattr(p, "_sgpor_focus_hook", False):
-                mask = self.trainable.to(p.device, p.dtype).view((-1,) + (1,) * (p.dim() - 1))
+                mask = trainable.to(p.device, p.dtype).view((-1,) + (1,) * (p.dim() - 1))
                 # in place on the accumulated .grad: a hook returning g * m allocated a new gradient the
                 # size of the parameter every iteration (kitchen, 322k Gaussians: 24 ms of 290)
                 p.register_post_accumulate_grad_hook(_masks_grad(mask))
@@ -217,8 +250,8 @@ class SDSTerm:
 class SDSFocusStrategy(FocusStrategy):
     """:class:`FocusStrategy` plus the SDS term as the trainer's extra loss."""
 
-    def __init__(self, trainable: torch.Tensor, sds_term: SDSTerm):
-        super().__init__(trainable)
+    def __init__(self, trainable: torch.Tensor, sds_term: SDSTerm, densify: ADCStrategy | None = None):
+        super().__init__(trainable, densify)
         self.sds_term = sds_term
 
     def extra_loss(self, model: GaussianModel, step: int) -> torch.Tensor | None:
@@ -276,6 +309,9 @@ class FinetuneStage(Stage):
         if not p.seen_weight >= 0:
             raise PipelineError(f"finetune.seen_weight must be >= 0 (got {p.seen_weight})",
                                 fix="use 0 (the default: the seen background is not supervised) or 1")
+        if not p.densify_budget >= 0:
+            raise PipelineError(f"finetune.densify_budget must be >= 0 (got {p.densify_budget})",
+                                fix="use 0 (off: no new Gaussians) or e.g. 0.5 (up to half as many new as trained)")
         remove_dir = ctx.inputs["remove"]
         model = read_ply(remove_dir / "gaussians.ply")
         seed_ids = np.load(remove_dir / "seed_ids.npy")
@@ -298,8 +334,17 @@ class FinetuneStage(Stage):
                                                   "iterations": 0, "skipped": skipped})
             return
         views = [self._view(ctx, c, h, p, r) for c, h, r in zip(cameras, holes, relit)]
+        densify = None
+        n_before = len(model)  # (the trainer changes the model in place)
+        budget = n_before
+        if p.densify_budget > 0:
+            # a short run: densify every tenth of it over its first 60 % (the fit's ADC: every 100 of 2000)
+            every = max(1, p.iterations // 10)
+            densify = ADCStrategy(0, p.iterations, ADCParams(grow_grad2d=p.densify_grad2d, refine_start=every,
+                                                             refine_every=every))
+            budget += int(np.ceil(p.densify_budget * trainable.sum()))
         tp = TrainParams(iterations=p.iterations, sh_degree=model.max_sh_degree, sh_degree_every=0,
-                         lambda_dssim=p.lambda_dssim, seed=p.seed, backend=p.backend, budget=len(model),
+                         lambda_dssim=p.lambda_dssim, seed=p.seed, backend=p.backend, budget=budget,
                          eval_every=0, checkpoint_every=200, device=str(device))
         base = TrainParams()
         tp.lr_means = base.lr_means * p.lr_scale
@@ -312,20 +357,23 @@ class FinetuneStage(Stage):
             sds_term = SDSTerm(sd.load_model(sds_dir), cameras, holes, p)
             ctx.log.info(f"finetune: SDS on {len(sds_term.views)} hole view(s) every {sds_term.every} iterations, "
                          f"lambda {p.lambda_sds:g} (model loaded in {time.perf_counter() - t0:.1f} s)")
-            strategy: FocusStrategy = SDSFocusStrategy(torch.from_numpy(trainable), sds_term)
+            strategy: FocusStrategy = SDSFocusStrategy(torch.from_numpy(trainable), sds_term, densify)
         else:
-            strategy = FocusStrategy(torch.from_numpy(trainable))
+            strategy = FocusStrategy(torch.from_numpy(trainable), densify)
         trainer = Trainer(model, strategy, views, [], tp, scene_extent(cameras), checkpoint_dir=ctx.checkpoint_dir,
                           logger=ctx.log, progress=ctx.progress)
         ctx.log.info(f"finetune: training {int(trainable.sum())} of {len(model)} Gaussians on {trainer.device}")
         summary = trainer.train()
         trainer.model.to("cpu")  # the renders and the PLY are made on the CPU, as the later stages run
-        info = {"trainable": int(trainable.sum()), "gaussians": len(model), "hole_gaussians": int(len(seed_ids)),
+        info = {"trainable": int(trainable.sum()), "gaussians": n_before, "hole_gaussians": int(len(seed_ids)),
                 "hole_pixels": hole_px, "targets": p.targets, "train_psnr": summary.get("heldout_psnr"),
                 "device": str(trainer.device),
                 "seconds": summary.get("train_seconds"),
                 "iterations": summary.get("iterations"),
                 "resumed_from_iteration": summary.get("resumed_from_iteration")}
+        if densify is not None:
+            info["densify"] = {"budget": budget - n_before, "net_added": len(trainer.model) - n_before,
+                               "trainable_after": int(trainer.sstate["eligible"].sum())}
         if sds_term is not None:
             info["sds"] = {"lambda": p.lambda_sds, "model": str(sds_dir), "steps": sds_term.calls,
                            "every": sds_term.every, "seconds": sds_term.seconds,

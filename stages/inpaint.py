@@ -352,6 +352,7 @@ class InpaintParams:
     # [25.39], synthetic-box-corner 30.88 -> 31.12 [31.12], synthetic-raised-cast 25.22 -> 25.22; -cast,
     # its 1-mask run and synthetic-cast within 0.01.
     plane_render_rim: int = added_param(0)
+    plane_max_size: int = added_param(1024)  # PlaneParams.max_size: the texture's longest side (texels)
     depth_tol: float = 0.02
     seed: int = 0
     # diffusion backend (see sgpor_pipeline.removal.diffusion); "" = $SGPOR_DIFFUSION_MODEL
@@ -389,7 +390,7 @@ class InpaintParams:
     def plane(self) -> PlaneParams:
         return PlaneParams(lift_shadow=self.lift_shadow != "none", lift_cast=self.lift_shadow == "cast",
                            shading_standing=self.shadow_standing, rim=self.plane_rim,
-                           render_rim=self.plane_render_rim)
+                           render_rim=self.plane_render_rim, max_size=self.plane_max_size)
 
     def diffusion(self) -> sd.DiffusionParams:
         return sd.DiffusionParams(prompt=self.diffusion_prompt, negative_prompt=self.diffusion_negative_prompt,

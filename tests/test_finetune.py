@@ -183,3 +183,33 @@ def test_finetune_refits_the_pixels_the_inpaint_stage_relit(tmp_path, device):
     uv, _ = cams[0].project(xyz)
     in_corner = (uv[:, 0] > 4) & (uv[:, 0] < 18) & (uv[:, 1] > 4) & (uv[:, 1] < 10)
     assert moved[in_corner].mean() > 0.9 and not moved_plain[in_corner].any()
+
+
+def test_finetune_densifies_only_the_trainable_gaussians(tmp_path):
+    """finetune.densify_budget: ADC clones and splits among the trainable Gaussians, up to the budget;
+    every other Gaussian is still there with its values bit for bit (only its index may shift)."""
+    from sgpor_pipeline.stages.finetune import trainable_gaussians
+
+    inputs = plane_inputs(tmp_path / "in")
+    before = read_ply(inputs["remove"] / "gaussians.ply")
+    cams = [c for c in load_cameras(inputs["remove"] / "cameras.json") if c.image is not None]
+    holes = [np.asarray(read_rgb8(inputs["remove"] / "holes" / f"{c.image}.png")[..., 0] > 0) for c in cams]
+    params = FinetuneParams(iterations=100, max_size=0, densify_budget=0.5, densify_grad2d=1e-9, device="cpu")
+    trainable = trainable_gaussians(before, np.load(inputs["remove"] / "seed_ids.npy"), cams, holes, params)
+    info, after, _ = run_finetune(tmp_path / "dense", inputs, iterations=100, densify_budget=0.5,
+                                  densify_grad2d=1e-9, device="cpu")
+    assert info["trainable"] == trainable.sum()
+    added = len(after) - len(before)
+    assert added == info["densify"]["net_added"] > 0
+    assert added <= info["densify"]["budget"] == int(np.ceil(0.5 * trainable.sum()))
+    assert info["densify"]["trainable_after"] == trainable.sum() + added  # (nothing is transparent here)
+
+    def rows(model: GaussianModel) -> np.ndarray:
+        return np.concatenate([model.params[n].detach().reshape(len(model), -1).numpy()
+                               for n in sorted(model.params)], 1)
+
+    frozen = {r.tobytes() for r in rows(before)[~trainable]}
+    assert len(frozen) == (~trainable).sum()
+    assert frozen <= {r.tobytes() for r in rows(after)}
+    plain, plain_model, _ = run_finetune(tmp_path / "plain", inputs, iterations=100, device="cpu")
+    assert len(plain_model) == len(before) and "densify" not in plain

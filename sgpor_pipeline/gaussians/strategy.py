@@ -222,6 +222,11 @@ class ADCStrategy(Strategy):
         ext = state["scene_extent"]
         avg = state["grad2d"] / state["count"].clamp_min(1)
         high = avg > self.p.grow_grad2d
+        # state["eligible"] (optional, [N] bool): only these Gaussians densify or are pruned; the mask
+        # follows the surgery (copies and split halves of eligible Gaussians are eligible)
+        eligible = state.get("eligible")
+        if eligible is not None:
+            high &= eligible
         max_scale = model.scales_linear().max(dim=-1).values
         small = max_scale <= self.p.grow_scale3d * ext
         cand = torch.nonzero(high).squeeze(1)
@@ -238,17 +243,27 @@ class ADCStrategy(Strategy):
         if n_dup:
             duplicate(model, optimizers, dup)
             spl = torch.cat([spl, spl.new_zeros(n_dup)])
+            if eligible is not None:
+                eligible = torch.cat([eligible, eligible.new_ones(n_dup)])
         if n_split:
             split(model, optimizers, spl, generator)
+            if eligible is not None:
+                eligible = torch.cat([eligible[~spl], eligible.new_ones(2 * n_split)])
         # prune transparent Gaussians, and oversized ones once opacity resets are active (3DGS/gsplat:
         # only after the first reset; earlier, far background Gaussians are legitimately large)
         op = model.opacities_activated()
         prune = op < self.p.prune_opa
         if self.p.reset_every > 0 and step > self.p.reset_every:
             prune |= model.scales_linear().max(dim=-1).values > self.p.prune_scale3d * ext
+        if eligible is not None:
+            prune &= eligible
         n_prune = int(prune.sum())
         if n_prune and n_prune < len(model):
             remove(model, optimizers, prune)
+            if eligible is not None:
+                eligible = eligible[~prune]
+        if eligible is not None:
+            state["eligible"] = eligible
         n = len(model)
         state["grad2d"] = torch.zeros(n, device=dev)
         state["count"] = torch.zeros(n, device=dev)

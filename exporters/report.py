@@ -506,7 +506,8 @@ class PlaneSection:
         figs = []
         for name, caption in (("texture_as_seen.png", "the views' colours, with the object's contact shadow"),
                               ("shading.png", "the contact shadow found (inpaint.lift_shadow; white: none)"),
-                              ("texture.png", "the views' colours, rectified (black: no view saw it)"),
+                              ("texture.png", "the views' colours, rectified (black: its hole; smooth: context no "
+                                              "view saw)"),
                               ("structure.png", "the straight edges continued through its hole (yellow: seen, "
                                                 "cyan: continued; inpaint.plane_structure)"),
                               ("filled.png", "its hole filled, as every view takes it")):

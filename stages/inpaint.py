@@ -13,10 +13,12 @@ In: the ``remove`` folder (layout: :mod:`sgpor_pipeline.removal.multiview`). Out
   next-best), their colour ``cost`` and feature ``sim``, and ``views`` (the view names the indices
   refer to);
 * ``plane/``: with ``thick_reference = plane`` and a thick planar hole: ``texture.png`` (the views'
-  colours on the plane, rectified), ``hole.png`` (its hole), ``filled.png`` (the hole filled: what the
-  views take) and ``plane.json`` (its virtual camera, plane, sizes and seconds); where the object's shadow was found
-  (``lift_shadow``): ``texture_as_seen.png`` (before the shadow was divided out), ``shading.png`` (the
-  shadow: the share of light left) and ``under.png`` (the texels under the object, filled too);
+  colours on the plane, rectified; texels no view saw are smoothed context), ``seen.png`` (the texels
+  some view saw outside its hole: the fill's sources), ``hole.png`` (its hole), ``filled.png`` (the hole
+  filled: what the views take) and ``plane.json`` (its virtual camera, plane, sizes and seconds); where
+  the object's shadow was found (``lift_shadow``): ``texture_as_seen.png`` (before the shadow was
+  divided out), ``shading.png`` (the shadow: the share of light left) and ``under.png`` (the texels
+  under the object, filled too);
 * ``relit/<view>.png``: with a shadow lifted, the pixels outside the hole whose colour was relit or
   refilled (the finetune trains them);
 * ``inpaint.json``: the backend that ran (``backend``), the one asked for (``backend_requested``) and
@@ -784,6 +786,7 @@ class InpaintStage(Stage):
                                     tsbm, labels=labels)[0]
                 write_png(folder / "texture.png", tex.image)
                 write_mask01(folder / "hole.png", tex.hole)
+                write_mask01(folder / "seen.png", tex.seen)
                 write_png(folder / "filled.png", img)
                 info.update(tex.info, camera=tex.camera.to_dict(), normal=tex.plane.normal.tolist(),
                             offset=tex.plane.offset)
@@ -821,8 +824,8 @@ class InpaintStage(Stage):
                     state["plane"]["under"] = read_mask(pfolder / "under.png")
                 digests_done.append(hash_obj([ctx.file_digest(pfolder / "filled.png"), plane_info["camera"]]))
                 (ctx.out_dir / PLANE_NAME).mkdir()
-                for f in ("texture.png", "hole.png", "filled.png", "plane.json", "texture_as_seen.png", "shading.png",
-                          "under.png", "structure.png"):
+                for f in ("texture.png", "seen.png", "hole.png", "filled.png", "plane.json", "texture_as_seen.png",
+                          "shading.png", "under.png", "structure.png"):
                     if (pfolder / f).is_file():  # (shading and under: with a shadow lifted; structure: with lines)
                         _link_or_copy(pfolder / f, ctx.out_dir / PLANE_NAME / f)
                 refit = plane_info.get("refit") or {}

@@ -889,10 +889,12 @@ def test_inpaint_stage_fills_the_thick_planar_parts_once_on_the_plane(scene, tmp
     assert report["plane"]["rms_relative"] < 0.01 and report["plane"]["hole_texels"] > 0
     assert 0.0 <= report["plane"]["rim_dark_share"] < 0.1  # no footprint here: no hint in the log
     assert all(v["projected"] > 0 for v in report["views"].values())
-    for f in ("texture.png", "hole.png", "filled.png", "plane.json"):
+    for f in ("texture.png", "seen.png", "hole.png", "filled.png", "plane.json"):
         assert (tmp_path / "plane" / "inpaint" / "plane" / f).exists()
     hole = read_mask(tmp_path / "plane" / "inpaint" / "plane" / "hole.png")
-    assert hole.sum() == report["plane"]["hole_texels"]
+    seen = read_mask(tmp_path / "plane" / "inpaint" / "plane" / "seen.png")
+    assert hole.sum() == report["plane"]["hole_texels"] and seen.sum() == report["plane"]["seen_texels"]
+    assert not (seen & hole).any()
     assert err < 0.6 * runs["none"][1], (err, runs["none"][1])
     n = len(builds)
     assert sum(k.get("role") == "plane" for k in builds) == 1

@@ -227,3 +227,16 @@ def test_one_given_mask_propagates_all_round_a_box(tmp_path):
     # (the worst view moves between runs of the whole suite: view_004 0.935, and once 0.847 with the mean
     # 0.948; the SfM or fit upstream is not bitwise repeatable there)
     assert np.mean(ious) > 0.9 and min(ious) > 0.8, ious
+    # the remove stage grows the propagated masks (remove.propagated_margin), never the given one
+    result = run_pipeline(tmp_path / "out", inputs, until="remove",
+                          overrides=[*FAST, "fit.object_masks=fit", "remove.propagated_margin=3"])
+    remove_dir = result.path("remove")
+    assert json.loads((remove_dir / "remove.json").read_text())["propagated_masks_grown"] == {
+        "views": len(scene.cameras) - 1, "margin_px": 3}
+    for cam in scene.cameras:
+        before = read_mask(masks_dir / "masks" / f"{cam.name}.png")
+        after = read_mask(remove_dir / "masks" / f"{cam.name}.png")
+        if cam.name == "view_000":
+            assert np.array_equal(before, after)
+        else:
+            assert (after & before).sum() == before.sum() and after.sum() > before.sum()

@@ -148,6 +148,9 @@ class RemoveStage(Stage):
         p = ctx.params
         if p.context not in CONTEXTS:
             raise PipelineError(f"unknown remove.context {p.context!r}", fix=f"use one of {', '.join(CONTEXTS)}")
+        if p.propagated_margin < 0:
+            raise PipelineError(f"remove.propagated_margin must be >= 0 px (got {p.propagated_margin})",
+                                fix="use 0 (the propagated masks as the masks stage wrote them) or e.g. 4")
         sfm = load_sfm(ctx.inputs["sfm"])
         cameras = sfm.posed
         # before any rendering: the disk the scratch maps and the outputs need

@@ -14,7 +14,7 @@ Out (the contract the inpaint and refine stages read):
   there), and their rim: the pixels within ``context_margin`` px outside the mask whose opacity is
   below ``rim_alpha``: what to inpaint,
 - ``masks/<view>.png``: 0/1 object mask of every view (from the masks stage; the ones it propagated
-  grown by ``propagated_margin`` px); holes are inside it but for their rim,
+  grown by ``propagated_margin`` x the square root of their area); holes are inside it but for their rim,
 - ``depth/<view>.npy``: float32 z-depth of the background with the hole completed from its surroundings
   and, with ``consistent_depth``, from the hole surfaces of the views with smaller holes (one surface
   for all views: :func:`~sgpor_pipeline.removal.holes.complete_depths_jointly`),
@@ -23,8 +23,9 @@ Out (the contract the inpaint and refine stages read):
   when the fit modelled the object: ``object_fitted`` in remove.json),
 - ``under_object/``, with ``under_object`` when it found the plane under the object: ``silhouette.png``,
   the object seen straight down that plane's normal by the camera in ``camera.json``,
-- ``remove.json``: counts (``hull_centres``: Gaussians deleted because no view shows their centre
-  outside its mask; ``disagreeing_pixels``: the mask pixels ``max_disagreement`` made holes; with
+- ``remove.json``: counts (``propagated_masks_grown_px``: the px each propagated mask was grown by;
+  ``hull_centres``: Gaussians deleted because no view shows their centre outside its mask;
+  ``disagreeing_pixels``: the mask pixels ``max_disagreement`` made holes; with
   ``under_object``, ``under_object``: the mask pixels it made holes, or why none) and per-view hole
   sizes (``hole_pixels_by_opacity``: before ``min_views``).
 
@@ -76,19 +77,24 @@ from sgpor_pipeline.stages.fit import fit_ignored_masks
 @dataclass
 class RemoveStageParams(RemoveParams):
     seed: int = 0
-    # The masks the masks stage propagated (not the given ones) are grown by this many px before any use
-    # (deletion, holes, context, the later stages): a propagated mask that misses the object's edge by a
-    # pixel or two leaves that edge in the photos around the hole, where it stays fitted and is copied
-    # into the fill. Given masks are kept as drawn, and so are the masks stage's own outputs (its IoU).
-    # benchmarks/removal.py from one given mask (fit seed 0), ours mask PSNR / feat, 0 -> 2 / 3 / 4 / 6 px:
-    # synthetic-box-1mask 25.74 / 0.118 -> 26.64 / 27.25 / 27.50 / 26.61 (feat 0.075 at 4; with every
-    # mask given 27.88), synthetic-raised-cast-1mask 24.41 / 0.176 -> 25.43 / 24.80 / 24.71 / 25.33 (0.112
-    # at 4), lund-1mask 15.20 / 0.233 -> 15.11 / 15.15 / 15.17 / 15.04 (0.226 at 4). The propagated
-    # masks there missed 1.6 % of the object's pixels (synthetic-box-1mask, 300-425 px in three views
-    # opposite the given one). mip360 kitchen from one mask: the orange mat's fill keeps its straight
-    # edge and the wood between the mats, without the dark smudges (two views' renders agree with their
-    # inpainted images in the hole to 33.6 / 28.0 dB, from 33.8 / 24.1).
-    propagated_margin: int = 4
+    # The masks the masks stage propagated (not the given ones) are grown before any use (deletion,
+    # holes, context, the later stages) by this fraction of the square root of each one's area, in px
+    # (rounded; 0 = off): a propagated mask that misses the object's edge by a pixel or two leaves that
+    # edge in the photos around the hole, where it stays fitted and is copied into the fill. Given masks
+    # are kept as drawn, and so are the masks stage's own outputs (its IoU). Relative to the object's
+    # size, as the ring's cost is: the ring is inpainted, and around a small object it is a large share.
+    # benchmarks/removal.py from one given mask (fit seed 0), ours mask PSNR / feat, off -> 0.05 [-> a fixed
+    # 4 px]: synthetic-box-1mask 25.74 / 0.118 -> 27.22 / 0.074 [27.50 / 0.075] (3-4 px there; with every
+    # mask given 27.88), synthetic-raised-cast-1mask 24.41 / 0.176 -> 24.67 / 0.114 [24.71 / 0.112],
+    # lund-1mask 15.20 / 0.233 -> 15.21 / 0.233 [15.17 / 0.226] (1 px), statue-box from one mask 21.61 /
+    # 0.135 -> 21.42 / 0.121 [20.66 / 0.162] (2 px; a 33 px box). The propagated masks missed 1.6 % of the
+    # object's pixels on synthetic-box-1mask (up to 425 px a view, 1-7 px from the mask), 5.5 % on
+    # statue-box. mip360 kitchen from one mask (13 px): the orange mat's fill keeps its straight edge and
+    # the wood between the mats, without the dark smudges; two views' renders agree with their inpainted
+    # images in the hole to 35.1 / 28.9 dB (33.8 / 24.1 before). mip360 room (4 px): its carpet fill
+    # changes (a dark tongue and specks before, a dark blob and wood patches now): the plane fill there
+    # is fragile to the hole's shape.
+    propagated_margin: float = 0.05
 
 
 def mask_sources(masks_dir: Path) -> dict[str, str]:
@@ -98,17 +104,17 @@ def mask_sources(masks_dir: Path) -> dict[str, str]:
     return {name: str(info.get("source", "")) for name, info in views.items()}
 
 
-def grown_propagated(masks: list[np.ndarray], names: list[str], sources: dict[str, str], margin: int
-                     ) -> tuple[list[np.ndarray], int]:
-    """``masks`` with the propagated ones grown by ``margin`` px (an ellipse), and how many were."""
-    if margin <= 0:
-        return masks, 0
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * margin + 1,) * 2)
-    out, grown = [], 0
+def grown_propagated(masks: list[np.ndarray], names: list[str], sources: dict[str, str], margin: float
+                     ) -> tuple[list[np.ndarray], dict[str, int]]:
+    """``masks`` with the propagated ones grown by ``margin`` x the square root of their area (px,
+    rounded; an ellipse), and the px each grown one was grown by (by view)."""
+    out, grown = [], {}
     for m, name in zip(masks, names):
-        if sources.get(name) == "propagated" and m.any():
+        px = int(round(margin * float(np.sqrt(m.sum())))) if sources.get(name) == "propagated" else 0
+        if px > 0:
+            kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * px + 1,) * 2)
             m = cv2.dilate(m.astype(np.uint8), kernel) > 0
-            grown += 1
+            grown[name] = px
         out.append(m)
     return out, grown
 
@@ -140,7 +146,7 @@ class RemoveStage(Stage):
     # 10: holes where the render disagrees with the photos that saw its point (max_disagreement);
     # 11: the photos are compared blurred in float16 (memory; the disagreement moves by < 0.001);
     # 13 (12 skipped): the context's render is divided by its opacity (unpremultiplied);
-    # 14: the propagated masks grown by propagated_margin (4 px)
+    # 14: the propagated masks grown by propagated_margin (0.05 x the square root of their area)
     Params = RemoveStageParams
     inputs = ("sfm", "fit", "masks")
 
@@ -149,8 +155,8 @@ class RemoveStage(Stage):
         if p.context not in CONTEXTS:
             raise PipelineError(f"unknown remove.context {p.context!r}", fix=f"use one of {', '.join(CONTEXTS)}")
         if p.propagated_margin < 0:
-            raise PipelineError(f"remove.propagated_margin must be >= 0 px (got {p.propagated_margin})",
-                                fix="use 0 (the propagated masks as the masks stage wrote them) or e.g. 4")
+            raise PipelineError(f"remove.propagated_margin must be >= 0 (got {p.propagated_margin})",
+                                fix="use 0 (the propagated masks as the masks stage wrote them) or e.g. 0.05")
         sfm = load_sfm(ctx.inputs["sfm"])
         cameras = sfm.posed
         # before any rendering: the disk the scratch maps and the outputs need
@@ -173,7 +179,7 @@ class RemoveStage(Stage):
             select = dataclasses.replace(p, score_threshold=float("inf"))
         delete, stats, surface, share = objects_to_delete(model, cameras, masks, object_ids, select)
         if grown:
-            stats["propagated_masks_grown"] = {"views": grown, "margin_px": p.propagated_margin}
+            stats["propagated_masks_grown_px"] = grown
         background = subset(model, ~delete)
         if p.clamp_share > 0:  # (the renders below use clamped DC colours anyway: unchanged)
             stats["dc_clamped"] = clamp_dc_colours(background, share[~delete] >= p.clamp_share)

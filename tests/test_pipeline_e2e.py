@@ -228,11 +228,13 @@ def test_one_given_mask_propagates_all_round_a_box(tmp_path):
     # 0.948; the SfM or fit upstream is not bitwise repeatable there)
     assert np.mean(ious) > 0.9 and min(ious) > 0.8, ious
     # the remove stage grows the propagated masks (remove.propagated_margin), never the given one
-    result = run_pipeline(tmp_path / "out", inputs, until="remove",
-                          overrides=[*FAST, "fit.object_masks=fit", "remove.propagated_margin=3"])
+    result = run_pipeline(tmp_path / "out", inputs, until="remove", overrides=[*FAST, "fit.object_masks=fit"])
     remove_dir = result.path("remove")
-    assert json.loads((remove_dir / "remove.json").read_text())["propagated_masks_grown"] == {
-        "views": len(scene.cameras) - 1, "margin_px": 3}
+    grown = json.loads((remove_dir / "remove.json").read_text())["propagated_masks_grown_px"]
+    assert sorted(grown) == [c.name for c in scene.cameras[1:]]
+    for cam in scene.cameras[1:]:  # 0.05 x the square root of the mask's area, px
+        area = read_mask(masks_dir / "masks" / f"{cam.name}.png").sum()
+        assert grown[cam.name] == round(0.05 * np.sqrt(area)) > 0
     for cam in scene.cameras:
         before = read_mask(masks_dir / "masks" / f"{cam.name}.png")
         after = read_mask(remove_dir / "masks" / f"{cam.name}.png")

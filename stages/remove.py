@@ -86,8 +86,9 @@ class RemoveStageParams(RemoveParams):
     # benchmarks/removal.py from one given mask (fit seed 0), ours mask PSNR / feat, off -> 0.05 [-> a fixed
     # 4 px]: synthetic-box-1mask 25.74 / 0.118 -> 27.22 / 0.074 [27.50 / 0.075] (3-4 px there; with every
     # mask given 27.88), synthetic-raised-cast-1mask 24.41 / 0.176 -> 24.67 / 0.114 [24.71 / 0.112],
-    # lund-1mask 15.20 / 0.233 -> 15.21 / 0.233 [15.17 / 0.226] (1 px), statue-box from one mask 21.61 /
-    # 0.135 -> 21.42 / 0.121 [20.66 / 0.162] (2 px; a 33 px box). The propagated masks missed 1.6 % of the
+    # lund-1mask 15.20 / 0.233 -> 15.21 / 0.233 [15.17 / 0.226] (1 px), statue-box from its first view's
+    # mask 21.61 / 0.135 -> 21.42 / 0.121 [20.66 / 0.162] (2 px; a 33 px box), statue-box-1mask (the
+    # largest whole mask given) 21.59 / 0.132 -> 21.38 / 0.121. The propagated masks missed 1.6 % of the
     # object's pixels on synthetic-box-1mask (up to 425 px a view, 1-7 px from the mask), 5.5 % on
     # statue-box. mip360 kitchen from one mask (13 px): the orange mat's fill keeps its straight edge and
     # the wood between the mats, without the dark smudges; two views' renders agree with their inpainted

@@ -373,8 +373,9 @@ def test_the_inserted_one_mask_scene_gives_the_largest_whole_mask(bench, tmp_pat
     without touching the frame (a user paints it large and whole); if every mask touches it, the largest."""
     from sgpor_pipeline.imageio import write_mask01
 
-    assert bench.INSERTED["lund-1mask"] == bench.INSERTED["lund"] and bench.INSERTED_ONE_MASK["lund-1mask"] == "lund"
-    assert "lund-1mask" in bench.GT_SCENES and "lund-1mask" in bench.PREFIX
+    for scene, base in (("lund-1mask", "lund"), ("statue-box-1mask", "statue-box")):
+        assert bench.INSERTED[scene] == bench.INSERTED[base] and bench.INSERTED_ONE_MASK[scene] == base
+        assert scene in bench.GT_SCENES and bench.PREFIX[scene] == bench.PREFIX[base] + "_1mask"
     masks = np.zeros((3, 20, 30), bool)
     masks[0, 5:9, 5:9] = True  # small, whole
     masks[1, 4:14, 6:16] = True  # larger, whole

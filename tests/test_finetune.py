@@ -16,7 +16,7 @@ from sgpor_pipeline.errors import PipelineError
 from sgpor_pipeline.gaussians.model import GaussianModel, rgb_to_sh
 from sgpor_pipeline.gaussians.ply import read_ply, write_ply
 from sgpor_pipeline.gaussians.train import render_view
-from sgpor_pipeline.imageio import read_rgb8, write_mask01, write_png
+from sgpor_pipeline.imageio import read_mask, read_rgb8, write_mask01, write_png
 from sgpor_pipeline.scene import Camera, load_cameras, save_cameras
 from sgpor_pipeline.stages.finetune import FinetuneParams, FinetuneStage
 
@@ -193,7 +193,7 @@ def test_finetune_densifies_only_the_trainable_gaussians(tmp_path):
     inputs = plane_inputs(tmp_path / "in")
     before = read_ply(inputs["remove"] / "gaussians.ply")
     cams = [c for c in load_cameras(inputs["remove"] / "cameras.json") if c.image is not None]
-    holes = [np.asarray(read_rgb8(inputs["remove"] / "holes" / f"{c.image}.png")[..., 0] > 0) for c in cams]
+    holes = [read_mask(inputs["remove"] / "holes" / f"{c.image}.png") for c in cams]  # (as the stage reads them)
     params = FinetuneParams(iterations=100, max_size=0, densify_budget=0.5, densify_grad2d=1e-9, device="cpu")
     trainable = trainable_gaussians(before, np.load(inputs["remove"] / "seed_ids.npy"), cams, holes, params)
     info, after, _ = run_finetune(tmp_path / "dense", inputs, iterations=100, densify_budget=0.5,

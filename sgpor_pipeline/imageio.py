@@ -7,6 +7,8 @@ Masks: any channel count and bit depth, non-zero in any channel = object.
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from pathlib import Path
 
 import cv2
@@ -17,6 +19,21 @@ IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp")
 
 class UnreadableImageError(Exception):
     """The file exists but no image could be decoded from it."""
+
+
+@contextlib.contextmanager
+def opencv_logging(debug: bool) -> Iterator[None]:
+    """Silence OpenCV's own warnings (a truncated PNG's "input buffer is incomplete") unless debugging:
+    the stages say what went wrong, naming the file and the fix. The level is process-global state in
+    OpenCV, so it is restored afterwards."""
+    from cv2.utils import logging as cv_logging
+
+    old = cv_logging.getLogLevel()
+    cv_logging.setLogLevel(cv_logging.LOG_LEVEL_DEBUG if debug else cv_logging.LOG_LEVEL_ERROR)
+    try:
+        yield
+    finally:
+        cv_logging.setLogLevel(old)
 
 
 def _decode(path: Path, flags: int) -> np.ndarray:

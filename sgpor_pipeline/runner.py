@@ -29,6 +29,7 @@ from .dag import (
 )
 from .errors import FREE_DISK, PipelineError
 from .hashing import DigestMemo, file_digest, hash_obj
+from .imageio import opencv_logging
 
 CACHE_FORMAT = 1
 RUN_FILE = "run.json"
@@ -244,7 +245,8 @@ def _run_stage(cls: type[Stage], name: str, key: str, config: dict[str, Any], ca
     measured = reset_peak_memory()
     t0 = time.perf_counter()
     try:
-        cls().run(ctx)
+        with opencv_logging(debug):
+            cls().run(ctx)
     except BaseException as e:
         if not (tmp / CHECKPOINT).is_dir():  # keep a checkpoint for the next run to resume
             shutil.rmtree(tmp, ignore_errors=True)

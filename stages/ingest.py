@@ -193,7 +193,8 @@ class IngestStage(Stage):
                               info["source_width"], info["source_height"]))
 
         if unreadable:
-            ctx.log.warning(f"skipped {len(unreadable)} unreadable file(s): {', '.join(unreadable)}")
+            ctx.log.warning(f"skipped {len(unreadable)} unreadable file(s): {', '.join(unreadable)} (fix: re-export "
+                            "them, or move them out of the folder; the other photos are used)")
         if len(views) < MIN_IMAGES:
             raise PipelineError(f"only {len(views)} usable image(s); at least {MIN_IMAGES} are needed",
                                 path=image_dir, fix="add more overlapping photos of the scene"

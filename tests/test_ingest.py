@@ -120,17 +120,22 @@ def test_mask_of_another_aspect_is_an_error_naming_it(tmp_path):
     assert "view_02.png" in str(e.value) and "aspect" in str(e.value) and "fix:" in str(e.value)
 
 
-def test_unreadable_files_are_skipped_with_one_warning(tmp_path, caplog):
+def test_unreadable_files_are_skipped_with_one_warning(tmp_path, caplog, capfd):
+    """...and only ours: OpenCV's own warning about a truncated PNG (printed by its C++ core straight to
+    stderr) is silenced unless debugging."""
     images = tmp_path / "images"
     make_images(images, n=4)
     (images / "broken.jpg").write_bytes(b"\xff\xd8 not really a jpeg")
     (images / "empty.png").write_bytes(b"")
+    (images / "truncated.png").write_bytes((images / "view_00.png").read_bytes()[:300])
     (images / "notes.txt").write_text("ignored: not an image extension")
     caplog.set_level(logging.WARNING, logger="sgpor_pipeline")
+    capfd.readouterr()
     out = ingest(tmp_path, images)
     assert len(load_views(out)) == 4
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
-    assert len(warnings) == 1 and "broken.jpg" in warnings[0] and "empty.png" in warnings[0]
+    assert len(warnings) == 1 and all(n in warnings[0] for n in ("broken.jpg", "empty.png", "truncated.png"))
+    assert "WARN" not in capfd.readouterr().err
 
 
 def test_fewer_than_three_usable_images(tmp_path):

@@ -140,14 +140,15 @@ DISK_BYTES_PER_PIXEL = 53
 
 class RemoveStage(Stage):
     name = "remove"
-    VERSION = 14  # 3: the hole-depth floor renders the object proper only (no floaters); 4: rim holes;
+    VERSION = 15  # 3: the hole-depth floor renders the object proper only (no floaters); 4: rim holes;
     # 5: rim holes with hole_mode mask too; 6: seeds behind the completed surface (seed_depth_offset 4);
     # 7: the median depth, and holes where no other view saw the background (min_views 1, tolerance 0.02);
     # 8: DC colours clamped behind the masks (clamp_share); 9: seeds carved by the views that saw through them;
     # 10: holes where the render disagrees with the photos that saw its point (max_disagreement);
     # 11: the photos are compared blurred in float16 (memory; the disagreement moves by < 0.001);
     # 13 (12 skipped): the context's render is divided by its opacity (unpremultiplied);
-    # 14: the propagated masks grown by propagated_margin (0.05 x the square root of their area)
+    # 14: the propagated masks grown by propagated_margin (0.05 x the square root of their area);
+    # 15: the seeds' scales shrunk off the background other views saw beside them (carve_footprint)
     Params = RemoveStageParams
     inputs = ("sfm", "fit", "masks")
 

@@ -17,6 +17,7 @@ from sgpor_pipeline.removal.holes import (
     complete_depth,
     concat_models,
     context_image,
+    footprint_scales,
     hole_mask,
     initial_colour,
     objects_to_delete,
@@ -486,6 +487,43 @@ def test_seeds_that_another_view_sees_through_are_carved(scene_and_model):
     assert seeds(depths[0], False) > 20
     assert seeds(depths[0], True) >= 0.8 * seeds(depths[0], False)
     assert seeds(0.5 * depths[0], True) < 0.3 * seeds(0.5 * depths[0], False)
+    # carve_footprint (the default): the same seeds, none larger, those near the seen background beside
+    # the too-near hole smaller (footprint_scales)
+    near = [0.8 * depths[0]] + depths[1:]
+    plain = seed_hole_gaussians(cams, holes, near, colours, 0.02, 0, RemoveParams(carve_footprint=False),
+                                observed=observed)
+    shrunk = seed_hole_gaussians(cams, holes, near, colours, 0.02, 0, RemoveParams(), observed=observed)
+    a, b = plain.params["scales"].detach(), shrunk.params["scales"].detach()
+    assert len(plain) > 5 and torch.equal(plain.means, shrunk.means)
+    assert (b <= a + 1e-6).all() and (b < a - 1e-6).any()
+
+
+def test_footprint_scales_shrink_a_seed_off_the_background_seen_behind_it():
+    """One camera looks down +z. It saw the background at depth 2 on the left half of its image; the
+    right half is its hole. Seeds at depth 1 near the boundary would spread over the seen half: halved
+    until they do not (or three times); a seed deep in the hole, or one behind the seen background, keeps
+    its scale."""
+    from sgpor_pipeline.scene import Camera
+
+    w = h = 100
+    K = np.array([[100.0, 0, 50], [0, 100.0, 50], [0, 0, 1]])
+    cam = Camera("v", w, h, K, np.eye(4), image="v")
+    seen = np.zeros((h, w), bool)
+    seen[:, :50] = True
+    depth = np.full((h, w), 2.0, np.float32)
+    # pixel x of a point at depth z: 100 x / z + 50; a scale s at depth 1 spans 1.5 x 100 s px at reach 1.5
+    xyz = np.array([[0.02, 0.0, 1.0],  # 2 px right of the boundary: clashes until 1.5 x 100 s < 2 px
+                    [0.005, 0.0, 1.0],  # half a px from it: still clashes after three halvings
+                    [0.40, 0.0, 1.0],  # 40 px into the hole: free
+                    [0.04, 0.0, 3.0]])  # behind the seen background (depth 3 > 2): free
+    scale = np.full(4, 0.05)  # 7.5 px at depth 1
+    out = footprint_scales([cam], [seen], [depth], xyz, scale, depth_tol=0.02)
+    assert out[0] == pytest.approx(0.05 / 4)  # reach 1.9 px after two halvings
+    assert out[1] == pytest.approx(0.05 / 8)  # at most three
+    assert out[2] == scale[2] and out[3] == scale[3]
+    assert np.array_equal(scale, np.full(4, 0.05))  # (a copy)
+    fewer = footprint_scales([cam], [seen], [depth], xyz, scale, depth_tol=0.02, halvings=1)
+    assert fewer[0] == pytest.approx(0.025)
 
 
 def test_seeds_sit_behind_the_completed_surface_by_the_depth_offset(scene_and_model):

@@ -130,8 +130,9 @@ class RemoveParams:
     # 22.33 / 22.00 / 21.84 -> 22.53 / 22.10 / 22.04 (+0.17; feat lower in all three), synthetic 26.53 /
     # 26.66 / 25.49 -> 26.48 / 26.71 / 25.50 (0.00), synthetic-box 27.88 / 27.90 / 27.60 -> 27.88 /
     # 27.88 / 27.60 (-0.01), lund + box 15.60 / 16.01 / 15.85 -> 15.61 / 16.05 / 15.78 (-0.01; its holes
-    # pooled 12.42 -> 12.66 and the seen part 14.32 -> 14.64 at seed 0). mip360 kitchen from one mask:
-    # the final renders look the same (no gaps where seeds shrank).
+    # pooled 12.42 -> 12.66 and the seen part 14.32 -> 14.64 at seed 0). Held-out views (--novel, seed 0):
+    # synthetic 25.71 -> 25.75 (feat 0.086 -> 0.084), lund + box 15.59 -> 15.70 (feat 0.206 -> 0.201).
+    # mip360 kitchen from one mask: the final renders look the same (no gaps where seeds shrank).
     carve_footprint: bool = True
     # relative: a point deeper than another view's surface is occluded there (min_views; 0.05 was
     # needed with the expected depth, see min_views: holes against the truth with the median depth,

@@ -630,4 +630,4 @@ def subset(model: GaussianModel, keep: np.ndarray) -> GaussianModel:
 
 __all__ = ["RemoveParams", "objects_to_delete", "clamp_dc_colours", "render_background", "hole_mask", "complete_depth",
            "complete_depths_jointly", "object_depth", "observing_views", "initial_colour", "seed_hole_gaussians",
-           "concat_models", "subset", "median_spacing"]
+           "footprint_scales", "concat_models", "subset", "median_spacing"]

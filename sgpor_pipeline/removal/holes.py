@@ -597,14 +597,18 @@ def footprint_scales(cameras: list[Camera], observed: list[np.ndarray], depths: 
     angles = np.linspace(0.0, 2.0 * np.pi, 8, endpoint=False)
     ring = np.concatenate([np.stack([np.cos(angles), np.sin(angles)], 1),
                            0.5 * np.stack([np.cos(angles[::2]), np.sin(angles[::2])], 1)])  # [12, 2]
+    # (projected once; a seed whose scale was not halved tests the same again, so only the halved are retested)
+    projected = []
+    for cam, seen, depth in zip(cameras, observed, depths):
+        uv, z = cam.project(xyz)
+        ok = (z > 0) & np.isfinite(uv).all(1)
+        if ok.any():
+            projected.append((cam, seen, depth, uv, z, ok))
+    active = np.arange(len(xyz))
     for _ in range(halvings):
         clash = np.zeros(len(xyz), bool)
-        for cam, seen, depth in zip(cameras, observed, depths):
-            uv, z = cam.project(xyz)
-            ok = (z > 0) & np.isfinite(uv).all(1)
-            if not ok.any():
-                continue
-            idx = np.nonzero(ok)[0]
+        for cam, seen, depth, uv, z, ok in projected:
+            idx = active[ok[active]]
             r = reach * cam.K[0, 0] * scale[idx] / z[idx]  # px
             pts = uv[idx, None, :] + r[:, None, None] * ring[None]  # [n, 12, 2]
             px = np.floor(pts).astype(np.int64)
@@ -612,9 +616,10 @@ def footprint_scales(cameras: list[Camera], observed: list[np.ndarray], depths: 
             u, v = np.where(inside, px[..., 0], 0), np.where(inside, px[..., 1], 0)
             behind = inside & seen[v, u] & (z[idx, None] < depth[v, u] * (1 - depth_tol))
             clash[idx[behind.any(1)]] = True
-        if not clash.any():
+        active = np.nonzero(clash)[0]
+        if not len(active):
             break
-        scale[clash] *= 0.5
+        scale[active] *= 0.5
     return scale
 
 

@@ -36,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sgpor_pipeline.camera_io import read_llff_poses
 from sgpor_pipeline.dag import StageContext
 from sgpor_pipeline.imageio import read_image, read_rgb8, write_mask01, write_png
 from sgpor_pipeline.removal.features import default_dino_model, dinov2_available
@@ -114,23 +115,6 @@ def synthetic_scene(name: str, root: Path, rig: str, holes: str, views: int, siz
     return Scene(name, remove, sc.names, list(sc.images_gt), hs, list(sc.cameras), list(sc.depth_gt))
 
 
-def llff_cameras(data: Path, names: list[str], width: int, height: int) -> list[Camera]:
-    """Cameras from an LLFF ``poses_bounds.npy`` (columns down, right, back -> OpenCV axes)."""
-    pb = np.load(data / "poses_bounds.npy")
-    cams = []
-    for name, row in zip(names, pb):
-        P = row[:15].reshape(3, 5)
-        h, w, f = P[:, 4]
-        R = np.stack([P[:, 1], P[:, 0], -P[:, 2]], axis=1)  # world_from_cam, OpenCV axes
-        c2w = np.eye(4)
-        c2w[:3, :3] = R
-        c2w[:3, 3] = P[:, 3]
-        s = width / w
-        K = np.array([[f * s, 0, width / 2], [0, f * s * height / (h * s), height / 2], [0, 0, 1]])
-        cams.append(Camera(name, width, height, K, np.linalg.inv(c2w), image=name))
-    return cams
-
-
 def statue_scene(root: Path, data: Path, views: int, seed: int) -> Scene | None:
     folder = data / "statue"
     if not (folder / "poses_bounds.npy").is_file():
@@ -139,7 +123,7 @@ def statue_scene(root: Path, data: Path, views: int, seed: int) -> Scene | None:
     names = [p.stem for p in paths]
     imgs = [read_rgb8(p) for p in paths]
     h, w = imgs[0].shape[:2]
-    cams = llff_cameras(folder, names, w, h)
+    cams = read_llff_poses(folder / "poses_bounds.npy", names, w, h)
     pick = np.linspace(0, len(names) - 1, views).round().astype(int)
     sel_imgs = [imgs[i] for i in pick]
     sel_cams = [cams[i] for i in pick]

@@ -338,6 +338,28 @@ def _read_json(path: Path):
         raise PipelineError(f"malformed JSON ({e})", path, fix="repair or re-export the file") from e
 
 
+def read_llff_poses(path: str | Path, names: Sequence[str], width: int, height: int) -> list[Camera]:
+    """Cameras from an LLFF ``poses_bounds.npy`` ([N,17]: a 3x5 camera-to-world pose whose columns are
+    down, right, back, then height, width, focal; then near, far), one per name in ``names`` (the
+    file's order is the sorted image names'), for images of ``width`` x ``height`` (LLFF stores the
+    full-size focal; it is scaled to the image's width, principal point at the centre)."""
+    path = Path(path)
+    pb = np.load(path)
+    if pb.ndim != 2 or pb.shape[1] != 17 or len(pb) != len(names):
+        raise PipelineError(f"expected an LLFF poses_bounds array of {len(names)} x 17, got {pb.shape}", path,
+                            fix="pass the poses_bounds.npy that belongs to these images")
+    cams = []
+    for name, row in zip(names, pb):
+        P = row[:15].reshape(3, 5)
+        h, w, f = P[:, 4]
+        c2w = np.eye(4)
+        c2w[:3, :3] = np.stack([P[:, 1], P[:, 0], -P[:, 2]], axis=1)  # OpenCV axes: right, down, forward
+        c2w[:3, 3] = P[:, 3]
+        K = np.array([[f * width / w, 0, width / 2], [0, f * height / h, height / 2], [0, 0, 1]])
+        cams.append(Camera(name, width, height, K, np.linalg.inv(c2w), image=name))
+    return cams
+
+
 def load_cameras_any(path: str | Path) -> list[Camera]:
     """Cameras from a COLMAP model folder, a transforms.json or our cameras.json (format detected)."""
     path = Path(path)

@@ -29,7 +29,7 @@ from pathlib import Path
 
 from sgpor_pipeline.dag import Stage, StageContext
 from sgpor_pipeline.scene import load_cameras
-from sgpor_pipeline.sfm import SfmParams, estimate_cameras, import_known_cameras
+from sgpor_pipeline.sfm import PairCheck, SfmParams, estimate_cameras, import_known_cameras
 from sgpor_pipeline.views import load_views
 
 __all__ = ["SfmParams", "SfmStage"]
@@ -37,7 +37,7 @@ __all__ = ["SfmParams", "SfmStage"]
 
 class SfmStage(Stage):
     name = "sfm"
-    VERSION = 1
+    VERSION = 2  # 2: the model checked against each image's strongest pairs (SfmParams.pair_check)
     Params = SfmParams
     inputs = ("ingest",)
     libraries = ("pycolmap",)
@@ -65,4 +65,16 @@ class SfmStage(Stage):
                 hint += "; for an unordered set use --set sfm.matcher=exhaustive"
             ctx.log.warning(f"sfm: only {registered} of {total} images registered; later stages ignore the "
                             f"others: {', '.join(missing)} ({hint})")
+        check = summary.get("pair_check")
+        if check and check.get("repair") and check["repair"]["kept"] == "strongest_pairs":
+            first = check["repair"]["first"]
+            ctx.log.info(f"sfm: the first model contradicted {first['contradicted']} of the images' strongest "
+                         f"pairs (false matches on repeated texture?); kept the model mapped on the strongest "
+                         f"pairs only")
+        if check and check["contradicted"]:
+            found = PairCheck.from_dict(check)
+            ctx.log.warning(f"sfm: the camera poses contradict {len(found.contradicted)} of {found.checked} "
+                            f"strongest image pairs: {found.describe()} of their matches agree. The poses are "
+                            f"probably wrong (repeated textures give false matches), and so will be the masks "
+                            f"and the fit. Pass known cameras with --cameras, or add photos between those views")
         ctx.notes.update(summary)

@@ -14,6 +14,7 @@ from sgpor_pipeline.camera_io import (
     find_colmap_model,
     load_cameras_any,
     read_colmap_model,
+    read_llff_poses,
     read_transforms_json,
     write_colmap_model,
     write_transforms_json,
@@ -228,3 +229,20 @@ def test_bad_colmap(tmp_path):
     txt.mkdir()
     with pytest.raises(PipelineError, match=str(txt)):
         read_colmap_model(txt)
+
+
+def test_llff_poses_to_opencv_cameras(tmp_path):
+    # a camera at (1, 2, 3) looking at the origin, photographed at 1008x756 with focal 740 and read
+    # for 504x378 images; LLFF stores camera-to-world with columns down, right, back
+    T = look_at(np.array([1.0, 2.0, 3.0]), np.zeros(3))
+    c2w = np.linalg.inv(T)
+    right, down, forward = c2w[:3, 0], c2w[:3, 1], c2w[:3, 2]
+    P = np.c_[down, right, -forward, c2w[:3, 3], [756.0, 1008.0, 740.0]]
+    rows = np.stack([np.r_[P.ravel(), 0.5, 9.0]] * 2)
+    np.save(tmp_path / "poses_bounds.npy", rows)
+    cams = read_llff_poses(tmp_path / "poses_bounds.npy", ["a", "b"], 504, 378)
+    assert [c.image for c in cams] == ["a", "b"]
+    np.testing.assert_allclose(cams[0].cam_from_world, T, atol=1e-12)
+    np.testing.assert_allclose(cams[0].K, [[370.0, 0, 252.0], [0, 370.0, 189.0], [0, 0, 1]])
+    with pytest.raises(PipelineError, match="LLFF"):
+        read_llff_poses(tmp_path / "poses_bounds.npy", ["a", "b", "c"], 504, 378)

@@ -152,6 +152,9 @@ def test_sfm_outputs_layout_and_points(sfm_run):
     notes = json.loads((folder / "manifest.json").read_text())["notes"]
     assert notes["registered"] == len(scene.cameras) and set(notes["seconds"]) >= {"extract", "match", "map"}
     assert sfm.summary["relaxed_retry"] is None  # everything registered: no second mapping
+    # a correct model agrees with every image's strongest pairs: nothing to repair
+    check = sfm.summary["pair_check"]
+    assert check["checked"] >= len(scene.cameras) and check["contradicted"] == [] and check["repair"] is None
     for cam in sfm.cameras:
         img = read_rgb8(sfm.image_path(cam.image))
         assert img.shape == (cam.height, cam.width, 3)
@@ -237,6 +240,82 @@ def test_warns_when_few_images_register(scene_dir, tmp_path, caplog):
     assert all(not sfm.image_path(f"zz_blank{i}").exists() for i in range(4))
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert any("only 12 of 16 images registered" in w and "zz_blank3" in w for w in warnings), warnings
+
+
+# --------------------------------------------------------------------------------------------------
+# the model check against each image's strongest pairs (repeated textures)
+
+# the demo's room: 24 inward views whose wrapped floor and rug textures give pairs of far-apart views
+# false matches; with every pair, COLMAP returns a model that registers all 24 at 0.5 px but puts
+# cameras far from where they were (a known failure, found with this very scene)
+REPEATED = SceneParams(seed=0, rig="inward", n_views=24, width=256, height=192)
+
+
+@pytest.fixture(scope="module")
+def repeated_dir(tmp_path_factory):
+    scene = generate_scene(REPEATED)
+    return scene, save_scene(scene, tmp_path_factory.mktemp("repeated"))
+
+
+def centre_errors(scene, sfm) -> np.ndarray:
+    """Distance of each registered camera centre from the truth after the best similarity, over the
+    scene's extent."""
+    true = {c.name: c for c in scene.cameras}
+    est = np.array([c.center for c in sfm.cameras])
+    gt = np.array([true[c.image].center for c in sfm.cameras])
+    sim = umeyama(est, gt)
+    return np.linalg.norm(sim.apply(est) - gt, axis=1) / scene_extent(scene)
+
+
+def test_pair_check_warns_about_a_wrong_model(repeated_dir, tmp_path, caplog):
+    scene, folder = repeated_dir
+    with caplog.at_level(logging.WARNING, logger="sgpor_pipeline"):
+        _, sfm = run_sfm(tmp_path / "out", ("sfm.pair_check=warn",), images=folder / "images")
+    # the failure is real: every photo registers, yet cameras sit far from the truth
+    assert sfm.summary["registered"] == 24 and centre_errors(scene, sfm).max() > 0.3
+    check = sfm.summary["pair_check"]
+    assert check["repair"] is None and len(check["contradicted"]) >= 1
+    assert all(c["agreement"] < 0.5 and c["inliers"] >= 15 for c in check["contradicted"])
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    first = check["contradicted"][0]["images"]
+    assert any("contradict" in w and "--cameras" in w and f"{Path(first[0]).stem}-{Path(first[1]).stem}" in w
+               for w in warnings), warnings
+
+
+def test_pair_check_repairs_a_wrong_model(repeated_dir, tmp_path, caplog):
+    scene, folder = repeated_dir
+    with caplog.at_level(logging.INFO, logger="sgpor_pipeline"):
+        _, sfm = run_sfm(tmp_path / "out", images=folder / "images")  # default: repair
+    check = sfm.summary["pair_check"]
+    assert check["repair"]["kept"] == "strongest_pairs" and check["repair"]["first"]["contradicted"] >= 1
+    assert check["contradicted"] == [] and sfm.summary["registered"] == 24
+    assert centre_errors(scene, sfm).max() < 0.02
+    messages = [r.getMessage() for r in caplog.records]
+    assert any("kept the model mapped on the strongest pairs only" in m for m in messages)
+    assert not any(r.levelno == logging.WARNING and "contradict" in r.getMessage() for r in caplog.records)
+
+
+def test_strongest_pairs_and_epipolar_distance():
+    from sgpor_pipeline.sfm import _epipolar_distance, strongest_pairs
+
+    m = [np.zeros((n, 2), np.int64) for n in (50, 40, 30, 20, 60)]
+    pairs = [(1, 2, m[0]), (1, 3, m[1]), (2, 3, m[2]), (1, 4, m[3]), (3, 4, m[4])]
+    # image 1: (1,2) 50, (1,3) 40; image 2: (1,2), (2,3); image 3: (3,4), (1,3); image 4: (3,4), (1,4)
+    got = [(a, b) for a, b, _ in strongest_pairs(pairs, 2)]
+    assert got == [(1, 2), (1, 3), (2, 3), (1, 4), (3, 4)]
+    assert [(a, b) for a, b, _ in strongest_pairs(pairs, 1)] == [(1, 2), (3, 4)]
+    assert [(a, b) for a, b, _ in strongest_pairs(pairs, 1, images={1, 3, 4})] == [(1, 3), (3, 4)]
+    # exact correspondences of a relative pose lie on their epipolar lines; shifted ones do not
+    rng = np.random.default_rng(0)
+    X = rng.uniform([-1, -1, 3], [1, 1, 6], (40, 3))
+    angle = np.radians(10)
+    R = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
+    b_from_a = np.c_[R, [0.5, 0.1, 0.0]]
+    Xb = X @ R.T + b_from_a[:, 3]
+    xa, xb = X[:, :2] / X[:, 2:], Xb[:, :2] / Xb[:, 2:]
+    assert np.abs(_epipolar_distance(xa, xb, b_from_a)).max() < 1e-9
+    shifted = _epipolar_distance(xa, xb + [0.0, 0.02], b_from_a)
+    assert np.median(shifted) > 1e-3
 
 
 # --------------------------------------------------------------------------------------------------

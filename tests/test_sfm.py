@@ -429,6 +429,21 @@ def test_known_distorted_cameras_are_undistorted(scene_dir, tmp_path):
 # small units
 
 
+def test_pycolmap_imported_first_is_a_clear_error():
+    import subprocess
+    import sys
+
+    def run(code: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+
+    wrong = run("import pycolmap\nimport sgpor_pipeline")
+    assert wrong.returncode != 0 and "must be imported before pycolmap" in wrong.stderr, wrong.stderr[-500:]
+    # our order (cv2 loaded by sgpor_pipeline first): PNGs encode after pycolmap is loaded
+    right = run("import sgpor_pipeline, pycolmap, cv2, numpy as np\n"
+                "ok, buf = cv2.imencode('.png', np.zeros((64, 64, 3), np.uint8))\nassert ok and len(buf)")
+    assert right.returncode == 0, right.stderr[-500:]
+
+
 def test_relaxed_mapper_options():
     from sgpor_pipeline.sfm import RELAXED_MAPPER, incremental_options
 

@@ -492,7 +492,8 @@ class PairCheck:
                                        for c in d["contradicted"]])
 
     def describe(self, limit: int = 4) -> str:
-        pairs = ", ".join(f"{Path(a).stem}-{Path(b).stem} ({f:.0%} of {n})" for a, b, n, f in self.contradicted[:limit])
+        pairs = ", ".join(f"{Path(a).stem}-{Path(b).stem} ({f:.0%} of {n} matches agree)"
+                          for a, b, n, f in self.contradicted[:limit])
         more = len(self.contradicted) - limit
         return pairs + (f" and {more} more" if more > 0 else "")
 

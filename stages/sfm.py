@@ -1,9 +1,11 @@
 """sfm: camera poses and sparse 3D points, by structure from motion (pycolmap) or from known cameras.
 
 Without ``--cameras``: SIFT features, exhaustive or sequential matching, incremental (or global)
-mapping; the largest model is kept and undistorted to PINHOLE. With ``--cameras`` (ingest wrote
-``cameras.json``): no pose estimation; distorted images are undistorted and points are triangulated
-from matched features with the known poses held fixed. The work is in :mod:`sgpor_pipeline.sfm`.
+mapping; the largest model is kept, checked against each image's strongest verified pairs (mapped
+again on only those pairs when it contradicts them: repeated textures) and undistorted to PINHOLE.
+With ``--cameras`` (ingest wrote ``cameras.json``): no pose estimation; distorted images are
+undistorted and points are triangulated from matched features with the known poses held fixed.
+The work is in :mod:`sgpor_pipeline.sfm`.
 
 Out (read them with :func:`sgpor_pipeline.sfm.load_sfm`):
 
@@ -18,7 +20,8 @@ Out (read them with :func:`sgpor_pipeline.sfm.load_sfm`):
   flat arrays ``obs_point`` [M], ``obs_view`` [M] (index into cameras.json's list), ``obs_xy`` [M,2]
   (pixels of the undistorted image, (0.5, 0.5) = centre of the top-left pixel).
 - ``sfm.json``: mode (sfm / known_cameras), matcher, registered count, unregistered views, seconds
-  per sub-step, point count, mean reprojection error (also in the manifest's notes).
+  per sub-step, point count, mean reprojection error, ``pair_check`` (pairs checked, those the model
+  contradicts, the repair's numbers) (also in the manifest's notes).
 - ``colmap/`` (only with ``keep_database = true``): database.db and the raw (distorted) models. The
   database lives in this build folder, so changed options never reuse a stale one.
 """
@@ -56,16 +59,18 @@ class SfmStage(Stage):
                                        user_images=Path(ctx.run_inputs.images))
         registered, total = summary["registered"], summary["images"]
         missing = summary["unregistered"]
+        check = summary.get("pair_check")
         ctx.log.info(f"sfm: {registered}/{total} images registered, {summary['points']} points"
                      + (f", reprojection error {summary['mean_reprojection_error']:.2f} px"
-                        if summary["mean_reprojection_error"] is not None else ""))
+                        if summary["mean_reprojection_error"] is not None else "")
+                     + (f"; the poses agree with all {check['checked']} strongest image pairs"
+                        if check and not check["contradicted"] else ""))
         if missing and registered < params.min_registered_fraction * total:
             hint = "photos overlapping the registered ones help"
             if summary.get("matcher") == "sequential":
                 hint += "; for an unordered set use --set sfm.matcher=exhaustive"
             ctx.log.warning(f"sfm: only {registered} of {total} images registered; later stages ignore the "
                             f"others: {', '.join(missing)} ({hint})")
-        check = summary.get("pair_check")
         if check and check.get("repair") and check["repair"]["kept"] == "strongest_pairs":
             first = check["repair"]["first"]
             ctx.log.info(f"sfm: the first model contradicted {first['contradicted']} of the images' strongest "
@@ -74,7 +79,7 @@ class SfmStage(Stage):
         if check and check["contradicted"]:
             found = PairCheck.from_dict(check)
             ctx.log.warning(f"sfm: the camera poses contradict {len(found.contradicted)} of {found.checked} "
-                            f"strongest image pairs: {found.describe()} of their matches agree. The poses are "
+                            f"strongest image pairs: {found.describe()}. The poses are "
                             f"probably wrong (repeated textures give false matches), and so will be the masks "
                             f"and the fit. Pass known cameras with --cameras, or add photos between those views")
         ctx.notes.update(summary)

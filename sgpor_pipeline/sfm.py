@@ -841,6 +841,13 @@ def import_known_cameras(ingest_dir: Path, views: Sequence[View], cameras: Seque
             options.triangulation.ignore_two_view_tracks = not params.two_view_tracks
             rec = pycolmap.triangulate_points(rec, db, image_dir, tri_dir, clear_points=True,
                                               options=options, refine_intrinsics=False)
+        check = None
+        if params.pair_check != "off":
+            # the user's poses against the photos' own matches: a file in another axis convention, or
+            # cameras assigned to the wrong photos, contradict them (nothing to repair: the poses are given)
+            with timings.step("check", "sfm: checking the known cameras against each image's "
+                                       f"{PAIR_CHECK_TOP} strongest pairs"):
+                check = check_model_pairs(db, rec)
     stats = database_stats(db)
     _finish_colmap_dir(work, params)
     (out_dir / SPARSE_DIR).mkdir()
@@ -853,6 +860,7 @@ def import_known_cameras(ingest_dir: Path, views: Sequence[View], cameras: Seque
         "unregistered": [],
         "undistorted": undistorted,
         "novel_cameras": len(out_cams) - len(posed_out),
+        "pair_check": None if check is None else {**check.to_dict(), "repair": None},
         "seconds": timings.seconds,
     }
     points = _write_outputs(out_dir, out_cams, rec, summary)

@@ -340,11 +340,31 @@ def test_known_cameras_imported_and_triangulated(scene_dir, tmp_path):
     assert sfm.cameras[-1].image is None
     np.testing.assert_allclose(sfm.cameras[-1].cam_from_world, novel.cam_from_world)
     assert sfm.points.obs_view.max() < len(scene.names)  # the novel camera has no observations
+    # the true poses agree with the photos' strongest pairs
+    assert sfm.summary["pair_check"]["checked"] >= len(scene.names) and sfm.summary["pair_check"]["contradicted"] == []
     # triangulated points lie on the true surfaces (no similarity alignment: same world frame)
     d = distance_to_geometry(scene, sfm.points.xyz)
     extent = scene_extent(scene)
     assert len(d) > 300
     assert np.median(d) < 0.01 * extent and np.mean(d < 0.05 * extent) > 0.85, (np.median(d), extent)
+
+
+def test_known_cameras_that_contradict_the_photos_are_named(scene_dir, tmp_path, caplog):
+    # two photos assigned to each other's cameras: the poses are kept (they are given), but the
+    # photos' strongest pairs contradict them, and the warning names those photos and the fix
+    scene, folder = scene_dir
+    cams = load_cameras(folder / "cameras.json")
+    a, b = 0, len(cams) // 2
+    cams[a], cams[b] = (Camera(cams[a].name, 256, 192, cams[a].K, cams[b].cam_from_world, cams[a].image),
+                        Camera(cams[b].name, 256, 192, cams[b].K, cams[a].cam_from_world, cams[b].image))
+    save_cameras(tmp_path / "cameras.json", cams)
+    with caplog.at_level(logging.WARNING, logger="sgpor_pipeline"):
+        _, sfm = run_sfm(tmp_path / "out", images=folder / "images", cameras=tmp_path / "cameras.json")
+    contradicted = sfm.summary["pair_check"]["contradicted"]
+    named = {Path(n).stem for c in contradicted for n in c["images"]}
+    assert named & {scene.names[a], scene.names[b]} and sfm.summary["pair_check"]["repair"] is None
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert any("given cameras contradict" in w and "which photo each camera belongs to" in w for w in warnings)
 
 
 def test_known_cameras_two_view_tracks_add_points_on_the_surfaces(scene_dir, tmp_path):

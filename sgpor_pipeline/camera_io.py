@@ -1,4 +1,5 @@
-"""Import and export of known cameras: COLMAP models and nerfstudio / instant-ngp ``transforms.json``.
+"""Import and export of known cameras: COLMAP models and nerfstudio / instant-ngp ``transforms.json``
+(both ways), LLFF ``poses_bounds.npy`` (read).
 
 Every reader returns a list of :class:`sgpor_pipeline.scene.Camera` (OpenCV axes, ``cam_from_world``).
 Bad input raises :class:`sgpor_pipeline.errors.PipelineError` naming the file and the fix.
@@ -17,6 +18,9 @@ Conventions:
   ``k3, k4`` (-> FULL_OPENCV) or ``camera_model: OPENCV_FISHEYE``. Our writer adds ``sgpor_name`` /
   ``sgpor_image`` keys to each frame (ignored by other tools) so names and image-less cameras survive
   a round trip. ``applied_transform`` (nerfstudio) is ignored: poses stay in the file's world frame.
+- LLFF ``poses_bounds.npy`` (LLFF, SPIn-NeRF): rows in the sorted order of the ``images/`` folder
+  beside the file, camera-to-world with columns down, right, back; PINHOLE at the file's full size
+  (ingest scales it to the photos).
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 
 from .errors import PipelineError
+from .imageio import IMAGE_EXTENSIONS
 from .scene import CAMERAS_FORMAT, Camera
 
 log = logging.getLogger(__name__)
@@ -38,7 +43,7 @@ log = logging.getLogger(__name__)
 _GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 _CAMERA_FIX = ("pass a COLMAP model folder (cameras/images .bin or .txt), a nerfstudio/instant-ngp "
-               "transforms.json, or a cameras.json written by sgpor-pipeline")
+               "transforms.json, an LLFF poses_bounds.npy, or a cameras.json written by sgpor-pipeline")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -338,30 +343,52 @@ def _read_json(path: Path):
         raise PipelineError(f"malformed JSON ({e})", path, fix="repair or re-export the file") from e
 
 
-def read_llff_poses(path: str | Path, names: Sequence[str], width: int, height: int) -> list[Camera]:
+def llff_image_names(path: Path) -> list[str]:
+    """The base names an LLFF ``poses_bounds.npy`` belongs to: its rows follow the sorted file names
+    of the ``images/`` folder beside it (LLFF's imgs2poses.py sorts COLMAP's image names)."""
+    folder = Path(path).parent / "images"
+    files = sorted(p.name for p in folder.iterdir() if p.is_file() and not p.name.startswith(".")
+                   and p.suffix.lower() in IMAGE_EXTENSIONS) if folder.is_dir() else []
+    if not files:
+        raise PipelineError("an LLFF poses_bounds.npy lists its poses in the sorted order of the photos in the "
+                            "images/ folder beside it, and there is none", path,
+                            fix="keep the file in its dataset folder next to images/ (as LLFF and SPIn-NeRF "
+                                "ship it), or convert the cameras to a transforms.json")
+    return [PurePosixPath(f).stem for f in files]
+
+
+def read_llff_poses(path: str | Path, names: Sequence[str] | None = None, width: int | None = None,
+                    height: int | None = None) -> list[Camera]:
     """Cameras from an LLFF ``poses_bounds.npy`` ([N,17]: a 3x5 camera-to-world pose whose columns are
-    down, right, back, then height, width, focal; then near, far), one per name in ``names`` (the
-    file's order is the sorted image names'), for images of ``width`` x ``height`` (LLFF stores the
-    full-size focal; it is scaled to the image's width, principal point at the centre)."""
+    down, right, back, then height, width, focal; then near, far), one per name in ``names`` (default:
+    :func:`llff_image_names`), PINHOLE, principal point at the centre. ``width`` x ``height``: the
+    images' size (the focal is scaled from the file's full size); default the file's own size."""
     path = Path(path)
-    pb = np.load(path)
+    try:
+        pb = np.load(path)
+    except (OSError, ValueError) as e:
+        raise PipelineError(f"not a readable .npy array ({e})", path, fix=_CAMERA_FIX) from e
+    names = llff_image_names(path) if names is None else list(names)
     if pb.ndim != 2 or pb.shape[1] != 17 or len(pb) != len(names):
-        raise PipelineError(f"expected an LLFF poses_bounds array of {len(names)} x 17, got {pb.shape}", path,
-                            fix="pass the poses_bounds.npy that belongs to these images")
+        raise PipelineError(f"expected an LLFF poses_bounds array of {len(names)} x 17 (one row per photo), got "
+                            f"{pb.shape}", path, fix="pass the poses_bounds.npy that belongs to these images")
     cams = []
     for name, row in zip(names, pb):
         P = row[:15].reshape(3, 5)
         h, w, f = P[:, 4]
+        W = int(round(w)) if width is None else width
+        H = int(round(h)) if height is None else height
         c2w = np.eye(4)
         c2w[:3, :3] = np.stack([P[:, 1], P[:, 0], -P[:, 2]], axis=1)  # OpenCV axes: right, down, forward
         c2w[:3, 3] = P[:, 3]
-        K = np.array([[f * width / w, 0, width / 2], [0, f * height / h, height / 2], [0, 0, 1]])
-        cams.append(Camera(name, width, height, K, np.linalg.inv(c2w), image=name))
+        K = np.array([[f * W / w, 0, W / 2], [0, f * H / h, H / 2], [0, 0, 1]])
+        cams.append(Camera(name, W, H, K, np.linalg.inv(c2w), image=name))
     return cams
 
 
 def load_cameras_any(path: str | Path) -> list[Camera]:
-    """Cameras from a COLMAP model folder, a transforms.json or our cameras.json (format detected)."""
+    """Cameras from a COLMAP model folder, a transforms.json, an LLFF poses_bounds.npy or our
+    cameras.json (format detected)."""
     path = Path(path)
     if not path.exists():
         raise PipelineError("camera file or folder does not exist", path, fix=_CAMERA_FIX)
@@ -375,6 +402,8 @@ def load_cameras_any(path: str | Path) -> list[Camera]:
                             "sparse/0 and 0/) and no transforms.json", path, fix=_CAMERA_FIX)
     if path.suffix.lower() in (".bin", ".txt") and path.stem in ("cameras", "images", "points3D"):
         return read_colmap_model(path.parent)
+    if path.suffix.lower() == ".npy":
+        return read_llff_poses(path)
     if path.suffix.lower() != ".json":
         raise PipelineError(f"unrecognised camera file type {path.suffix!r}", path, fix=_CAMERA_FIX)
     data = _read_json(path)

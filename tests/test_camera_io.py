@@ -231,18 +231,40 @@ def test_bad_colmap(tmp_path):
         read_colmap_model(txt)
 
 
+def llff_rows(cams: list[Camera], scale: float = 1.0) -> np.ndarray:
+    """poses_bounds rows (LLFF: camera-to-world columns down, right, back; h, w, f) of ``cams`` as
+    photographed at ``scale`` x their size."""
+    rows = []
+    for c in cams:
+        c2w = np.linalg.inv(c.cam_from_world)
+        right, down, forward = c2w[:3, 0], c2w[:3, 1], c2w[:3, 2]
+        hwf = [c.height * scale, c.width * scale, c.K[0, 0] * scale]
+        rows.append(np.r_[np.c_[down, right, -forward, c2w[:3, 3], hwf].ravel(), 0.5, 9.0])
+    return np.stack(rows)
+
+
 def test_llff_poses_to_opencv_cameras(tmp_path):
     # a camera at (1, 2, 3) looking at the origin, photographed at 1008x756 with focal 740 and read
-    # for 504x378 images; LLFF stores camera-to-world with columns down, right, back
+    # for 504x378 images
     T = look_at(np.array([1.0, 2.0, 3.0]), np.zeros(3))
-    c2w = np.linalg.inv(T)
-    right, down, forward = c2w[:3, 0], c2w[:3, 1], c2w[:3, 2]
-    P = np.c_[down, right, -forward, c2w[:3, 3], [756.0, 1008.0, 740.0]]
-    rows = np.stack([np.r_[P.ravel(), 0.5, 9.0]] * 2)
-    np.save(tmp_path / "poses_bounds.npy", rows)
+    K = np.array([[370.0, 0, 252.0], [0, 370.0, 189.0], [0, 0, 1]])
+    np.save(tmp_path / "poses_bounds.npy", llff_rows([Camera("a", 504, 378, K, T, "a")] * 2, scale=2.0))
     cams = read_llff_poses(tmp_path / "poses_bounds.npy", ["a", "b"], 504, 378)
     assert [c.image for c in cams] == ["a", "b"]
     np.testing.assert_allclose(cams[0].cam_from_world, T, atol=1e-12)
-    np.testing.assert_allclose(cams[0].K, [[370.0, 0, 252.0], [0, 370.0, 189.0], [0, 0, 1]])
+    np.testing.assert_allclose(cams[0].K, K)
     with pytest.raises(PipelineError, match="LLFF"):
         read_llff_poses(tmp_path / "poses_bounds.npy", ["a", "b", "c"], 504, 378)
+    # --cameras poses_bounds.npy: the names are the sorted photos of images/ beside the file, the
+    # size the file's own (ingest scales it to the photos)
+    with pytest.raises(PipelineError, match="images/ folder beside it"):
+        load_cameras_any(tmp_path / "poses_bounds.npy")
+    (tmp_path / "images").mkdir()
+    for name in ("IMG_2.png", "IMG_1.JPG", ".hidden.png", "notes.txt"):
+        (tmp_path / "images" / name).write_bytes(b"")
+    cams = load_cameras_any(tmp_path / "poses_bounds.npy")
+    assert [c.name for c in cams] == ["IMG_1", "IMG_2"] and (cams[0].width, cams[0].height) == (1008, 756)
+    np.testing.assert_allclose(cams[1].K, [[740.0, 0, 504.0], [0, 740.0, 378.0], [0, 0, 1]])
+    (tmp_path / "bad.npy").write_bytes(b"not an array")
+    with pytest.raises(PipelineError, match="npy"):
+        load_cameras_any(tmp_path / "bad.npy")

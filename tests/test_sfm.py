@@ -390,6 +390,29 @@ def test_known_cameras_from_transforms_json(scene_dir, tmp_path):
     assert np.median(distance_to_geometry(scene, sfm.points.xyz)) < 0.01 * scene_extent(scene)
 
 
+def test_known_cameras_from_llff_poses_bounds(scene_dir, tmp_path):
+    # an LLFF dataset folder (SPIn-NeRF's layout): poses_bounds.npy for the full-size photos in images/,
+    # the run on half-size copies in images_2/
+    scene, folder = scene_dir
+    (tmp_path / "images").mkdir()
+    (tmp_path / "images_2").mkdir()
+    rows = []
+    for cam in scene.cameras:
+        rgb = read_rgb8(folder / "images" / f"{cam.name}.png")
+        cv2.imwrite(str(tmp_path / "images" / f"{cam.name}.png"), cv2.resize(rgb, (512, 384))[..., ::-1])
+        (tmp_path / "images_2" / f"{cam.name}.png").write_bytes((folder / "images" / f"{cam.name}.png").read_bytes())
+        c2w = np.linalg.inv(cam.cam_from_world)
+        hwf = [2 * cam.height, 2 * cam.width, 2 * cam.K[0, 0]]
+        rows.append(np.r_[np.c_[c2w[:3, 1], c2w[:3, 0], -c2w[:3, 2], c2w[:3, 3], hwf].ravel(), 0.5, 9.0])
+    np.save(tmp_path / "poses_bounds.npy", np.stack(rows))
+    _, sfm = run_sfm(tmp_path / "out", images=tmp_path / "images_2", cameras=tmp_path / "poses_bounds.npy")
+    assert sfm.summary["mode"] == "known_cameras" and len(sfm.cameras) == len(scene.cameras)
+    for got, want in zip(sfm.cameras, scene.cameras):
+        np.testing.assert_allclose(got.cam_from_world, want.cam_from_world, atol=1e-9)
+        np.testing.assert_allclose(got.K, want.K, atol=1e-9)
+    assert sfm.summary["pair_check"]["contradicted"] == []
+
+
 def _distort(img: np.ndarray, K: np.ndarray, dist: np.ndarray, interpolation: int) -> np.ndarray:
     """Render what an OPENCV-distorted camera with the same K sees, from an undistorted image."""
     h, w = img.shape[:2]

@@ -6,7 +6,7 @@
                                            synthetic-raised-cast,synthetic-box-1mask,synthetic-cast,
                                            synthetic-raised-cast-1mask,lund-1mask,statue-box-1mask,
                                            synthetic-box-edge,synthetic-box-corner]]
-                                 [--set STAGE.PARAM=VALUE ...]   (overrides for every variant of (a) and (b))
+                                 [--set STAGE.PARAM=VALUE ...]   (overrides for every run of (a), (b), (c))
                                  [--novel]   (+ the novel-view protocol (d) on the scenes of (a) and (b))
                                  [--fit-seeds 0,1,2]   (every method on each seed's fit; targets on the mean)
                                  [--methods ours,fsr-refit]   (only these methods: experiments; targets not judged)
@@ -1080,7 +1080,8 @@ def iou(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.logical_and(a, b).sum() / union) if union else 1.0
 
 
-def protocol_propagation(scene: str, folder: Path, out: Path, quick: bool) -> dict[str, Any]:
+def protocol_propagation(scene: str, folder: Path, out: Path, quick: bool,
+                         overrides: Sequence[str] = ()) -> dict[str, Any]:
     from sgpor_pipeline.dag import RunInputs
     from sgpor_pipeline.imageio import read_image, read_mask
     from sgpor_pipeline.runner import run_pipeline
@@ -1097,6 +1098,7 @@ def protocol_propagation(scene: str, folder: Path, out: Path, quick: bool) -> di
     # propagation from 1, 2, 4 of the dataset's masks: the fit must model the object, not leave every
     # given mask out (fit.object_masks=ignore / auto would, as all views have one)
     base.append("fit.object_masks=fit")
+    base += list(overrides)
     counts = (1, 2) if quick else (1, 2, 4)
     result: dict[str, Any] = {"scene": scene, "iou": {}, "iou_min": {}, "given": {}, "seconds": {}}
     for n in counts:
@@ -1424,8 +1426,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="run only these methods of the ground-truth scenes (ours and delete-only always "
                          "run): for experiments; a target whose baselines did not all run is not judged")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                    help="config override added to every variant of the ground-truth scenes "
-                         "(e.g. remove.min_views=2); repeatable")
+                    help="config override added to every variant of the ground-truth scenes and to the "
+                         "runs of statue and room (e.g. remove.min_views=2); repeatable")
     args = ap.parse_args(argv)
     from sgpor_pipeline.allocator import keep_freed_memory
 
@@ -1481,7 +1483,7 @@ def main(argv: list[str] | None = None) -> int:
             r = ground_truth_protocol(scene)
         else:
             folder = data / ("statue" if scene == "statue" else "mip360-room")
-            r = protocol_propagation(scene, folder, out, args.quick)
+            r = protocol_propagation(scene, folder, out, args.quick, args.set)
         r.setdefault("wall_seconds", time.perf_counter() - t0)
         results[scene] = r
         print(format_removal_table(r) if scene in GT_SCENES else format_propagation_table([r]),

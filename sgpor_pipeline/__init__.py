@@ -7,11 +7,13 @@ from importlib.metadata import PackageNotFoundError, version
 # pycolmap's wheel carries its own zlib; loaded before OpenCV, it serves OpenCV's PNG writer, which
 # then aborts the process ("double free or corruption" in deflateEnd, pycolmap 4.2 with
 # opencv-python 5.0) at the first PNG written. Loading cv2 first is enough; after pycolmap it is too
-# late, so say so instead of crashing mid-run.
-if "pycolmap" in sys.modules and "cv2" not in sys.modules:
+# late (also when cv2 came after it), so say so instead of crashing mid-run.
+_loaded = list(sys.modules)  # in import order
+if "pycolmap" in sys.modules and ("cv2" not in sys.modules or _loaded.index("pycolmap") < _loaded.index("cv2")):
     raise ImportError("sgpor_pipeline must be imported before pycolmap (or import cv2 first): pycolmap's "
                       "bundled zlib, loaded first, makes OpenCV's PNG writer abort the process. Move "
                       "'import sgpor_pipeline' (or 'import cv2') above 'import pycolmap'")
+del _loaded
 import cv2  # noqa: E402, F401  (loaded here, before any pycolmap import of ours: see above)
 
 # Two OpenMP runtimes share the cores (torch's and our kernel's): threads that spin while idle would

@@ -479,8 +479,9 @@ def test_pycolmap_imported_first_is_a_clear_error():
     def run(code: str) -> subprocess.CompletedProcess:
         return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
 
-    wrong = run("import pycolmap\nimport sgpor_pipeline")
-    assert wrong.returncode != 0 and "must be imported before pycolmap" in wrong.stderr, wrong.stderr[-500:]
+    for code in ("import pycolmap\nimport sgpor_pipeline", "import pycolmap, cv2\nimport sgpor_pipeline"):
+        wrong = run(code)
+        assert wrong.returncode != 0 and "must be imported before pycolmap" in wrong.stderr, wrong.stderr[-500:]
     # our order (cv2 loaded by sgpor_pipeline first): PNGs encode after pycolmap is loaded
     right = run("import sgpor_pipeline, pycolmap, cv2, numpy as np\n"
                 "ok, buf = cv2.imencode('.png', np.zeros((64, 64, 3), np.uint8))\nassert ok and len(buf)")

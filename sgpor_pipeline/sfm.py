@@ -591,6 +591,9 @@ def check_model_pairs(db: Path, rec: Any, top: int = PAIR_CHECK_TOP, tol_px: flo
                                    (Tb @ np.linalg.inv(Ta))[:3])
             focal = 0.5 * (rec.cameras[ia.camera_id].mean_focal_length()
                            + rec.cameras[ib.camera_id].mean_focal_length())
+            d = d[np.isfinite(d)]  # (a keypoint the distortion model cannot undistort)
+            if len(d) == 0:
+                continue
             agreement = float(np.mean(d * focal <= tol_px))
             if agreement < min_agreement:
                 contradicted.append((ia.name, ib.name, len(matches), agreement))

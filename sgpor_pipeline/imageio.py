@@ -91,6 +91,15 @@ def read_image(path: Path) -> np.ndarray:
     return to_float32(read_rgb8(path))
 
 
+# Relative tolerance on aspect ratios: sizes rounded to whole pixels differ by up to one pixel.
+ASPECT_TOLERANCE = 0.01
+
+
+def same_aspect(w0: int, h0: int, w1: int, h1: int) -> bool:
+    """Whether two image sizes have one aspect ratio (up to the rounding of a scaled copy)."""
+    return abs(w0 * h1 - w1 * h0) <= ASPECT_TOLERANCE * max(w0 * h1, w1 * h0)
+
+
 def read_mask(path: Path) -> np.ndarray:
     """A mask file as bool HxW: non-zero in any channel = object (EXIF orientation applied)."""
     img = _decode(Path(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)

@@ -32,11 +32,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
+import cv2
 import numpy as np
 
+from .camera_io import read_colmap_model
 from .config import added_param
 from .errors import PipelineError
-from .imageio import read_mask, read_rgb8, write_mask01, write_png
+from .imageio import read_mask, read_rgb8, same_aspect, write_mask01, write_png
 from .scene import Camera, load_cameras, save_cameras
 from .views import View
 
@@ -49,6 +51,9 @@ MASKS_DIR = "masks"
 CAMERAS_FILE = "cameras.json"
 POINTS_FILE = "points.npz"
 SUMMARY_FILE = "sfm.json"
+# The registered views' cameras before undistortion, at ingest's image size: the mapping from a photo
+# (or another image of the same view, e.g. its ground truth) to the undistorted images (photo_to_view).
+RAW_CAMERAS_FILE = "raw_cameras.json"
 COLMAP_DIR = "colmap"  # database and raw (distorted) models; removed unless keep_database
 
 # With up to this many images, exhaustive matching (every pair) is affordable and the most robust;
@@ -346,6 +351,22 @@ def undistort_array(image: np.ndarray, camera: Any, options: Any) -> tuple[np.nd
     if arr.ndim == 3 and image.ndim == 2:
         arr = arr[:, :, 0]
     return arr, cam
+
+
+def photo_to_view(rgb: np.ndarray, raw: Camera) -> np.ndarray:
+    """An RGB uint8 image of a view, at its source size or ingest's, mapped as the view's photo was:
+    resized to ingest's size (INTER_AREA, as ingest does) and undistorted with the view's raw camera
+    (``raw_cameras.json``). Raises PipelineError when its aspect ratio is not the view's."""
+    h, w = rgb.shape[:2]
+    if (w, h) != (raw.width, raw.height):
+        if not same_aspect(w, h, raw.width, raw.height):
+            raise PipelineError(f"the image is {w}x{h}, the view's photo {raw.width}x{raw.height} (another "
+                                f"aspect ratio)", fix="give it at the photo's size (or a scaled copy of it)")
+        rgb = cv2.resize(rgb, (raw.width, raw.height), interpolation=cv2.INTER_AREA)
+    if not has_distortion(raw):
+        return np.ascontiguousarray(rgb)
+    out, _ = undistort_array(rgb, to_colmap_camera(raw), undistort_options())
+    return out
 
 
 def undistort_mask(mask: np.ndarray, camera: Any, options: Any) -> np.ndarray:
@@ -743,6 +764,7 @@ def estimate_cameras(ingest_dir: Path, views: Sequence[View], out_dir: Path, par
         raw.mkdir()
         best.write_binary(raw)
         registered_names = {best.images[i].name for i in best.reg_image_ids()}
+        save_cameras(out_dir / RAW_CAMERAS_FILE, read_colmap_model(raw))
         with timings.step("undistort", f"sfm: undistorting {len(registered_names)} registered images"):
             options = undistort_options()
             pycolmap.undistort_images(out_dir, raw, image_dir, undistort_options=options,
@@ -805,6 +827,7 @@ def import_known_cameras(ingest_dir: Path, views: Sequence[View], cameras: Seque
     options = undistort_options()
     out_cams: list[Camera] = []
     posed = [c for c in cameras if c.image is not None]
+    save_cameras(out_dir / RAW_CAMERAS_FILE, posed)
     undistorted = 0
     with timings.step("undistort", f"sfm: importing {len(posed)} known cameras (no pose estimation)"):
         for cam in progress(cameras, total=len(cameras), desc="sfm: known cameras"):

@@ -25,11 +25,11 @@ from sgpor_pipeline.cache import read_manifest
 from sgpor_pipeline.config import added_param
 from sgpor_pipeline.dag import RunInputs, Stage, StageContext
 from sgpor_pipeline.errors import PipelineError
-from sgpor_pipeline.imageio import IMAGE_EXTENSIONS, read_image, read_mask
+from sgpor_pipeline.imageio import IMAGE_EXTENSIONS, read_image, read_mask, read_rgb8, to_float32
 from sgpor_pipeline.metrics import PatchFeatures, crop_features, mean_scores, score_image
 from sgpor_pipeline.removal.features import DinoBackend, default_dino_model, dinov2_available
 from sgpor_pipeline.scene import load_cameras
-from sgpor_pipeline.sfm import load_sfm
+from sgpor_pipeline.sfm import RAW_CAMERAS_FILE, load_sfm, photo_to_view
 
 TIMED_STAGES = ("ingest", "sfm", "fit", "masks", "remove", "inpaint", "refine", "finetune")
 
@@ -110,6 +110,8 @@ class EvaluateStage(Stage):
         sfm = load_sfm(ctx.inputs["sfm"]) if p.score_masks == "input" else None
         remove_dir = ctx.inputs["remove"]
         cameras = [c for c in load_cameras(remove_dir / "cameras.json") if c.image is not None]
+        raw_file = ctx.inputs["sfm"] / RAW_CAMERAS_FILE
+        raw_cameras = {c.image: c for c in load_cameras(raw_file)} if raw_file.is_file() else {}
         sources = {
             "final": ctx.inputs["finetune"] / "renders",
             "inpainted_2d": ctx.inputs["refine"] / "images",
@@ -128,6 +130,13 @@ class EvaluateStage(Stage):
                 if mask_path is None:
                     continue
             mask = read_mask(mask_path)
+            if truth.shape[:2] != mask.shape and cam.image in raw_cameras:
+                # the truth at the photo's own size: mapped as the photo was (ingest's resize, sfm's
+                # undistortion), e.g. an SfM run whose undistortion cropped 256 -> 257 px
+                try:
+                    truth = to_float32(photo_to_view(read_rgb8(truth_path), raw_cameras[cam.image]))
+                except PipelineError as e:
+                    raise PipelineError(f"ground truth: {e.message}", path=truth_path, fix=e.fix) from None
             if truth.shape[:2] != mask.shape:
                 raise PipelineError(f"ground truth is {truth.shape[1]}x{truth.shape[0]}, the view is "
                                     f"{mask.shape[1]}x{mask.shape[0]}", path=truth_path,

@@ -25,6 +25,7 @@ from sgpor_pipeline.imageio import (
     read_mask,
     read_rgb8,
     resize_mask_nearest,
+    same_aspect,
     write_mask01,
     write_png,
 )
@@ -32,8 +33,6 @@ from sgpor_pipeline.scene import Camera, save_cameras
 from sgpor_pipeline.views import View, save_views
 
 MIN_IMAGES = 3
-# Relative tolerance on aspect ratios: sizes rounded to whole pixels differ by up to one pixel.
-ASPECT_TOLERANCE = 0.01
 
 
 @dataclass
@@ -68,10 +67,6 @@ def target_size(width: int, height: int, max_size: int) -> tuple[int, int]:
         return width, height
     s = max_size / max(width, height)
     return max(1, round(width * s)), max(1, round(height * s))
-
-
-def same_aspect(w0: int, h0: int, w1: int, h1: int) -> bool:
-    return abs(w0 * h1 - w1 * h0) <= ASPECT_TOLERANCE * max(w0 * h1, w1 * h0)
 
 
 def _link_or_copy(src: Path, dst: Path) -> None:

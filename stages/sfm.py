@@ -19,6 +19,9 @@ Out (read them with :func:`sgpor_pipeline.sfm.load_sfm`):
 - ``points.npz``: ``xyz`` [P,3] float64, ``rgb`` [P,3] uint8, ``error`` [P] (pixels); observations as
   flat arrays ``obs_point`` [M], ``obs_view`` [M] (index into cameras.json's list), ``obs_xy`` [M,2]
   (pixels of the undistorted image, (0.5, 0.5) = centre of the top-left pixel).
+- ``raw_cameras.json``: the registered views' cameras before undistortion (SfM's model, or the given
+  cameras), at ingest's image size: :func:`sgpor_pipeline.sfm.photo_to_view` maps another image of a
+  view (its ground truth) as its photo was mapped.
 - ``sfm.json``: mode (sfm / known_cameras), matcher, registered count, unregistered views, seconds
   per sub-step, point count, mean reprojection error, ``pair_check`` (pairs checked, those the model
   contradicts, the repair's numbers) (also in the manifest's notes).

@@ -186,6 +186,41 @@ def test_evaluate_scores_over_the_input_masks_when_asked(finished_run, tmp_path)
         evaluate("bad", cut, score_masks="propagated")
 
 
+def test_evaluate_maps_ground_truth_given_at_another_size(finished_run, tmp_path):
+    """Ground truth at the photos' source size (here a 2x copy) is mapped as the photos were (ingest's
+    resize, sfm's undistortion: ``raw_cameras.json``); another aspect ratio is an error naming the file."""
+    from sgpor_pipeline.dag import StageContext
+    from sgpor_pipeline.errors import PipelineError
+    from sgpor_pipeline.stages.evaluate import EvaluateParams, EvaluateStage
+
+    _, inputs, result = finished_run
+    stage_inputs = {s: result.path(s) for s in EvaluateStage.inputs}
+
+    def evaluate(name: str, truth_dir) -> dict:
+        ctx = StageContext.standalone(tmp_path / name, "evaluate", EvaluateParams(features="off"), stage_inputs)
+        ctx.run_inputs = RunInputs(images=inputs.images, masks=inputs.masks, cameras=inputs.cameras,
+                                   extra={"groundtruth": truth_dir})
+        EvaluateStage().run(ctx)
+        return json.loads((ctx.out_dir / "metrics.json").read_text())["means"]["final"]
+
+    given = inputs.extra["groundtruth"]
+    doubled, cropped = tmp_path / "doubled", tmp_path / "cropped"
+    doubled.mkdir()
+    cropped.mkdir()
+    for path in sorted(given.glob("*.png")):
+        img = cv2.imread(str(path))
+        h, w = img.shape[:2]
+        # each pixel as 2x2: ingest's area-averaging resize gives the original back exactly
+        cv2.imwrite(str(doubled / path.name), cv2.resize(img, (2 * w, 2 * h), interpolation=cv2.INTER_NEAREST))
+        cv2.imwrite(str(cropped / path.name), img[:, : w // 2])
+    same = evaluate("same", given)
+    scaled = evaluate("doubled", doubled)
+    assert scaled == same
+    with pytest.raises(PipelineError, match="aspect ratio") as err:
+        evaluate("cropped", cropped)
+    assert "cropped" in str(err.value)
+
+
 @pytest.mark.slow
 def test_under_object_is_recorded_and_the_stages_after_it_run(finished_run):
     """``remove.under_object``: the remove stage says in remove.json what it made holes of (or why

@@ -23,10 +23,12 @@ from sgpor_pipeline.orientation import umeyama
 from sgpor_pipeline.runner import run_pipeline
 from sgpor_pipeline.scene import Camera, load_cameras, save_cameras
 from sgpor_pipeline.sfm import (
+    RAW_CAMERAS_FILE,
     SfmParams,
     choose_matcher,
     has_distortion,
     load_sfm,
+    photo_to_view,
     to_colmap_camera,
     undistort_mask,
     undistort_options,
@@ -152,6 +154,12 @@ def test_sfm_outputs_layout_and_points(sfm_run):
     notes = json.loads((folder / "manifest.json").read_text())["notes"]
     assert notes["registered"] == len(scene.cameras) and set(notes["seconds"]) >= {"extract", "match", "map"}
     assert sfm.summary["relaxed_retry"] is None  # everything registered: no second mapping
+    # the raw cameras (SfM's SIMPLE_RADIAL) map ingest's photos onto the undistorted images
+    raw = {c.image: c for c in load_cameras(folder / RAW_CAMERAS_FILE)}
+    assert set(raw) == {c.image for c in sfm.cameras} and raw[sfm.cameras[0].image].model == "SIMPLE_RADIAL"
+    for cam in sfm.cameras[:3]:
+        photo = read_rgb8(next((result.path("ingest") / "images").glob(f"{cam.image}.*")))
+        np.testing.assert_array_equal(photo_to_view(photo, raw[cam.image]), read_rgb8(sfm.image_path(cam.image)))
     # a correct model agrees with every image's strongest pairs: nothing to repair
     check = sfm.summary["pair_check"]
     assert check["checked"] >= len(scene.cameras) and check["contradicted"] == [] and check["repair"] is None
@@ -466,6 +474,18 @@ def test_known_distorted_cameras_are_undistorted(scene_dir, tmp_path):
         if want_mask[inside].sum() > 200:
             assert iou(got_mask & inside, want_mask & inside) > 0.95
     assert np.median(distance_to_geometry(scene, sfm.points.xyz)) < 0.01 * scene_extent(scene)
+    # another image of a view (its ground truth, say) at the photo's size, or a scaled copy of it,
+    # is mapped onto the undistorted view as the photo was
+    raw = {c.image: c for c in load_cameras(sfm.folder / RAW_CAMERAS_FILE)}
+    assert raw[names[0]].model == "OPENCV" and raw[names[0]].distortion == dist.tolist()
+    photo = read_rgb8(tmp_path / "images" / f"{names[0]}.png")
+    view = read_rgb8(sfm.image_path(names[0]))
+    np.testing.assert_array_equal(photo_to_view(photo, raw[names[0]]), view)
+    doubled = cv2.resize(photo, (2 * photo.shape[1], 2 * photo.shape[0]), interpolation=cv2.INTER_CUBIC)
+    mapped = photo_to_view(doubled, raw[names[0]])
+    assert mapped.shape == view.shape and np.abs(mapped.astype(float) - view).mean() < 3.0
+    with pytest.raises(PipelineError, match="aspect ratio"):
+        photo_to_view(photo[:, : photo.shape[1] // 2], raw[names[0]])
 
 
 # --------------------------------------------------------------------------------------------------

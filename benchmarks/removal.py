@@ -5,7 +5,7 @@
                                            synthetic-box-contact,synthetic-box-cast,
                                            synthetic-raised-cast,synthetic-box-1mask,synthetic-cast,
                                            synthetic-raised-cast-1mask,lund-1mask,statue-box-1mask,
-                                           synthetic-box-edge,synthetic-box-corner]]
+                                           synthetic-box-edge,synthetic-box-corner,synthetic-photos]]
                                  [--set STAGE.PARAM=VALUE ...]   (overrides for every run of (a), (b), (c))
                                  [--novel]   (+ the novel-view protocol (d) on the scenes of (a) and (b))
                                  [--fit-seeds 0,1,2]   (every method on each seed's fit; targets on the mean)
@@ -287,6 +287,9 @@ Protocols:
     through what the box hides, as the mats on mip360 kitchen's table. Fit seed 0, mask PSNR [plane fill]
     with ``inpaint.plane_structure`` off -> on (the default since): edge ours 29.05 -> 30.60 [25.88 ->
     30.20], no-sbm 28.41 [24.75]; corner ours 30.79 -> 30.79 [30.24 -> 29.94], no-sbm 30.29 [28.43].
+    ``synthetic-photos`` (session 45): the demo scene run as a user runs photos, SfM estimating the
+    cameras (``sfm.camera_model=SIMPLE_PINHOLE``, so the views keep the photos' pixels). The gap to
+    ``synthetic`` is what SfM's poses cost the removal.
 (b) ``lund``: a synthetic object inserted into the real lund photos. First our SfM runs on the
     untouched photos at full size (pipeline until ``sfm``; with ``ingest.max_size`` 160 only 2, with
     640 only 15 of the 29 photos register); its undistorted PINHOLE images are then downscaled to 320 px (240 px
@@ -447,7 +450,12 @@ SYNTHETIC_SCENES: dict[str, dict[str, Any]] = {
     # border through what the box hides (as the mats on mip360 kitchen's table); inpaint.plane_structure
     "synthetic-box-edge": {"object_kind": "box", "rug_place": "edge"},
     "synthetic-box-corner": {"object_kind": "box", "rug_place": "corner"},
+    # the demo from its photos, as a user runs it: SfM estimates the cameras (FROM_PHOTOS)
+    "synthetic-photos": {},
 }
+# scenes run without their cameras: SfM on the photos. SIMPLE_PINHOLE (the photos have no distortion)
+# keeps the views at the photos' pixels, where every hole and headroom figure reads the truth.
+FROM_PHOTOS = {"synthetic-photos": ["sfm.camera_model=SIMPLE_PINHOLE"]}
 # a run from one given mask: the fit models the object, the masks stage propagates it, and it is scored
 # over the true masks (evaluate.score_masks=input: a propagated mask that missed part of the object must
 # not leave that part out of the score); its propagated masks' IoU against the truth is reported beside
@@ -461,6 +469,7 @@ PREFIX = {"synthetic": "synthetic", "synthetic-box": "synthetic_box", "synthetic
           "synthetic-box-1mask": "synthetic_box_1mask", "synthetic-cast": "synthetic_cast",
           "synthetic-raised-cast-1mask": "synthetic_raised_cast_1mask",
           "synthetic-box-edge": "synthetic_box_edge", "synthetic-box-corner": "synthetic_box_corner",
+          "synthetic-photos": "synthetic_photos",
           "lund": "lund_inserted", "lund-1mask": "lund_inserted_1mask",
           "statue-box": "statue_inserted", "statue-box-1mask": "statue_inserted_1mask"}
 NOVEL_EVERY = 4  # --novel: every 4th view (from the third, in name order) is a held-out test view
@@ -792,9 +801,11 @@ def protocol_synthetic(out: Path, quick: bool, extra: Sequence[str] = (), novel:
 
     params = SceneParams(**SYNTHETIC_SCENES[scene], **({"n_views": 12} if quick else {}))
     scene_dir = ensure_demo_scene(out / scene / "scene", params)
-    inputs = RunInputs(images=scene_dir / "images", masks=scene_dir / "masks", cameras=scene_dir / "cameras.json",
+    inputs = RunInputs(images=scene_dir / "images", masks=scene_dir / "masks",
+                       cameras=None if scene in FROM_PHOTOS else scene_dir / "cameras.json",
                        extra={"groundtruth": scene_dir / "groundtruth"})
-    base = (["fit.iterations=300", "finetune.iterations=100"] if quick else []) + ONE_MASK.get(scene, []) + list(extra)
+    base = ((["fit.iterations=300", "finetune.iterations=100"] if quick else []) + ONE_MASK.get(scene, [])
+            + FROM_PHOTOS.get(scene, []) + list(extra))
     r = run_variants(scene, out / scene / "run", inputs, base, out, f"{scene}{tag}_sheet.png", methods)
     if scene in ONE_MASK:
         r.update(propagation_iou(Path(r["masks_dir"]), scene_dir / "masks"))
@@ -803,7 +814,9 @@ def protocol_synthetic(out: Path, quick: bool, extra: Sequence[str] = (), novel:
         r["demo_seconds"] = float(sum(ours["seconds"].get(s, 0.0) for s in STAGES))
     r["note"] = f"{params.n_views} views {params.width}x{params.height}, {params.object_kind} object, demo " \
                 "configuration" + (" (quick: fit 300 / finetune 100 iterations)" if quick else "")
-    if novel:
+    if novel and scene in FROM_PHOTOS:
+        log.warning(f"[{scene}] no novel-view protocol: it gives the held-out views as known cameras")
+    elif novel:
         r["novel"] = run_novel(scene, scene_dir, out / scene / "novel_run", base, out, methods)
     return r
 
@@ -916,7 +929,9 @@ def protocol_inserted(data: Path, scene: str, out: Path, quick: bool, extra: Seq
                  f"removal at {wh[0]}x{wh[1]}; "
                  f"object in {sum(c > 0 for c in coverage)} views, mean coverage {np.mean(coverage) * 100:.1f} %")
     r["registered"], r["images"] = len(cams), n_images
-    if novel:
+    if novel and scene in FROM_PHOTOS:
+        log.warning(f"[{scene}] no novel-view protocol: it gives the held-out views as known cameras")
+    elif novel:
         r["novel"] = run_novel(scene, scene_dir, out / scene / "novel_run", base, out, methods)
     return r
 
@@ -1412,7 +1427,8 @@ def main(argv: list[str] | None = None) -> int:
                          "(the box from one given mask), synthetic-cast (the sphere with its shadows), "
                          "synthetic-raised-cast-1mask (the box on feet from one given mask), lund-1mask (lund + "
                          "box from one given mask), statue-box-1mask (statue + box, likewise), synthetic-box-edge, "
-                         "synthetic-box-corner (the rug's edge or corner under the box)")
+                         "synthetic-box-corner (the rug's edge or corner under the box), synthetic-photos (the "
+                         "demo from its photos: SfM instead of its cameras)")
     ap.add_argument("--verbose", action="store_true", help="log every stage")
     ap.add_argument("--novel", action="store_true",
                     help="also protocol (d): every method scored at held-out views it never saw (a second run "

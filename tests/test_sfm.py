@@ -256,6 +256,11 @@ def test_warns_when_few_images_register(scene_dir, tmp_path, caplog):
     again = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert any("only 12 of 16 images registered" in w and "logged when the cached result was built" in w
                for w in again), again
+    from sgpor_pipeline.runner import pipeline_status
+
+    rows = {r.name: r for r in pipeline_status(tmp_path / "out")}
+    assert rows["sfm"].state == "hit" and rows["sfm"].detail.startswith("1 warning(s) when built")
+    assert rows["ingest"].detail == ""
 
 
 # --------------------------------------------------------------------------------------------------

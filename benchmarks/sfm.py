@@ -38,8 +38,8 @@ import numpy as np
 from sgpor_pipeline.camera_io import read_llff_poses
 from sgpor_pipeline.dag import RunInputs
 from sgpor_pipeline.demo import ensure_demo_scene
-from sgpor_pipeline.imageio import read_rgb8
-from sgpor_pipeline.orientation import umeyama
+from sgpor_pipeline.imageio import IMAGE_EXTENSIONS, read_rgb8
+from sgpor_pipeline.orientation import rotation_angle_deg, umeyama
 from sgpor_pipeline.runner import run_pipeline
 from sgpor_pipeline.scene import Camera, load_cameras
 from sgpor_pipeline.sfm import load_sfm
@@ -65,10 +65,7 @@ def pose_errors(truth: list[Camera], estimated: list[Camera]) -> dict[str, float
     sim = umeyama(src, dst)
     radius = float(np.sqrt(((src - src.mean(0)) ** 2).sum(1).mean()))
     centre = np.linalg.norm(sim.apply(src) - dst, axis=1) / (sim.s * radius)
-    rotation = []
-    for t, e in pairs:
-        Rd = sim.camera(t).cam_from_world[:3, :3].T @ e.cam_from_world[:3, :3]
-        rotation.append(np.degrees(np.arccos(np.clip((np.trace(Rd) - 1) / 2, -1, 1))))
+    rotation = [rotation_angle_deg(sim.camera(t).cam_from_world[:3, :3], e.cam_from_world[:3, :3]) for t, e in pairs]
     return {"centre_err_median": float(np.median(centre)), "centre_err_max": float(centre.max()),
             "rot_err_median": float(np.median(rotation)), "rot_err_max": float(np.max(rotation)),
             "wrong": bool(centre.max() > WRONG_CENTRE or max(rotation) > WRONG_ROTATION_DEG)}
@@ -79,10 +76,10 @@ def reference_cameras(name: str, images: Path) -> list[Camera] | None:
     folder = images.parent
     if (folder / "cameras.json").is_file() and (folder / "scene_params.json").is_file():
         return load_cameras(folder / "cameras.json")
-    if (folder / "poses_bounds.npy").is_file():
-        names = sorted(p.stem for p in images.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
-        h, w = read_rgb8(images / next(p.name for p in sorted(images.iterdir()) if p.stem == names[0])).shape[:2]
-        return read_llff_poses(folder / "poses_bounds.npy", names, w, h)
+    if (folder / "poses_bounds.npy").is_file():  # its rows follow the sorted photos of images/ beside it
+        first = min(p for p in images.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS and p.name[0] != ".")
+        h, w = read_rgb8(first).shape[:2]
+        return read_llff_poses(folder / "poses_bounds.npy", width=w, height=h)
     return None
 
 

@@ -50,6 +50,13 @@ _CAMERA_FIX = ("pass a COLMAP model folder (cameras/images .bin or .txt), a nerf
 # COLMAP
 
 
+def colmap_cam_from_world(image: object) -> np.ndarray:
+    """A posed pycolmap Image's cam_from_world as a 4x4 float64 matrix."""
+    T = np.eye(4)
+    T[:3, :] = np.asarray(image.cam_from_world().matrix(), np.float64)  # type: ignore[attr-defined]
+    return T
+
+
 def _has_model(folder: Path) -> bool:
     return any((folder / f"cameras{ext}").is_file() and (folder / f"images{ext}").is_file()
                for ext in (".bin", ".txt"))
@@ -96,8 +103,7 @@ def read_colmap_model(path: str | Path) -> list[Camera]:
         params = np.asarray(cam.params, np.float64)
         K = np.asarray(cam.calibration_matrix(), np.float64)
         extra = [float(params[i]) for i in cam.extra_params_idxs()]
-        T = np.eye(4)
-        T[:3, :] = np.asarray(image.cam_from_world().matrix(), np.float64)
+        T = colmap_cam_from_world(image)
         stem = _image_stem(image.name)
         has_image = bool(PurePosixPath(image.name.replace("\\", "/")).suffix)
         cams.append(Camera(name=stem, width=cam.width, height=cam.height, K=K, cam_from_world=T,

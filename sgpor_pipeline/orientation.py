@@ -96,6 +96,12 @@ class FrameSettings:
 # quaternions (w, x, y, z), Hamilton convention, as the Gaussians store them
 
 
+def rotation_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """The angle in degrees of the rotation between two 3x3 rotation matrices."""
+    c = (np.trace(np.asarray(a).T @ np.asarray(b)) - 1.0) / 2.0
+    return math.degrees(math.acos(min(1.0, max(-1.0, float(c)))))
+
+
 def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Hamilton product a * b of (..., 4) arrays in (w, x, y, z) order (rotation b, then a)."""
     aw, ax, ay, az = np.moveaxis(np.asarray(a), -1, 0)

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import re
 import time
 from dataclasses import dataclass, field
@@ -31,7 +30,7 @@ from typing import Any, Literal
 import numpy as np
 
 from .errors import PipelineError
-from .orientation import Similarity, umeyama
+from .orientation import Similarity, rotation_angle_deg, umeyama
 from .scene import Camera, load_cameras, save_cameras
 
 log = logging.getLogger("sgpor_pipeline.render")
@@ -74,11 +73,6 @@ def _mean_rotation(rotations: list[np.ndarray]) -> np.ndarray:
     return U @ D @ Vt
 
 
-def _rotation_deg(a: np.ndarray, b: np.ndarray) -> float:
-    c = (np.trace(a.T @ b) - 1.0) / 2.0
-    return math.degrees(math.acos(min(1.0, max(-1.0, c))))
-
-
 @dataclass
 class Alignment:
     """How the file's cameras were put into the run's frame."""
@@ -118,7 +112,7 @@ def _residuals(pairs: list[tuple[Camera, Camera]], sim: Similarity) -> tuple[flo
     err = np.linalg.norm(sim.apply(src) - dst, axis=1)
     spread = float(np.sqrt(((dst - dst.mean(0)) ** 2).sum(1).mean()))
     rms = float(np.sqrt((err ** 2).mean()))
-    rot = float(np.mean([_rotation_deg(sim.camera(f).cam_from_world[:3, :3], r.cam_from_world[:3, :3])
+    rot = float(np.mean([rotation_angle_deg(sim.camera(f).cam_from_world[:3, :3], r.cam_from_world[:3, :3])
                          for f, r in pairs]))
     return rms, float(err.max()), (rms / spread if spread > 1e-12 else None), rot
 

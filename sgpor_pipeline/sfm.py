@@ -35,7 +35,7 @@ from typing import Any, Literal
 import cv2
 import numpy as np
 
-from .camera_io import read_colmap_model
+from .camera_io import colmap_cam_from_world, read_colmap_model
 from .config import added_param
 from .errors import PipelineError
 from .imageio import read_mask, read_rgb8, same_aspect, write_mask01, write_png
@@ -456,6 +456,11 @@ def _map_with_retry(db: Path, image_dir: Path, work: Path, params: SfmParams, n_
     return (relaxed if registered_relaxed > registered else models), retry
 
 
+def _largest_model(models: dict[int, Any]) -> Any:
+    """The model that registers the most images (keys sorted: a tie resolves the same way every run)."""
+    return max((models[k] for k in sorted(models)), key=lambda r: r.num_reg_images())
+
+
 # COLMAP's defaults: init_min_num_inliers 100, abs_pose_min_num_inliers 30, init_min_tri_angle 16 deg
 RELAXED_MAPPER = {"init_min_num_inliers": 30, "abs_pose_min_num_inliers": 15, "init_min_tri_angle": 4.0}
 
@@ -494,13 +499,12 @@ def database_stats(db: Path) -> DatabaseStats:
     try:
         ids = [im.image_id for im in database.read_all_images()]
         with_features = sum(database.num_keypoints_for_image(i) > 0 for i in ids)
-        pair_ids, geometries = database.read_two_view_geometries()
         matched: set[int] = set()
         verified = 0
-        for pair_id, geometry in zip(pair_ids, geometries):
-            if len(geometry.inlier_matches) >= MIN_PAIR_INLIERS:
+        for a, b, matches in _verified_pairs(database):
+            if len(matches) >= MIN_PAIR_INLIERS:
                 verified += 1
-                matched.update(pycolmap.pair_id_to_image_pair(pair_id))
+                matched.update((a, b))
         return DatabaseStats(len(ids), int(with_features), len(matched), verified)
     finally:
         database.close()
@@ -604,12 +608,8 @@ def check_model_pairs(db: Path, rec: Any, top: int = PAIR_CHECK_TOP, tol_px: flo
         contradicted = []
         for a, b, matches in pairs:
             ia, ib = in_model[a], in_model[b]
-            Ta = np.eye(4)
-            Ta[:3] = np.asarray(ia.cam_from_world().matrix())
-            Tb = np.eye(4)
-            Tb[:3] = np.asarray(ib.cam_from_world().matrix())
-            d = _epipolar_distance(normalised(a, matches[:, 0]), normalised(b, matches[:, 1]),
-                                   (Tb @ np.linalg.inv(Ta))[:3])
+            b_from_a = colmap_cam_from_world(ib) @ np.linalg.inv(colmap_cam_from_world(ia))
+            d = _epipolar_distance(normalised(a, matches[:, 0]), normalised(b, matches[:, 1]), b_from_a[:3])
             focal = 0.5 * (rec.cameras[ia.camera_id].mean_focal_length()
                            + rec.cameras[ib.camera_id].mean_focal_length())
             d = d[np.isfinite(d)]  # (a keypoint the distortion model cannot undistort)
@@ -729,8 +729,7 @@ def estimate_cameras(ingest_dir: Path, views: Sequence[View], out_dir: Path, par
                 fix="photograph with more overlap (every spot in 3+ photos) and textured surfaces in view; "
                     "for an ordered capture try --set sfm.matcher=sequential; or pass known cameras with "
                     "--cameras")
-        # keys sorted: a tie between models resolves the same way every run
-        best = max((models[k] for k in sorted(models)), key=lambda r: r.num_reg_images())
+        best = _largest_model(models)
         check, repair = None, None
         if params.pair_check != "off":
             with timings.step("check", f"sfm: checking the model against each image's {PAIR_CHECK_TOP} "
@@ -749,8 +748,7 @@ def estimate_cameras(ingest_dir: Path, views: Sequence[View], out_dir: Path, par
                                               "relaxed_retry": strong_retry},
                           "kept": "first"}
                 if strong_models:
-                    candidate = max((strong_models[k] for k in sorted(strong_models)),
-                                    key=lambda r: r.num_reg_images())
+                    candidate = _largest_model(strong_models)
                     candidate_check = check_model_pairs(db, candidate)
                     repair["strongest_pairs"].update(registered=candidate.num_reg_images(),
                                                      contradicted=len(candidate_check.contradicted))
@@ -792,10 +790,8 @@ def estimate_cameras(ingest_dir: Path, views: Sequence[View], out_dir: Path, par
         if image is None or not image.has_pose:
             continue
         cam = rec.cameras[image.camera_id]
-        T = np.eye(4)
-        T[:3, :] = np.asarray(image.cam_from_world().matrix(), np.float64)
         cameras.append(Camera(name=view.name, width=cam.width, height=cam.height, K=pinhole_K(cam),
-                              cam_from_world=T, image=view.name, model="PINHOLE"))
+                              cam_from_world=colmap_cam_from_world(image), image=view.name, model="PINHOLE"))
     unregistered = [v.name for v in views if colmap_image_name(v) not in registered_names]
     summary = {
         "mode": "sfm",

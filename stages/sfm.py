@@ -79,16 +79,17 @@ class SfmStage(Stage):
             ctx.log.info(f"sfm: the first model contradicted {first['contradicted']} of the images' strongest "
                          f"pairs (false matches on repeated texture?); kept the model mapped on the strongest "
                          f"pairs only")
-        if check and check["contradicted"] and summary["mode"] == "known_cameras":
+        if check and check["contradicted"]:
             found = PairCheck.from_dict(check)
-            ctx.log.warning(f"sfm: the given cameras contradict {len(found.contradicted)} of {found.checked} "
-                            f"strongest image pairs of the photos: {found.describe()}. Check the cameras file: "
-                            f"its axis convention (a COLMAP model or a transforms.json read as the other?), and "
-                            f"which photo each camera belongs to; the masks and the fit need the right poses")
-        elif check and check["contradicted"]:
-            found = PairCheck.from_dict(check)
-            ctx.log.warning(f"sfm: the camera poses contradict {len(found.contradicted)} of {found.checked} "
-                            f"strongest image pairs: {found.describe()}. The poses are "
-                            f"probably wrong (repeated textures give false matches), and so will be the masks "
-                            f"and the fit. Pass known cameras with --cameras, or add photos between those views")
+            if summary["mode"] == "known_cameras":
+                ctx.log.warning(f"sfm: the given cameras contradict {len(found.contradicted)} of {found.checked} "
+                                f"strongest image pairs of the photos: {found.describe()}. Check the cameras "
+                                f"file: its axis convention (a COLMAP model or a transforms.json read as the "
+                                f"other?), and which photo each camera belongs to; the masks and the fit need the "
+                                f"right poses")
+            else:
+                ctx.log.warning(f"sfm: the camera poses contradict {len(found.contradicted)} of {found.checked} "
+                                f"strongest image pairs: {found.describe()}. The poses are probably wrong "
+                                f"(repeated textures give false matches), and so will be the masks and the fit. "
+                                f"Pass known cameras with --cameras, or add photos between those views")
         ctx.notes.update(summary)

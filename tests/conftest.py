@@ -17,6 +17,17 @@ TESTS = Path(__file__).resolve().parent
 PLUGIN_SRC = TESTS / "plugin_pkg"
 
 
+def load_benchmark(name: str):
+    """A script of benchmarks/ (not a package) loaded as a module, for tests of its pure parts."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(f"sgpor_bench_{name}", TESTS.parent / "benchmarks" / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    assert spec.loader is not None
+    spec.loader.exec_module(mod)
+    return mod
+
+
 def make_images(folder: Path, n: int = 4, width: int = 40, height: int = 30, seed: int = 0) -> list[Path]:
     """Random-texture RGB PNGs named view_00.png ..."""
     folder.mkdir(parents=True, exist_ok=True)

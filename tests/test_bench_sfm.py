@@ -2,26 +2,18 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
+from conftest import load_benchmark
 
 from sgpor_pipeline.orientation import Similarity
 from sgpor_pipeline.scene import Camera
 from sgpor_pipeline.synthetic import look_at
 
-BENCH = Path(__file__).resolve().parent.parent / "benchmarks" / "sfm.py"
-
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("sgpor_bench_sfm", BENCH)
-    mod = importlib.util.module_from_spec(spec)
-    assert spec.loader is not None
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("sfm")
 
 
 def ring(n: int = 8, radius: float = 2.0) -> list[Camera]:

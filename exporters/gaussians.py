@@ -32,6 +32,9 @@ SCENE_STAGE = "finetune"
 SCENE_FILE = "gaussians.ply"
 #: The stage whose folder holds ``cameras.json`` and ``images/<view>.png``.
 CAMERAS_STAGE = "sfm"
+#: The stage whose ``cameras.json`` holds the cameras the Gaussians were fitted with (the training
+#: views' poses refined, ``fit.pose_refine``); the exporters read the run's cameras from there.
+POSES_STAGE = "fit"
 FRAME_FILE = "export_frame.json"
 
 log = logging.getLogger(__name__)
@@ -49,8 +52,14 @@ def load_scene(ctx: StageContext) -> Any:
 
 
 def load_run_cameras(ctx: StageContext) -> list[Camera]:
-    """All cameras of the run (registered views with ``image`` set, novel cameras with None), SfM frame."""
-    return load_cameras(ctx.inputs[CAMERAS_STAGE] / "cameras.json")
+    """All cameras of the run (registered views with ``image`` set, novel cameras with None), SfM frame,
+    with the poses the Gaussians were fitted with."""
+    from sgpor_pipeline.stages.fit import run_cameras_file
+
+    sfm_dir = ctx.inputs[CAMERAS_STAGE]
+    if POSES_STAGE not in ctx.inputs:  # (export_external: the cameras given with the Gaussians)
+        return load_cameras(sfm_dir / "cameras.json")
+    return load_cameras(run_cameras_file(ctx.inputs[POSES_STAGE], sfm_dir))
 
 
 def registered(cameras: list[Camera]) -> list[Camera]:
@@ -101,7 +110,7 @@ def _mb(path: Path) -> str:
 class PlyExporter(Exporter):
     name = "ply"
     VERSION = 1
-    needs = (CAMERAS_STAGE, SCENE_STAGE)
+    needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE)
     description = "the Gaussians as scene.ply (INRIA 3DGS layout, export frame) and export_frame.json"
 
     def export(self, ctx: StageContext, out_dir: Path) -> None:
@@ -116,7 +125,7 @@ class PlyExporter(Exporter):
 class SplatExporter(Exporter):
     name = "splat"
     VERSION = 1
-    needs = (CAMERAS_STAGE, SCENE_STAGE)
+    needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE)
     description = "the Gaussians as scene.splat (antimatter15 format, export frame, DC colour only)"
 
     def export(self, ctx: StageContext, out_dir: Path) -> None:
@@ -176,7 +185,7 @@ class ObjectExporter(Exporter):
 
     name = "object"
     VERSION = 1
-    needs = (CAMERAS_STAGE, SCENE_STAGE, "remove")
+    needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE, "remove")
     description = "the removed object as object/object.ply and object/object.glb (export frame)"
     OBJECT_FILE = "object.ply"
 

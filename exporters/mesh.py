@@ -20,6 +20,7 @@ from sgpor_pipeline.scene import Camera
 
 from .gaussians import (
     CAMERAS_STAGE,
+    POSES_STAGE,
     SCENE_STAGE,
     export_frame,
     load_run_cameras,
@@ -96,7 +97,7 @@ def _make_mesh(ctx: StageContext, model, cameras) -> MeshData:
 class MeshExporter(Exporter):
     name = "mesh"
     VERSION = 1
-    needs = (CAMERAS_STAGE, SCENE_STAGE)
+    needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE)
     description = "a coloured mesh (TSDF of rendered depth) as mesh.glb (Y up), mesh.obj and mesh.ply (Z up)"
 
     def export(self, ctx: StageContext, out_dir: Path) -> None:

@@ -17,7 +17,7 @@ from sgpor_pipeline.imageio import write_png
 from sgpor_pipeline.meshing import activated_tensors, render_view
 from sgpor_pipeline.scene import Camera
 
-from .gaussians import CAMERAS_STAGE, SCENE_STAGE, load_run_cameras, load_scene, scene_background
+from .gaussians import CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE, load_run_cameras, load_scene, scene_background
 
 RENDERS_DIR = "renders"
 
@@ -45,7 +45,7 @@ def render_cameras(model: object, cameras: list[Camera], out_dir: Path, backgrou
 class RendersExporter(Exporter):
     name = "renders"
     VERSION = 1
-    needs = (CAMERAS_STAGE, SCENE_STAGE)
+    needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE)
     description = "renders of the scene at every input view (renders/<view>.png) and novel camera (renders/novel/)"
 
     def export(self, ctx: StageContext, out_dir: Path) -> None:

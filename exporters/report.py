@@ -44,7 +44,15 @@ from sgpor_pipeline.dag import Exporter, StageContext
 from sgpor_pipeline.imageio import read_image, read_mask, resize_mask_nearest, write_png
 from sgpor_pipeline.scene import Camera
 
-from .gaussians import CAMERAS_STAGE, FRAME_FILE, SCENE_STAGE, load_run_cameras, load_scene, scene_background
+from .gaussians import (
+    CAMERAS_STAGE,
+    FRAME_FILE,
+    POSES_STAGE,
+    SCENE_STAGE,
+    load_run_cameras,
+    load_scene,
+    scene_background,
+)
 
 REPORT_FILE = "report.html"
 REPORT_DIR = "report"
@@ -592,7 +600,7 @@ class ReportExporter(Exporter):
     name = "report"
     VERSION = 5  # 2: evaluate's metrics as tables (and metrics.json beside the report); 3: the plane texture;
     # 4: its contact shadow (inpaint.lift_shadow); 5: its straight edges (inpaint.plane_structure)
-    needs = ("ingest", CAMERAS_STAGE, SCENE_STAGE, *REPORT_STAGES)
+    needs = ("ingest", CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE, *REPORT_STAGES)
     optional_needs = ("evaluate",)  # when the run has ground truth; its key then enters export's key
     description = ("report.html (+ report/ PNGs): inputs, masks, renders, training curve, metrics (with ground "
                    "truth); offline")

@@ -207,11 +207,12 @@ def render_run(out: Path, cameras_path: Path, output: Path | None = None,
     """
     from .camera_io import load_cameras_any
     from .dag import discover_stages
-    from .exporters.gaussians import CAMERAS_STAGE, SCENE_FILE, SCENE_STAGE, scene_background
+    from .exporters.gaussians import CAMERAS_STAGE, POSES_STAGE, SCENE_FILE, SCENE_STAGE, scene_background
     from .gaussians.ply import read_ply
     from .imageio import write_png
     from .meshing import activated_tensors, render_view
     from .runner import stage_result
+    from .stages.fit import run_cameras_file
 
     p = params or RenderParams()
     stage = p.stage or SCENE_STAGE
@@ -227,11 +228,11 @@ def render_run(out: Path, cameras_path: Path, output: Path | None = None,
         raise PipelineError(f"stage '{stage}' holds no Gaussians ({SCENE_FILE})", path=scene_dir,
                             fix=f"pass --stage with a stage that fits Gaussians (fit, finetune; default {SCENE_STAGE})")
     sfm_dir, _ = stage_result(out, CAMERAS_STAGE)
-    run_cams = load_cameras(sfm_dir / "cameras.json")
     try:
-        fit_dir = stage_result(out, "fit")[0]
-    except PipelineError:  # only the background colour comes from there
+        fit_dir = stage_result(out, POSES_STAGE)[0]
+    except PipelineError:  # (a run without a fit: the background colour from the scene's stage)
         fit_dir = scene_dir
+    run_cams = load_cameras(run_cameras_file(fit_dir, sfm_dir))  # the poses the Gaussians were fitted with
     background = scene_background(SimpleNamespace(inputs={"fit": fit_dir, SCENE_STAGE: scene_dir}))
     file_cams = load_cameras_any(cameras_path)  # before the Gaussians: a bad file fails at once
     log.info(f"render: {len(file_cams)} camera(s) from {cameras_path}")

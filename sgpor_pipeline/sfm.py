@@ -218,12 +218,14 @@ class SfmResult:
         return path if path.is_file() else None
 
 
-def load_sfm(folder: Path) -> SfmResult:
-    """Read the sfm stage's output folder."""
+def load_sfm(folder: Path, cameras_file: Path | None = None) -> SfmResult:
+    """Read the sfm stage's output folder; ``cameras_file``: the same cameras, in the same order,
+    with other poses (the fit's refined ones, see ``stages.fit.run_cameras_file``)."""
     folder = Path(folder)
     summary_path = folder / SUMMARY_FILE
     summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
-    return SfmResult(folder, load_cameras(folder / CAMERAS_FILE), SfmPoints.load(folder / POINTS_FILE), summary)
+    cameras = load_cameras(Path(cameras_file) if cameras_file is not None else folder / CAMERAS_FILE)
+    return SfmResult(folder, cameras, SfmPoints.load(folder / POINTS_FILE), summary)
 
 
 # --------------------------------------------------------------------------------------------------

@@ -87,7 +87,7 @@ from sgpor_pipeline.removal.selection import (
 )
 from sgpor_pipeline.scene import Camera
 from sgpor_pipeline.sfm import SfmResult, load_sfm
-from sgpor_pipeline.stages.fit import fit_ignored_masks
+from sgpor_pipeline.stages.fit import fit_ignored_masks, run_cameras_file
 
 MIN_MARGIN = 2.0
 LIFT_EDGE_PX = 2  # the lifted surface adds to a propagated mask only what reaches beyond its edge by more
@@ -161,7 +161,8 @@ class MasksStage(Stage):
     def run(self, ctx: StageContext) -> None:
         p = ctx.params
         sel_params = _selection_params(p)
-        sfm = load_sfm(ctx.inputs["sfm"])
+        # the fit's cameras: their poses refined with the Gaussians (fit.pose_refine)
+        sfm = load_sfm(ctx.inputs["sfm"], run_cameras_file(ctx.inputs["fit"], ctx.inputs["sfm"]))
         model = read_ply(ctx.inputs["fit"] / "gaussians.ply")
         if fit_ignored_masks(ctx.inputs["fit"]):
             summary = _write_given_only(ctx.out_dir, model, sfm, _read_given_masks(sfm, 0, ctx.run_inputs.masks))

@@ -71,7 +71,7 @@ from sgpor_pipeline.removal.plane import under_object
 from sgpor_pipeline.scene import Camera, save_cameras
 from sgpor_pipeline.scratch import ArraysOnDisk, Keeper, in_memory, on_disk, release, require_free_disk
 from sgpor_pipeline.sfm import load_sfm
-from sgpor_pipeline.stages.fit import fit_ignored_masks
+from sgpor_pipeline.stages.fit import fit_ignored_masks, run_cameras_file
 
 
 @dataclass
@@ -159,7 +159,8 @@ class RemoveStage(Stage):
         if p.propagated_margin < 0:
             raise PipelineError(f"remove.propagated_margin must be >= 0 (got {p.propagated_margin})",
                                 fix="use 0 (the propagated masks as the masks stage wrote them) or e.g. 0.05")
-        sfm = load_sfm(ctx.inputs["sfm"])
+        # the fit's cameras: their poses refined with the Gaussians (fit.pose_refine)
+        sfm = load_sfm(ctx.inputs["sfm"], run_cameras_file(ctx.inputs["fit"], ctx.inputs["sfm"]))
         cameras = sfm.posed
         # before any rendering: the disk the scratch maps and the outputs need
         pixels = sum(c.width * c.height for c in cameras)

@@ -43,6 +43,7 @@ from ..errors import NonFiniteError, PipelineError
 from ..scene import Camera
 from . import _raster_cpu
 from .model import GaussianModel
+from .pose import PoseRefineParams, PoseRefiner
 from .rasterizer import NonFiniteInputError, _default_threads, first_non_finite, rasterization
 from .strategy import Strategy
 
@@ -91,6 +92,9 @@ class TrainParams:
     # test hooks (documented; never set them in production)
     debug_inject_nan_at: int = 0  # write a NaN into means[0] after the optimizer step of this iteration
     debug_inject_nan_times: int = 1  # how many times the injection fires (each time the iteration is reached)
+    # learn a pose correction per training view with the Gaussians (see sgpor_pipeline.gaussians.pose);
+    # None = the poses are fixed
+    pose_refine: PoseRefineParams | None = None
 
 
 # --------------------------------------------------------------------------------------------------
@@ -587,6 +591,8 @@ class Trainer:
         self._window_losses: list[float] = []
         self.bg = torch.tensor(params.background, dtype=torch.float32, device=self.device)
         self.last_eval: dict[str, float] = {}
+        self.poses = (None if params.pose_refine is None else
+                      PoseRefiner([v.camera for v in self.train_views], self.extent, params.pose_refine, self.device))
 
     def _on_device(self, view: TrainView) -> TrainView:
         if view.image.device == self.device:
@@ -650,6 +656,7 @@ class Trainer:
             "window_losses": list(self._window_losses),
             "last_eval": dict(self.last_eval),
             "nan_injections": self.nan_injections,
+            "poses": None if self.poses is None else self.poses.state_dict(),
         }
 
     def load_state_dict(self, st: dict[str, Any], restore_lr_scale: bool = True) -> None:
@@ -677,6 +684,8 @@ class Trainer:
         self.last_eval = dict(st.get("last_eval", {}))
         if restore_lr_scale:
             self.nan_injections = int(st.get("nan_injections", 0))
+        if self.poses is not None and st.get("poses") is not None:
+            self.poses.load_state_dict(st["poses"])
 
     @property
     def checkpoint_path(self) -> Path | None:
@@ -745,9 +754,13 @@ class Trainer:
         p = self.model.params
         # (the pair is read in place by the cpu kernel: no [N,16,3] copy, and gradients in place)
         colors = (p["sh0"], p["shN"]) if k > 1 else p["sh0"]
+        means, quats = p["means"], p["quats"]
+        refine_pose = self.poses is not None and self.poses.active(step)
+        if refine_pose:
+            means, quats = self.poses.apply(i, means, quats)
         try:
             render, _alpha, info = rasterization(
-                p["means"], p["quats"], torch.exp(p["scales"]), torch.sigmoid(p["opacities"]), colors,
+                means, quats, torch.exp(p["scales"]), torch.sigmoid(p["opacities"]), colors,
                 viewmat, K, W, H, sh_degree=deg, backgrounds=self.bg,
                 backend=self.p.backend, check_finite=not self._params_checked)
         except NonFiniteInputError as e:
@@ -761,7 +774,10 @@ class Trainer:
         loss.backward()
         # the loss and the gradients in one check (one GPU synchronisation); a non-finite loss
         # only costs its backward before the rollback
-        bad = first_non_finite({"loss": loss, **{n: q.grad for n, q in p.items()}})
+        grads = {n: q.grad for n, q in p.items()}
+        if refine_pose:
+            grads.update(self.poses.grads(i))
+        bad = first_non_finite({"loss": loss, **grads})
         if bad == "loss":
             raise RollbackNeeded("non-finite loss")
         if bad is not None:
@@ -769,6 +785,9 @@ class Trainer:
         for opt in self.optimizers.values():
             opt.step()
             opt.zero_grad(set_to_none=True)
+        if refine_pose:
+            self.poses.step(self.lr_scale)
+            self.poses.zero_grad()
         changed = self.strategy.step_post_backward(self.model, self.optimizers, self.sstate, step, info,
                                                    lr=means_lr)
         if changed:
@@ -790,8 +809,14 @@ class Trainer:
 
     # the loop ----------------------------------------------------------------------------------
 
+    def refined_train_views(self) -> list[TrainView]:
+        """The training views with their cameras as refined so far (as they are without refinement)."""
+        if self.poses is None:
+            return list(self.train_views)
+        return [replace(v, camera=self.poses.camera(i, v.camera)) for i, v in enumerate(self.train_views)]
+
     def evaluate(self) -> dict[str, float]:
-        views = self.eval_views or self.train_views
+        views = self.eval_views or self.refined_train_views()
         deg = self.active_sh_degree(self.step)
         res = evaluate(self.model, views, deg, self.p.backend, self.p.background)
         self.last_eval = res
@@ -910,4 +935,5 @@ class Trainer:
             "resumed_from_iteration": self.resumed_from,
             "rollbacks": [e for e in self.events if e.get("event") == "rollback"],
             "lr_scale": self.lr_scale,
+            "pose_refine": None if self.poses is None else self.poses.summary(),
         }

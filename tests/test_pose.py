@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import torch
 
+from sgpor_pipeline.gaussians.ply import read_ply
 from sgpor_pipeline.gaussians.pose import (
     PoseRefineParams,
     PoseRefiner,
@@ -21,7 +22,6 @@ from sgpor_pipeline.gaussians.pose import (
     gauge_basis,
     quat_left_matrix,
 )
-from sgpor_pipeline.gaussians.ply import read_ply
 from sgpor_pipeline.gaussians.rasterizer import rasterization
 from sgpor_pipeline.gaussians.train import psnr, render_view
 from sgpor_pipeline.imageio import read_rgb8

@@ -432,7 +432,7 @@ def fit_scene(sfm_dir: Path, out_dir: Path, params: FitParams, checkpoint_dir: P
     from sgpor_pipeline.gaussians.ply import write_ply
     from sgpor_pipeline.gaussians.pose import PoseRefineParams
     from sgpor_pipeline.gaussians.strategy import make_strategy
-    from sgpor_pipeline.gaussians.train import Trainer, TrainParams, scene_extent, stage_device
+    from sgpor_pipeline.gaussians.train import Trainer, TrainParams, evaluate, scene_extent, stage_device
     from sgpor_pipeline.scene import load_cameras, save_cameras
 
     t0 = time.perf_counter()
@@ -527,10 +527,14 @@ def fit_scene(sfm_dir: Path, out_dir: Path, params: FitParams, checkpoint_dir: P
 
     out_dir = Path(out_dir)
     write_ply(out_dir / "gaussians.ply", model)
-    refined = {v.name: v.camera for v in trainer.refined_train_views()}
+    given_poses_psnr = None
+    if trainer.eval_poses is not None:  # (the held-out score at the SfM poses, for comparison)
+        given_poses_psnr = evaluate(model, test_views, trainer.active_sh_degree(trainer.step), params.backend)["psnr"]
+    refined = {v.name: v.camera for v in trainer.refined_train_views() + trainer.aligned_eval_views()}
     run_cameras = [_with_pose(c, refined.get(c.name)) for c in load_cameras(sfm_dir / "cameras.json")]
     save_cameras(out_dir / CAMERAS_FILE, run_cameras)
     train_views = [dataclasses.replace(v, camera=_with_pose(v.camera, refined[v.name])) for v in train_views]
+    test_views = [dataclasses.replace(v, camera=_with_pose(v.camera, refined[v.name])) for v in test_views]
     baseline = None
     if test_views:
         baseline = float(np.mean([-10 * np.log10(float(((v.image - mean_color) ** 2).mean()) + 1e-12)
@@ -555,6 +559,8 @@ def fit_scene(sfm_dir: Path, out_dir: Path, params: FitParams, checkpoint_dir: P
         "points": {**report, "used": int(len(xyz))},
         "renders": renders,
         "pose_refine": summary["pose_refine"],
+        "heldout_poses_aligned": summary["heldout_poses_aligned"],
+        "heldout_psnr_at_given_poses": given_poses_psnr,
     }
     curve = {"curve": trainer.curve, "events": trainer.events, "budget_history": summary["budget_history"],
              "resumed_from_iteration": summary["resumed_from_iteration"]}

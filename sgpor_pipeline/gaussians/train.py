@@ -593,6 +593,10 @@ class Trainer:
         self.last_eval: dict[str, float] = {}
         self.poses = (None if params.pose_refine is None else
                       PoseRefiner([v.camera for v in self.train_views], self.extent, params.pose_refine, self.device))
+        # the held-out views' poses, aligned to the refined frame before each evaluation (see PoseRefineParams)
+        self.eval_poses = (None if params.pose_refine is None or not self.eval_views else
+                           PoseRefiner([v.camera for v in self.eval_views], self.extent, params.pose_refine,
+                                       self.device, gauge=False, lr=(params.pose_refine.lr_eval,) * 2))
 
     def _on_device(self, view: TrainView) -> TrainView:
         if view.image.device == self.device:
@@ -657,6 +661,7 @@ class Trainer:
             "last_eval": dict(self.last_eval),
             "nan_injections": self.nan_injections,
             "poses": None if self.poses is None else self.poses.state_dict(),
+            "eval_poses": None if self.eval_poses is None else self.eval_poses.state_dict(),
         }
 
     def load_state_dict(self, st: dict[str, Any], restore_lr_scale: bool = True) -> None:
@@ -686,6 +691,8 @@ class Trainer:
             self.nan_injections = int(st.get("nan_injections", 0))
         if self.poses is not None and st.get("poses") is not None:
             self.poses.load_state_dict(st["poses"])
+        if self.eval_poses is not None and st.get("eval_poses") is not None:
+            self.eval_poses.load_state_dict(st["eval_poses"])
 
     @property
     def checkpoint_path(self) -> Path | None:
@@ -815,8 +822,38 @@ class Trainer:
             return list(self.train_views)
         return [replace(v, camera=self.poses.camera(i, v.camera)) for i, v in enumerate(self.train_views)]
 
+    def aligned_eval_views(self) -> list[TrainView]:
+        """The held-out views at their poses as last aligned (as they are without pose refinement)."""
+        if self.eval_poses is None:
+            return list(self.eval_views)
+        return [replace(v, camera=self.eval_poses.camera(i, v.camera)) for i, v in enumerate(self.eval_views)]
+
+    def align_eval_views(self) -> None:
+        """A few pose steps per held-out view with the Gaussians frozen (``PoseRefineParams.eval_steps``)."""
+        if self.eval_poses is None or self.poses is None or not self.poses.active(self.step):
+            return
+        deg = self.active_sh_degree(self.step)
+        k = (deg + 1) ** 2
+        with torch.no_grad():
+            act = self.model.activated()
+            colors = act["colors"][:, :k].contiguous()
+        for i, view in enumerate(self.eval_views):
+            viewmat, K = view.viewmat.to(self.device), view.K.to(self.device)
+            H, W = view.image.shape[:2]
+            for _ in range(self.p.pose_refine.eval_steps):
+                means, quats = self.eval_poses.apply(i, act["means"], act["quats"])
+                render, _, _ = rasterization(means, quats, act["scales"], act["opacities"], colors, viewmat, K, W, H,
+                                             sh_degree=deg, backgrounds=self.bg, backend=self.p.backend)
+                photometric_loss(render[0], view.image, self.p.lambda_dssim, view.weight).backward()
+                if first_non_finite(self.eval_poses.grads(i)) is not None:  # (a frozen model: skip, never roll back)
+                    self.eval_poses.zero_grad()
+                    break
+                self.eval_poses.step()
+                self.eval_poses.zero_grad()
+
     def evaluate(self) -> dict[str, float]:
-        views = self.eval_views or self.refined_train_views()
+        self.align_eval_views()
+        views = self.aligned_eval_views() or self.refined_train_views()
         deg = self.active_sh_degree(self.step)
         res = evaluate(self.model, views, deg, self.p.backend, self.p.background)
         self.last_eval = res
@@ -895,7 +932,7 @@ class Trainer:
             return float(self.loss_ema if self.loss_ema is not None else float("nan")), "training loss"
         deg = self.active_sh_degree(self.step)
         mses = []
-        for v in self.eval_views:
+        for v in self.aligned_eval_views():
             r = render_view(self.model, v.camera, deg, self.p.backend, self.p.background)
             mses.append(float(((r.clamp(0, 1) - v.image) ** 2).mean()))
         return float(np.mean(mses)), "held-out MSE"
@@ -936,4 +973,5 @@ class Trainer:
             "rollbacks": [e for e in self.events if e.get("event") == "rollback"],
             "lr_scale": self.lr_scale,
             "pose_refine": None if self.poses is None else self.poses.summary(),
+            "heldout_poses_aligned": None if self.eval_poses is None else self.eval_poses.summary(),
         }

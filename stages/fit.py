@@ -125,8 +125,8 @@ class FitParams:
     # "auto" = when SfM estimated the poses (not with --cameras), "on", "off". The refined cameras go
     # to cameras.json, which every later stage and exporter reads. The demo scene from its photos
     # (SfM's rotations 0.7 degrees off at the median), benchmarks/removal.py synthetic-photos: mask
-    # PSNR 24.14 -> 25.88 dB, the fit 43 -> 53 s; its true cameras with "on": 26.48 -> 26.56;
-    # lund + box (SfM's cameras given as known) with "on": 15.61 -> 15.53.
+    # PSNR 24.14 -> 25.64 dB, the fit 46 -> 51 s; its true cameras with "on": 26.48 -> 26.55;
+    # lund + box (SfM's cameras given as known) with "on": 15.61 -> 15.51.
     pose_refine: Literal["auto", "on", "off"] = "auto"
     pose_lr_rotation: float = 3e-4  # radians
     pose_lr_translation: float = 3e-4  # scene extents

@@ -81,19 +81,29 @@ def test_rotation_gradients_are_exact_at_and_away_from_zero():
     assert torch.allclose(w.grad, torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64))
 
 
-def render(means, quats, cam: Camera) -> torch.Tensor:
+def render(means, quats, viewmat: np.ndarray | torch.Tensor, cam: Camera) -> torch.Tensor:
+    """Float64 render (torch backend) of fixed Gaussians' colours, scales and opacities."""
     n = len(means)
     g = torch.Generator().manual_seed(0)
     colors = torch.rand(n, 3, generator=g, dtype=torch.float64)
-    scales = torch.full((n, 3), 0.08, dtype=torch.float64)
+    scales = 0.03 + 0.12 * torch.rand(n, 3, generator=g, dtype=torch.float64)  # (anisotropic: the quats matter)
     opac = torch.full((n,), 0.8, dtype=torch.float64)
-    vm = torch.from_numpy(cam.cam_from_world)[None]
+    vm = torch.as_tensor(viewmat, dtype=torch.float64).reshape(1, 4, 4)
     K = torch.from_numpy(cam.K)[None]
     img, _, _ = rasterization(means, quats, scales, opac, colors, vm, K, cam.width, cam.height, backend="torch")
     return img[0]
 
 
-def test_moved_gaussians_render_as_the_corrected_camera_sees_them():
+def moved_by(ref: PoseRefiner, i: int, means, quats):
+    """The reference the refiner's shortcut must match: the Gaussians moved by view i's motion
+    (rendered at the original camera, they look as the corrected camera sees them unmoved)."""
+    w, tau = ref.w[i].double(), ref.tau[i].double()
+    rot_inv = axis_angle_to_matrix(-w)
+    shift = ref.centers[i] - rot_inv @ (ref.centers[i] + tau * ref.extent)
+    return means @ rot_inv.T + shift, quats @ quat_left_matrix(axis_angle_to_quat(-w)).T
+
+
+def scene_and_refiner():
     cams = ring_cameras()
     rng = np.random.default_rng(0)
     means = torch.from_numpy(rng.uniform(-0.8, 0.8, (300, 3)))
@@ -102,16 +112,45 @@ def test_moved_gaussians_render_as_the_corrected_camera_sees_them():
     with torch.no_grad():
         ref.w[2].copy_(torch.tensor([0.02, -0.03, 0.01]))  # about 2 degrees
         ref.tau[2].copy_(torch.tensor([0.01, 0.02, -0.015]))
-    moved, turned = ref.apply(2, means, quats)
+    return cams, means, quats, ref
+
+
+def test_the_corrected_camera_sees_the_gaussians_as_the_original_sees_them_moved():
+    cams, means, quats, ref = scene_and_refiner()
     corrected = ref.camera(2, cams[2])
+    original = torch.from_numpy(cams[2].cam_from_world)[None]
+    assert np.allclose(ref.viewmat(2, original)[0].numpy(), corrected.cam_from_world, atol=1e-12)
     with torch.no_grad():
-        a, b = render(moved, turned, cams[2]), render(means, quats, corrected)
+        a = render(*moved_by(ref, 2, means, quats), original, cams[2])
+        b = render(means, quats, corrected.cam_from_world, cams[2])
     assert float((a - b).abs().max()) < 1e-6
-    assert float((render(means, quats, cams[2]) - b).abs().max()) > 0.05  # (the correction shows)
+    assert float((render(means, quats, original, cams[2]) - b).abs().max()) > 0.05  # (the correction shows)
     # the corrected camera: rotated by 2.2 degrees, centre moved by tau x extent
     assert rotation_angle_deg(corrected.cam_from_world[:3, :3], cams[2].cam_from_world[:3, :3]) == \
         pytest.approx(math.degrees(float(torch.linalg.norm(ref.w[2].detach()))), abs=1e-4)
     assert np.allclose(corrected.center - cams[2].center, 3.0 * ref.tau[2].detach().numpy(), atol=1e-6)
+
+
+def test_the_corrections_gradient_equals_the_moved_gaussians_gradient():
+    """attach() + viewmat() (the fit's path: nothing moved, two reductions in backward) gives the
+    correction and the Gaussians the gradients of the reference that moves the Gaussians."""
+    cams, means, quats, ref = scene_and_refiner()
+    weights = torch.rand(cams[2].height, cams[2].width, 3, generator=torch.Generator().manual_seed(1),
+                         dtype=torch.float64)
+    original = torch.from_numpy(cams[2].cam_from_world)[None]
+    grads = []
+    for path in ("reference", "fit"):
+        m, q = means.clone().requires_grad_(True), quats.clone().requires_grad_(True)
+        if path == "reference":
+            loss = (render(*moved_by(ref, 2, m, q), original, cams[2]) * weights).sum()
+        else:
+            loss = (render(*ref.attach(2, m, q), ref.viewmat(2, original), cams[2]) * weights).sum()
+        loss.backward()
+        grads.append([m.grad, q.grad, ref.w[2].grad.clone(), ref.tau[2].grad.clone()])
+        ref.zero_grad()
+    for name, a, b in zip(("means", "quats", "w", "tau"), *grads):
+        assert float(a.abs().max()) > 0, name
+        assert torch.allclose(a.double(), b.double(), rtol=1e-4, atol=1e-6 * float(a.abs().max())), name
 
 
 def test_the_corrections_common_similarity_is_projected_out():

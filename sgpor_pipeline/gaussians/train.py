@@ -764,7 +764,8 @@ class Trainer:
         means, quats = p["means"], p["quats"]
         refine_pose = self.poses is not None and self.poses.active(step)
         if refine_pose:
-            means, quats = self.poses.apply(i, means, quats)
+            viewmat = self.poses.viewmat(i, viewmat)
+            means, quats = self.poses.attach(i, means, quats)
         try:
             render, _alpha, info = rasterization(
                 means, quats, torch.exp(p["scales"]), torch.sigmoid(p["opacities"]), colors,
@@ -841,8 +842,9 @@ class Trainer:
             viewmat, K = view.viewmat.to(self.device), view.K.to(self.device)
             H, W = view.image.shape[:2]
             for _ in range(self.p.pose_refine.eval_steps):
-                means, quats = self.eval_poses.apply(i, act["means"], act["quats"])
-                render, _, _ = rasterization(means, quats, act["scales"], act["opacities"], colors, viewmat, K, W, H,
+                means, quats = self.eval_poses.attach(i, act["means"], act["quats"])
+                render, _, _ = rasterization(means, quats, act["scales"], act["opacities"], colors,
+                                             self.eval_poses.viewmat(i, viewmat), K, W, H,
                                              sh_degree=deg, backgrounds=self.bg, backend=self.p.backend)
                 photometric_loss(render[0], view.image, self.p.lambda_dssim, view.weight).backward()
                 if first_non_finite(self.eval_poses.grads(i)) is not None:  # (a frozen model: skip, never roll back)

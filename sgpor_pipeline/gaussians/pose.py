@@ -43,7 +43,7 @@ class PoseRefineParams:
     # pose-refining NeRF/3DGS evaluations do: their SfM poses carry SfM's error, which the training
     # views' refinement took out of the Gaussians. This many Adam steps per evaluation (warm-started).
     # The demo scene from its photos, every 8th view held out (fit.holdout_every=8): held-out PSNR
-    # 29.85 aligned, 27.45 at the SfM poses; the fit without refinement 28.16 at the SfM poses (28.75
+    # 29.54 aligned, 27.23 at the SfM poses; the fit without refinement 28.16 at the SfM poses (28.75
     # with its held-out poses aligned the same way afterwards, 100 steps).
     eval_steps: int = 30
     lr_eval: float = 1e-3  # learning rate of those steps (rotations in radians, moves in extents)

@@ -10,8 +10,9 @@ background other views saw. Otherwise (``"fit"``) the object is fitted with the 
 says which (``object_masks``: ``"ignore"`` or ``"fit"``).
 
 Out: ``gaussians.ply`` (INRIA 3DGS layout), ``cameras.json`` (sfm's cameras, novel ones included,
-with the training views' poses as the fit refined them, ``pose_refine``: the run's cameras for every
-later stage, the exporters and ``render``; see :func:`run_cameras_file`), ``curve.json`` and
+with the training views' poses as the fit refined them and the held-out views' aligned to those,
+``pose_refine``: the run's cameras for every later stage, the exporters and ``render``; see
+:func:`run_cameras_file`), ``curve.json`` and
 ``curve.png`` (loss, held-out PSNR/SSIM, Gaussian count and seconds per iteration), ``fit.json``
 (final count and why it stopped, held-out PSNR/SSIM, seconds, iterations, scene extent, training
 resolution, the pose corrections' sizes) and ``renders/<view>.png``: held-out renders beside their

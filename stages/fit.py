@@ -51,7 +51,8 @@ DEFAULT_ITERATIONS = 2000
 #: The fit's cameras (sfm's, with the training views' poses as refined; see FitParams.pose_refine).
 CAMERAS_FILE = "cameras.json"
 #: A pose correction beyond this (degrees, or fraction of the scene extent) is named in a warning:
-#: SfM's poses of the demo scene's photos needed 0.47 degrees and 1 % at most, statue's 0.1 degrees.
+#: SfM's poses needed at most 0.47 degrees and 0.8 % (the demo scene's photos), 0.37 and 1.4 % (mip360
+#: room), 0.15 and 1.0 % (statue).
 POSE_WARN_DEGREES = 2.0
 POSE_WARN_MOVE = 0.03
 

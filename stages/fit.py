@@ -533,10 +533,8 @@ def fit_scene(sfm_dir: Path, out_dir: Path, params: FitParams, checkpoint_dir: P
 
     out_dir = Path(out_dir)
     write_ply(out_dir / "gaussians.ply", model)
-    pose_summary = summary["pose_refine"]
-    if pose_summary is not None:
-        pose_summary["per_view"] = _corrections(trainer.poses, train_views)
-        _warn_large_corrections(pose_summary["per_view"], log)
+    if summary["pose_refine"] is not None:
+        _warn_large_corrections(summary["pose_refine"]["per_view"], log)
     given_poses_psnr = None
     if trainer.eval_poses is not None:  # (the held-out score at the SfM poses, for comparison)
         given_poses_psnr = evaluate(model, test_views, trainer.active_sh_degree(trainer.step), params.backend)["psnr"]
@@ -568,7 +566,7 @@ def fit_scene(sfm_dir: Path, out_dir: Path, params: FitParams, checkpoint_dir: P
         "sh_degree": params.sh_degree,
         "points": {**report, "used": int(len(xyz))},
         "renders": renders,
-        "pose_refine": pose_summary,
+        "pose_refine": summary["pose_refine"],
         "heldout_poses_aligned": summary["heldout_poses_aligned"],
         "heldout_psnr_at_given_poses": given_poses_psnr,
     }
@@ -594,13 +592,6 @@ def pose_refinement_wanted(mode: str, sfm_dir: Path, n_train: int) -> bool:
     summary = Path(sfm_dir) / SUMMARY_FILE
     known = summary.is_file() and json.loads(summary.read_text()).get("mode") == "known_cameras"
     return not known
-
-
-def _corrections(poses: Any, views: list) -> dict[str, dict[str, float]]:
-    """Each view's pose correction: rotation in degrees, centre move in scene extents."""
-    d = poses.deltas().cpu().numpy()
-    return {v.name: {"rotation_deg": round(float(np.degrees(np.linalg.norm(d[i, :3]))), 4),
-                     "move": round(float(np.linalg.norm(d[i, 3:])), 5)} for i, v in enumerate(views)}
 
 
 def _warn_large_corrections(per_view: dict[str, dict[str, float]], log: logging.Logger) -> None:

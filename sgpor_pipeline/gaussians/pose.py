@@ -137,7 +137,7 @@ def gauge_basis(centers: np.ndarray, extent: float) -> np.ndarray:
     basis = np.zeros((n, 6, 7))
     for i, ci in enumerate(c):
         basis[i, :3, :3] = np.eye(3)  # a common turn: each w the same ...
-        basis[i, 3:, :3] = -np.array([[0, -ci[2], ci[1]], [ci[2], 0, -ci[0]], [-ci[1], ci[0], 0]])  # ... centres swing
+        basis[i, 3:, :3] = -_skew(torch.from_numpy(ci)).numpy()  # ... the centres swing: w x ci
         basis[i, 3:, 3:6] = np.eye(3)
         basis[i, 3:, 6] = ci
     return basis.reshape(n * 6, 7)
@@ -222,25 +222,20 @@ class PoseRefiner:
         return {"pose rotation": self.w[i].grad, "pose translation": self.tau[i].grad}
 
     def camera(self, i: int, camera: Camera) -> Camera:
-        """``camera`` (view i's, at any resolution) with its pose corrected."""
-        d = self.deltas()[i].cpu()
-        rot = axis_angle_to_matrix(d[:3]).numpy()
-        R = camera.cam_from_world[:3, :3]
-        center = camera.center + d[3:].numpy() * self.extent
-        R_new = R @ rot.T  # (exp(w) Rc)^T with Rc = R^T
-        m = np.eye(4)
-        m[:3, :3] = R_new
-        m[:3, 3] = -R_new @ center
-        return replace(camera, cam_from_world=m)
+        """``camera`` (view i's, at any resolution) with its pose corrected (as :meth:`viewmat`)."""
+        return replace(camera, cam_from_world=camera.cam_from_world @ self.motion(i).cpu().numpy())
 
-    def summary(self) -> dict[str, Any]:
-        """Sizes of the corrections: rotation in degrees, centre moves as a fraction of the extent."""
+    def summary(self, names: Sequence[str]) -> dict[str, Any]:
+        """Sizes of the corrections of the views ``names`` (in order): rotation in degrees, centre
+        moves as a fraction of the extent; medians, maxima and each view's."""
         d = self.deltas().cpu()
         rot = np.degrees(torch.linalg.norm(d[:, :3], dim=1).numpy())
         move = torch.linalg.norm(d[:, 3:], dim=1).numpy()
         return {"views": len(self), "rotation_deg_median": float(np.median(rot)), "rotation_deg_max": float(rot.max()),
                 "move_median": float(np.median(move)), "move_max": float(move.max()),
-                "lr_rotation": self.lr[0], "lr_translation": self.lr[1]}
+                "lr_rotation": self.lr[0], "lr_translation": self.lr[1],
+                "per_view": {n: {"rotation_deg": round(float(r), 4), "move": round(float(m), 5)}
+                             for n, r, m in zip(names, rot, move)}}
 
     def state_dict(self) -> dict[str, Any]:
         d = self.deltas().cpu()

@@ -974,6 +974,7 @@ class Trainer:
             "resumed_from_iteration": self.resumed_from,
             "rollbacks": [e for e in self.events if e.get("event") == "rollback"],
             "lr_scale": self.lr_scale,
-            "pose_refine": None if self.poses is None else self.poses.summary(),
-            "heldout_poses_aligned": None if self.eval_poses is None else self.eval_poses.summary(),
+            "pose_refine": None if self.poses is None else self.poses.summary([v.name for v in self.train_views]),
+            "heldout_poses_aligned": (None if self.eval_poses is None else
+                                      self.eval_poses.summary([v.name for v in self.eval_views])),
         }

@@ -1456,10 +1456,6 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(asctime)s %(name)s: %(message)s", datefmt="%H:%M:%S")
     os.environ.setdefault("TQDM_DISABLE", "1")
-    out = (args.out or Path(tempfile.mkdtemp(prefix="sgpor-bench-removal-"))).resolve()
-    out.mkdir(parents=True, exist_ok=True)
-    data = args.data.resolve()
-
     try:
         fit_seeds = [int(v) for v in args.fit_seeds.split(",") if v.strip()] if args.fit_seeds else []
     except ValueError:
@@ -1470,6 +1466,11 @@ def main(argv: list[str] | None = None) -> int:
         selected_variants(methods)
     except ValueError as e:
         ap.error(str(e))
+
+    # the output folder only once the arguments are known to be good (a rejected call leaves no folder)
+    out = (args.out or Path(tempfile.mkdtemp(prefix="sgpor-bench-removal-"))).resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    data = args.data.resolve()
 
     def ground_truth_protocol(scene: str) -> dict[str, Any]:
         protocol = partial(partial(protocol_synthetic, scene=scene) if scene in SYNTHETIC_SCENES

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import tempfile
 
 import numpy as np
 import pytest
@@ -314,15 +315,17 @@ def test_novel_table_and_summary(bench):
     assert any("novel views" in c and "fsr-refit +2.00 dB" in c for c in checks)
 
 
-def test_method_subset_runs_ours_first_and_leaves_the_target_unjudged(bench):
+def test_method_subset_runs_ours_first_and_leaves_the_target_unjudged(bench, tmp_path, monkeypatch):
     """--methods: ours always runs (first); with a baseline missing the target is neither passed nor failed,
     and an ablation that did not run is not reported as helping or not."""
     assert [v[0] for v in bench.selected_variants(["fsr-refit"])] == ["ours", "fsr-refit"]
     assert [v[0] for v in bench.selected_variants(None)] == [v[0] for v in bench.VARIANTS]
     with pytest.raises(ValueError, match="nope"):
         bench.selected_variants(["nope"])
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     with pytest.raises(SystemExit):
         bench.main(["--methods", "nope"])
+    assert not any(tmp_path.iterdir()), "a rejected call leaves no output folder behind"
     scene = {"scene": "statue-box", "rows": [_row(m, v) for m, v in
                                              (("ours", 25.0), ("delete-only", 20.0), ("fsr-refit", 22.0))],
              "wall_seconds": 1.0}

@@ -290,7 +290,9 @@ Protocols:
     ``synthetic-photos`` (session 45): the demo scene run as a user runs photos, SfM estimating the
     cameras (``sfm.camera_model=SIMPLE_PINHOLE``, so the views keep the photos' pixels). The gap to
     ``synthetic`` is what SfM's poses cost the removal: ours 24.14 dB mask PSNR against 26.48; with
-    the fit refining the poses (``fit.pose_refine``, session 46) 25.64.
+    the fit refining the poses (``fit.pose_refine``, session 46) 25.64; at the learning rates of
+    session 47 (1e-3 from iteration 200) 25.86 (fit seed 1: 26.53), delete-only 24.70, fsr-refit
+    21.48, no-sbm 25.20.
 (b) ``lund``: a synthetic object inserted into the real lund photos. First our SfM runs on the
     untouched photos at full size (pipeline until ``sfm``; with ``ingest.max_size`` 160 only 2, with
     640 only 15 of the 29 photos register); its undistorted PINHOLE images are then downscaled to 320 px (240 px

@@ -9,7 +9,10 @@ when they are long, have contrast across them and their edge meets the hole on b
 passing under the object; a few px off on the far side, the line is turned through both), or on one
 side as one of two borders of a region whose corner the hole hides; they are extended through it (an
 edge that stops at the hole's rim, or beside it, is not). The lines
-cut the image into cells (the side of every line); :func:`~sgpor_pipeline.removal.sbm.inpaint_view`
+cut the image into cells (the side of every line; the two borders of a hidden corner split off only
+their region, the quadrant between them, since beyond the corner they border nothing: on mip360 room
+the three other quadrants put the wood at the hole's side into the carpet's part of the hole);
+:func:`~sgpor_pipeline.removal.sbm.inpaint_view`
 with ``labels`` then fills each target block from source blocks of its own cell, and each pixel mainly
 from the blocks of its cell, so the edges continue straight through the hole and meet at corners.
 
@@ -56,14 +59,27 @@ class Line:
     length: float
     contrast: float = 0.0
     segments: list[np.ndarray] = field(default_factory=list)  # [4] x0, y0, x1, y1 each
+    # A border of a region whose corner the hole hides: (this line's side of the region (+1 / -1), the
+    # other border, its side of the region). The line then splits only that region (the quadrant of
+    # the two borders) from the rest; beyond the corner it is no border.
+    # (left out of == and repr: the two borders name each other)
+    corner: tuple[float, Line, float] | None = field(default=None, compare=False, repr=False)
 
     def side(self, h: int, w: int) -> np.ndarray:
         ys, xs = np.mgrid[0:h, 0:w]
         return (xs * self.normal[0] + ys * self.normal[1] - self.rho) > 0
 
+    def cell_bit(self, h: int, w: int) -> np.ndarray:
+        """The pixels on the line's + side, or for a corner's border those in the corner's region."""
+        if self.corner is None:
+            return self.side(h, w)
+        own, other, other_side = self.corner
+        return (self.side(h, w) == (own > 0)) & (other.side(h, w) == (other_side > 0))
+
     def to_dict(self) -> dict:
         return {"normal": [float(self.normal[0]), float(self.normal[1])], "rho": float(self.rho),
-                "length": float(self.length), "contrast": float(self.contrast), "segments": len(self.segments)}
+                "length": float(self.length), "contrast": float(self.contrast), "segments": len(self.segments),
+                "corner": self.corner is not None}
 
 
 def _segments(image: np.ndarray, valid: np.ndarray, blur: float) -> np.ndarray:
@@ -224,32 +240,34 @@ def _realigned(image: np.ndarray, known: np.ndarray, hole: np.ndarray, line: Lin
     return Line(normal, float(at @ normal), line.length, line.contrast, line.segments)
 
 
-def _corner(a: tuple[Line, tuple], b: tuple[Line, tuple], hole: np.ndarray, tolerance: int = 3) -> bool:
+def _corner(a: tuple[Line, tuple], b: tuple[Line, tuple], hole: np.ndarray, tolerance: int = 3
+            ) -> tuple[float, float] | None:
     """Whether two lines, each with one entry into the hole (``(line, entry)``), are the two borders of
     one region whose corner the hole hides: they cross within ``tolerance`` px of a hole pixel; their
     sides pair up by colour at the entries (each side like one side of the other line, clearly more than
     like its other side); and for one of the two regions so paired, each line enters on that region's
-    side of the other (the region's edges run from their entries to the corner)."""
+    side of the other (the region's edges run from their entries to the corner). Returns the region's
+    side of a and of b (+1 / -1 each, of their normals), or None."""
     (la, (pa, a_plus, a_minus)), (lb, (pb, b_plus, b_minus)) = a, b
     m = np.array([la.normal, lb.normal])
     if abs(np.linalg.det(m)) < np.sin(np.deg2rad(10.0)):  # (about parallel)
-        return False
+        return None
     x, y = np.linalg.solve(m, [la.rho, lb.rho])
     h, w = hole.shape
     y0, y1 = int(max(0, np.floor(y) - tolerance)), int(min(h, np.ceil(y) + tolerance + 1))
     x0, x1 = int(max(0, np.floor(x) - tolerance)), int(min(w, np.ceil(x) + tolerance + 1))
     if not (y0 < y1 and x0 < x1 and hole[y0:y1, x0:x1].any()):
-        return False
+        return None
     same, cross = _pairing(a_plus, a_minus, b_plus, b_minus)
     if min(same, cross) > 0.5 * max(same, cross):  # the sides do not pair up clearly
-        return False
+        return None
     sign_b_of_a = 1.0 if same < cross else -1.0  # b's side (of its normal) holding a's + side's colour
     side_a_of_b = float(pb @ la.normal - la.rho)  # where b enters, relative to a
     side_b_of_a = float(pa @ lb.normal - lb.rho)
     for region in (1.0, -1.0):  # a's + side (and its partner on b), then a's - side
         if side_a_of_b * region > 0 and side_b_of_a * region * sign_b_of_a > 0:
-            return True
-    return False
+            return region, region * sign_b_of_a
+    return None
 
 
 def hole_lines(image: np.ndarray, known: np.ndarray, hole: np.ndarray, block: int,
@@ -300,7 +318,15 @@ def hole_lines(image: np.ndarray, known: np.ndarray, hole: np.ndarray, block: in
             through.append(ln)
         elif len(entries) == 1:
             one_sided.append((ln, entries[0]))
-    corners = [a[0] for a in one_sided if any(_corner(a, b, hole) for b in one_sided if b is not a)]
+    corners = []
+    for a in one_sided:
+        for b in one_sided:
+            found = None if b is a else _corner(a, b, hole)
+            if found is not None:
+                # (a border of several hidden corners keeps the first: one region per line)
+                a[0].corner = (found[0], b[0], found[1])
+                corners.append(a[0])
+                break
     out = sorted(through + corners, key=lambda ln: -ln.length)
     return out[: p.max_lines]
 
@@ -313,7 +339,7 @@ def cell_labels(shape: tuple[int, int], lines: list[Line], known: np.ndarray, ho
     h, w = shape
     lab = np.zeros((h, w), np.int32)
     for i, ln in enumerate(lines):
-        lab |= ln.side(h, w).astype(np.int32) << i
+        lab |= ln.cell_bit(h, w).astype(np.int32) << i
     if not lines:
         return lab
     near = cv2.distanceTransform((~np.asarray(hole, bool)).astype(np.uint8), cv2.DIST_L2, 5) <= (p.near or 3 * block)

@@ -51,6 +51,9 @@ MASKS_DIR = "masks"
 CAMERAS_FILE = "cameras.json"
 POINTS_FILE = "points.npz"
 SUMMARY_FILE = "sfm.json"
+# sfm.json "mode" of a run whose cameras were given (--cameras), not estimated; the fit refines no
+# such poses under fit.pose_refine=auto
+KNOWN_CAMERAS_MODE = "known_cameras"
 # The registered views' cameras before undistortion, at ingest's image size: the mapping from a photo
 # (or another image of the same view, e.g. its ground truth) to the undistorted images (photo_to_view).
 RAW_CAMERAS_FILE = "raw_cameras.json"
@@ -889,7 +892,7 @@ def import_known_cameras(ingest_dir: Path, views: Sequence[View], cameras: Seque
     (out_dir / SPARSE_DIR).mkdir()
     rec.write_binary(out_dir / SPARSE_DIR)
     summary = {
-        "mode": "known_cameras",
+        "mode": KNOWN_CAMERAS_MODE,
         "matcher": matcher,
         "images": len(views),
         "registered": len(posed_out),

@@ -600,10 +600,10 @@ def pose_refinement_wanted(mode: str, sfm_dir: Path, n_train: int) -> bool:
         return False
     if mode == "on":
         return True
-    from sgpor_pipeline.sfm import SUMMARY_FILE
+    from sgpor_pipeline.sfm import KNOWN_CAMERAS_MODE, SUMMARY_FILE
 
     summary = Path(sfm_dir) / SUMMARY_FILE
-    known = summary.is_file() and json.loads(summary.read_text()).get("mode") == "known_cameras"
+    known = summary.is_file() and json.loads(summary.read_text()).get("mode") == KNOWN_CAMERAS_MODE
     return not known
 
 
@@ -696,9 +696,9 @@ def write_known_sfm(folder: Path, cameras: list, images: np.ndarray, depths: np.
     sel = o_point >= 0
     np.savez(folder / "points.npz", xyz=xyz.astype(np.float64), rgb=rgb, error=np.zeros(len(keep)),
              obs_point=o_point[sel], obs_view=o_view[sel], obs_xy=o_xy[sel])
-    from sgpor_pipeline.sfm import SUMMARY_FILE
+    from sgpor_pipeline.sfm import KNOWN_CAMERAS_MODE, SUMMARY_FILE
 
-    (folder / SUMMARY_FILE).write_text(json.dumps({"mode": "known_cameras", "registered": len(named)}))
+    (folder / SUMMARY_FILE).write_text(json.dumps({"mode": KNOWN_CAMERAS_MODE, "registered": len(named)}))
     return folder
 
 

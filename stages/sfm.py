@@ -35,7 +35,7 @@ from pathlib import Path
 
 from sgpor_pipeline.dag import Stage, StageContext
 from sgpor_pipeline.scene import load_cameras
-from sgpor_pipeline.sfm import PairCheck, SfmParams, estimate_cameras, import_known_cameras
+from sgpor_pipeline.sfm import KNOWN_CAMERAS_MODE, PairCheck, SfmParams, estimate_cameras, import_known_cameras
 from sgpor_pipeline.views import load_views
 
 __all__ = ["SfmParams", "SfmStage"]
@@ -81,7 +81,7 @@ class SfmStage(Stage):
                          f"pairs only")
         if check and check["contradicted"]:
             found = PairCheck.from_dict(check)
-            if summary["mode"] == "known_cameras":
+            if summary["mode"] == KNOWN_CAMERAS_MODE:
                 ctx.log.warning(f"sfm: the given cameras contradict {len(found.contradicted)} of {found.checked} "
                                 f"strongest image pairs of the photos: {found.describe()}. Check the cameras "
                                 f"file: its axis convention (a COLMAP model or a transforms.json read as the "

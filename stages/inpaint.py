@@ -164,6 +164,8 @@ class InpaintParams:
     # cells (inpaint VERSION 15). Fit seed 0, ours mask PSNR [plane fill]: synthetic-box-corner 30.90 ->
     # 31.03 [30.30 -> 30.72], -edge 30.78 -> 30.78; mip360 room, where a fit with other pose settings
     # found a corner (the left rug's) whose four cells put wood into the carpet, shows a streak, not a blotch.
+    # Session 48: that region ends where its borders' edges end in view (VERSION 16): room's streak (the
+    # wood beyond the rug's far side) is gone; synthetic-box-corner (its rug runs out of view) is unchanged.
     plane_structure: bool = True
     # The same for each view's own fill (the parts of its hole that do not take the plane texture): the
     # view's straight edges through its hole (a street's curbs, a facade's lines; straight in the photo
@@ -478,7 +480,7 @@ class InpaintStage(Stage):
     # (plane_rerank_margin); 13: the plane texture's straight structure continued through its hole
     # (plane_structure); 14: the plane texture's Poisson blend reaches 15 px into its hole (plane_blend_reach);
     # 15: the two borders of a hidden corner split off their region only (not the plane into 4 cells)
-    VERSION = 15
+    VERSION = 16
     Params = InpaintParams
     inputs = ("remove",)
     libraries = ("torch",)

@@ -122,6 +122,36 @@ def test_a_fill_by_cells_turns_at_a_hidden_corner(overlap):
     assert float((looks_rug != rug)[hole].mean()) < 0.03
 
 
+def test_a_hidden_corners_region_ends_where_its_borders_end():
+    """The rug whose corner the hole hides ends in view: its two borders stop at its far corners, and
+    beyond them lies wood. The rug's cell ends there too, so the wood is no source for the rug's part of
+    the hole (mip360 room: the unbounded quadrant held the wood strip beyond the rug, and SBM pasted a
+    streak of it into the rug). A rug running out of the image stays unbounded (the test above)."""
+    rng = np.random.default_rng(9)
+    yy, xx = np.mgrid[0:N, 0:N]
+    u, v = (xx - 80) * 0.96 + (yy - 80) * 0.28, -(xx - 80) * 0.28 + (yy - 80) * 0.96
+    rug = (u > 0) & (v > 0) & (u < 55) & (v < 55)
+    wood = ((u > 61) & (v > 6)) | ((v > 61) & (u > 6))  # (off the rug's border lines: no edge continues them)
+    g = grain(rng)
+    img = np.where(rug[..., None], np.stack([0.6 + g, 0.25 + g, 0.55 + g], -1),
+                   np.stack([0.55 + g, 0.55 + g, 0.5 + g], -1)).astype(np.float32)
+    img[wood] = np.stack([0.85 + g, 0.5 + g, 0.15 + g], -1)[wood]
+    hole = (yy - 80) ** 2 + (xx - 80) ** 2 < 20 ** 2
+    lines = hole_lines(img, ~hole, hole, 15)
+    assert len(lines) == 2 and all(ln.corner is not None for ln in lines), [ln.to_dict() for ln in lines]
+    labels = cell_labels(hole.shape, lines, ~hole, hole, 15)
+    floor = ~rug & ~wood & ~hole
+    rug_cell = np.unique(labels[rug & (u > 3) & (v > 3) & (u < 52) & (v < 52)])
+    assert len(rug_cell) == 1
+    assert not (labels[wood & (u > 64) & (v > 9)] == rug_cell[0]).any()  # (3 px past the borders' ends)
+    assert not (labels[floor & ((u < -3) | (v < -3))] == rug_cell[0]).any()
+    p = SBMParams(rerank_margin=0)
+    bank = build_source_bank(["t"], [img], [hole], [hole], p, labels=[labels])
+    out = inpaint_view(img, hole, bank, p, labels=labels).image
+    looks_rug, looks_wood = out[..., 1] < 0.4, out[..., 2] < 0.3
+    assert float((looks_rug != rug)[hole].mean()) < 0.03 and float(looks_wood[hole].mean()) < 0.01
+
+
 def test_retrieve_keeps_a_target_to_the_sources_of_its_cell():
     img, orange, hole = two_regions(6)
     lab = orange.astype(np.int32)

@@ -11,7 +11,9 @@ side as one of two borders of a region whose corner the hole hides; they are ext
 edge that stops at the hole's rim, or beside it, is not). The lines
 cut the image into cells (the side of every line; the two borders of a hidden corner split off only
 their region, the quadrant between them, since beyond the corner they border nothing: on mip360 room
-the three other quadrants put the wood at the hole's side into the carpet's part of the hole);
+the three other quadrants put the wood at the hole's side into the carpet's part of the hole; and the
+quadrant ends where its borders' edges end in view, since the region ends there too: room's rug
+quadrant, unbounded, held the wood beyond the rug's far side);
 :func:`~sgpor_pipeline.removal.sbm.inpaint_view`
 with ``labels`` then fills each target block from source blocks of its own cell, and each pixel mainly
 from the blocks of its cell, so the edges continue straight through the hole and meet at corners.
@@ -28,6 +30,8 @@ import numpy as np
 
 from sgpor_pipeline.errors import PipelineError
 
+CORNER_MARGIN = 3.0  # px a hidden corner's region reaches beyond its borders' farthest segment ends
+OPEN_END = 6.0  # px from the image's border or unknown pixels within which a segment's end may run on unseen
 FREE = -1  # label of a pixel whose cell has no known pixels near the hole: no constraint there
 
 
@@ -60,10 +64,12 @@ class Line:
     contrast: float = 0.0
     segments: list[np.ndarray] = field(default_factory=list)  # [4] x0, y0, x1, y1 each
     # A border of a region whose corner the hole hides: (this line's side of the region (+1 / -1), the
-    # other border, its side of the region). The line then splits only that region (the quadrant of
-    # the two borders) from the rest; beyond the corner it is no border.
-    # (left out of == and repr: the two borders name each other)
-    corner: tuple[float, Line, float] | None = field(default=None, compare=False, repr=False)
+    # other border, its side of the region, how far the region reaches from the other border along this
+    # one and from this one along the other (px; inf where a border's segments run out of the known
+    # image)). The line then splits only that region (the quadrant of the two borders, cut where they
+    # end) from the rest; beyond the corner it is no border. (left out of == and repr: the two borders
+    # name each other)
+    corner: tuple[float, Line, float, float, float] | None = field(default=None, compare=False, repr=False)
 
     def side(self, h: int, w: int) -> np.ndarray:
         ys, xs = np.mgrid[0:h, 0:w]
@@ -73,13 +79,31 @@ class Line:
         """The pixels on the line's + side, or for a corner's border those in the corner's region."""
         if self.corner is None:
             return self.side(h, w)
-        own, other, other_side = self.corner
-        return (self.side(h, w) == (own > 0)) & (other.side(h, w) == (other_side > 0))
+        own, other, other_side, reach, reach_other = self.corner
+        ys, xs = np.mgrid[0:h, 0:w]
+        # distances into the region from each border; it reaches along each border as far as that
+        # border's edge was seen (mip360 room: the rug's quadrant, unbounded, held the wood beyond the
+        # rug's far side, and SBM pasted it into the rug's part of the hole)
+        into_own = (xs * self.normal[0] + ys * self.normal[1] - self.rho) * own
+        into_other = (xs * other.normal[0] + ys * other.normal[1] - other.rho) * other_side
+        return (into_own > 0) & (into_other > 0) & (into_other <= reach) & (into_own <= reach_other)
 
     def to_dict(self) -> dict:
         return {"normal": [float(self.normal[0]), float(self.normal[1])], "rho": float(self.rho),
                 "length": float(self.length), "contrast": float(self.contrast), "segments": len(self.segments),
-                "corner": self.corner is not None}
+                "corner": self.corner is not None,
+                # (how far the corner's region reaches along this border; None: into the unseen)
+                "reach": None if self.corner is None or not np.isfinite(self.corner[3]) else float(self.corner[3])}
+
+
+def _reach(line: Line, border: Line, side: float, open_end: np.ndarray) -> float:
+    """How far ``line``'s segments reach from ``border`` into its ``side`` (px, the farthest end); inf
+    where that end lies on ``open_end`` (the edge may run on unseen)."""
+    ends = np.concatenate([np.asarray(sg, np.float64).reshape(2, 2) for sg in line.segments])
+    far = ends[int(np.argmax((ends @ border.normal - border.rho) * side))]
+    h, w = open_end.shape
+    x, y = int(np.clip(np.rint(far[0]), 0, w - 1)), int(np.clip(np.rint(far[1]), 0, h - 1))
+    return float("inf") if open_end[y, x] else float((far @ border.normal - border.rho) * side) + CORNER_MARGIN
 
 
 def _segments(image: np.ndarray, valid: np.ndarray, blur: float) -> np.ndarray:
@@ -318,13 +342,16 @@ def hole_lines(image: np.ndarray, known: np.ndarray, hole: np.ndarray, block: in
             through.append(ln)
         elif len(entries) == 1:
             one_sided.append((ln, entries[0]))
+    # an edge whose segment ends this close to the image's border or to unknown pixels may run on unseen
+    open_end = cv2.distanceTransform(np.pad(known, 1).astype(np.uint8), cv2.DIST_L2, 3)[1:-1, 1:-1] <= OPEN_END
     corners = []
     for a in one_sided:
         for b in one_sided:
             found = None if b is a else _corner(a, b, hole)
             if found is not None:
                 # (a border of several hidden corners keeps the first: one region per line)
-                a[0].corner = (found[0], b[0], found[1])
+                a[0].corner = (found[0], b[0], found[1], _reach(a[0], b[0], found[1], open_end),
+                               _reach(b[0], a[0], found[0], open_end))
                 corners.append(a[0])
                 break
     out = sorted(through + corners, key=lambda ln: -ln.length)

@@ -115,6 +115,8 @@ def test_a_fill_by_cells_turns_at_a_hidden_corner(overlap):
     assert len(np.unique(labels)) == 2
     inside, outside = labels[(u > 3) & (v > 3)], labels[(u < -3) | (v < -3)]  # (3 px off its borders)
     assert len(np.unique(inside)) == 1 and len(np.unique(outside)) == 1 and inside[0] != outside[0]
+    cyan = (draw_lines(img, hole, lines) == (0.0, 1.0, 1.0)).all(-1)  # the borders drawn up to the corner
+    assert cyan.sum() > 30 and (u[cyan] > -2).all() and (v[cyan] > -2).all()
     p = SBMParams(rerank_margin=0, overlap=overlap)
     bank = build_source_bank(["t"], [img], [hole], [hole], p, labels=[labels])
     out = inpaint_view(img, hole, bank, p, labels=labels).image

@@ -393,7 +393,7 @@ def other_cells(a, b):
 
 def draw_lines(image: np.ndarray, hole: np.ndarray, lines: list[Line]) -> np.ndarray:
     """A picture of the lines: ``image`` with the hole in blue, each line's segments in yellow and its
-    extension through the hole in cyan (float RGB)."""
+    extension through the hole in cyan, a hidden corner's borders up to their corner (float RGB)."""
     out = np.array(image, np.float32)
     hole = np.asarray(hole, bool)
     out[hole] = 0.5 * out[hole] + 0.5 * np.array([0.0, 0.0, 1.0], np.float32)
@@ -404,7 +404,12 @@ def draw_lines(image: np.ndarray, hole: np.ndarray, lines: list[Line]) -> np.nda
         a, b = c - 2 * (h + w) * d, c + 2 * (h + w) * d
         ext = np.zeros((h, w), np.uint8)
         cv2.line(ext, (int(round(a[0])), int(round(a[1]))), (int(round(b[0])), int(round(b[1]))), 1, 1)
-        out[(ext > 0) & hole] = (0.0, 1.0, 1.0)
+        ext = (ext > 0) & hole
+        if ln.corner is not None:  # (beyond the corner it borders nothing)
+            other, other_side = ln.corner[1], ln.corner[2]
+            ys, xs = np.mgrid[0:h, 0:w]
+            ext &= (xs * other.normal[0] + ys * other.normal[1] - other.rho) * other_side >= -1.0
+        out[ext] = (0.0, 1.0, 1.0)
         for s in ln.segments:
             p0, p1 = (int(round(s[0])), int(round(s[1]))), (int(round(s[2])), int(round(s[3])))
             cv2.line(out, p0, p1, (1.0, 1.0, 0.0), 1)

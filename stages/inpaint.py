@@ -166,6 +166,11 @@ class InpaintParams:
     # found a corner (the left rug's) whose four cells put wood into the carpet, shows a streak, not a blotch.
     # Session 48: that region ends where its borders' edges end in view (VERSION 16): room's streak (the
     # wood beyond the rug's far side) is gone; synthetic-box-corner (its rug runs out of view) is unchanged.
+    # Then a corner's borders must be seen within block / 2 of the hole (structure corner_reach, VERSION
+    # 17): room's "corner" paired the rug's top edge with its lower part's side, seen only up to 14.4 px
+    # short of the hole beyond a strip of carpet, and filled rug into that carpet; room now has no line and
+    # its fill is the carpet with the rug's step (pictures: .dev/s48). The generated corners' borders end
+    # 3.0-3.6 px from the hole.
     plane_structure: bool = True
     # The same for each view's own fill (the parts of its hole that do not take the plane texture): the
     # view's straight edges through its hole (a street's curbs, a facade's lines; straight in the photo
@@ -480,7 +485,7 @@ class InpaintStage(Stage):
     # (plane_rerank_margin); 13: the plane texture's straight structure continued through its hole
     # (plane_structure); 14: the plane texture's Poisson blend reaches 15 px into its hole (plane_blend_reach);
     # 15: the two borders of a hidden corner split off their region only (not the plane into 4 cells)
-    VERSION = 16
+    VERSION = 17
     Params = InpaintParams
     inputs = ("remove",)
     libraries = ("torch",)

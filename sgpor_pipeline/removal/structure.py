@@ -39,6 +39,11 @@ FREE = -1  # label of a pixel whose cell has no known pixels near the hole: no c
 class StructureParams:
     min_length: float = 0.0  # px of a line's segments together; 0 = 2 x block
     reach: float = 0.0  # a line's nearest segment end lies within this many px of the hole; 0 = block
+    # ... and a hidden corner's border's within this many (its edge is seen up to the rim; 0 = block / 2).
+    # mip360 room: a rug's step edge that ended 14.4 px below the hole (a strip of carpet between) was
+    # paired with the rug's top edge into a corner that put rug where the carpet is; true borders of the
+    # generated hidden corners end 3.0-3.6 px from the hole
+    corner_reach: float = 0.0
     min_contrast: float = 0.08  # mean RGB difference (L2, in [0, 1] units) across the line, 3 px each side
     max_lines: int = 8  # the longest this many lines (2^8 cells at most)
     merge_angle: float = 2.0  # degrees: segments this close in angle ...
@@ -50,7 +55,8 @@ class StructureParams:
     def validate(self) -> None:
         if self.max_lines < 1 or self.max_lines > 16:
             raise PipelineError(f"max_lines must be in 1..16 (got {self.max_lines})", fix="use e.g. 8")
-        if min(self.min_length, self.reach, self.min_contrast, self.blur, self.near) < 0 or self.min_cell_pixels < 0:
+        lengths = (self.min_length, self.reach, self.corner_reach, self.min_contrast, self.blur, self.near)
+        if min(lengths) < 0 or self.min_cell_pixels < 0:
             raise PipelineError("structure lengths, contrast and blur must be >= 0", fix="use the defaults")
 
 
@@ -299,7 +305,8 @@ def hole_lines(image: np.ndarray, known: np.ndarray, hole: np.ndarray, block: in
     """The straight edges of the ``known`` part of ``image`` (float RGB in [0, 1]) that run through
     ``hole``: long enough, with contrast across them, a segment end near the hole, and the edge there
     where the line enters the hole on both sides (a border that passes under the object), or on one
-    side where it meets another such line inside the hole (a hidden corner). An edge that stops short
+    side where it meets another such line inside the hole (a hidden corner; its edge then reaches the
+    rim, within ``corner_reach`` px). An edge that stops short
     of the hole (a rug's border ending at its corner beside it) or that ends at the hole (an object's
     side the hole cuts off) is not continued. Longest first, at most ``max_lines``."""
     p = params or StructureParams()
@@ -311,6 +318,7 @@ def hole_lines(image: np.ndarray, known: np.ndarray, hole: np.ndarray, block: in
     img = np.asarray(image, np.float32)
     min_len = p.min_length or 2.0 * block
     reach = p.reach or float(block)
+    corner_reach = p.corner_reach or block / 2.0
     seg = _segments(img, known, p.blur)
     if not len(seg):
         return []
@@ -327,7 +335,8 @@ def hole_lines(image: np.ndarray, known: np.ndarray, hole: np.ndarray, block: in
         ends = np.concatenate([s.reshape(2, 2) for s in ln.segments])
         ex = np.clip(np.rint(ends[:, 0]), 0, w - 1).astype(int)
         ey = np.clip(np.rint(ends[:, 1]), 0, h - 1).astype(int)
-        if to_hole[ey, ex].min() > reach:
+        near_end = float(to_hole[ey, ex].min())
+        if near_end > reach:
             continue
         ln.contrast = _contrast(img, known, ln)
         if ln.contrast < p.min_contrast:
@@ -340,7 +349,7 @@ def hole_lines(image: np.ndarray, known: np.ndarray, hole: np.ndarray, block: in
                 ln, entries = turned, through_both
         if len(entries) >= 2:
             through.append(ln)
-        elif len(entries) == 1:
+        elif len(entries) == 1 and near_end <= corner_reach:
             one_sided.append((ln, entries[0]))
     # an edge whose segment ends this close to the image's border or to unknown pixels may run on unseen
     open_end = cv2.distanceTransform(np.pad(known, 1).astype(np.uint8), cv2.DIST_L2, 3)[1:-1, 1:-1] <= OPEN_END

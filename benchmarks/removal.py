@@ -14,11 +14,14 @@
 Besides the methods, each ground-truth table prints the *inpainting headroom*: the delete-only
 renders with their hole pixels replaced by the truth (``..._mask_psnr_holes_oracle`` in the JSON).
 It is the most any filling of the holes can reach while the background other views saw stays as
-fitted; a target above it cannot be met by inpainting alone (synthetic: 26.25 dB vs delete-only
-24.39; lund + box: 19.03 vs 12.31). An [INFO] line then scores every method on the same two parts
+fitted; a target above it cannot be met by inpainting alone (session 48: synthetic 29.16 dB vs
+delete-only 24.25; lund + box 21.03 vs 14.79; earlier sessions measured 26.25 vs 24.39 and 19.03 vs
+12.31). An [INFO] line then scores every method on the same two parts
 of the mask as ours splits it: its holes and the rest (``..._unseen_psnr`` / ``..._seen_psnr``, pooled).
-On lund + box ours leads in the holes (83 % of the mask: 13.21 vs fsr-refit 13.06) and trails in the
-rest (14.94 vs 15.19: the sparse capture's fit is poor there and fsr-refit repaints it). The lund
+On lund + box (session 48, fit seed 0) ours leads in both: the holes (81 % of the mask) 12.66 vs
+fsr-refit 11.34, the rest 14.64 vs 12.89; yet per view fsr-refit wins views 10-21 (mid-size masks,
+17-73 % hole) by 0.2-0.8 dB, which keeps the mean of the views close (15.61 vs 15.47). Earlier
+(session 22) ours led in the holes (83 %: 13.21 vs 13.06) and trailed in the rest (14.94 vs 15.19). The lund
 numbers move with the fit's seed more than the methods differ; the differences are steadier. Mask PSNR
 with ``fit.seed`` 0 / 1 / 2 (each method on the same fit): ours 15.04 / 14.85 / 14.41, fsr-refit
 15.08 / 15.16 / 14.85, no-sbm 14.76 / 14.73 / 14.12; feat ours 0.177 / 0.184 / 0.180, fsr-refit
@@ -1008,6 +1011,7 @@ def run_novel(scene: str, scene_dir: Path, run_out: Path, base: list[str], out: 
     from sgpor_pipeline.runner import run_pipeline
     from sgpor_pipeline.scene import load_cameras
     from sgpor_pipeline.stages.evaluate import EvaluateParams, load_features
+    from sgpor_pipeline.stages.fit import run_cameras_file
 
     t_scene = time.perf_counter()
     novel_dir = out / scene / "novel_scene"
@@ -1036,7 +1040,9 @@ def run_novel(scene: str, scene_dir: Path, run_out: Path, base: list[str], out: 
         t0 = time.perf_counter()
         log.warning(f"[{scene} novel] variant {name}: {' '.join(overrides) or '(defaults)'}")
         res = run_pipeline(run_out, inputs, overrides=base + overrides, until="finetune")
-        cams = {c.name: c for c in load_cameras(res.path("sfm") / "cameras.json") if c.image is None}
+        # (the run's cameras, as `render` uses them: with pose refinement they carry the corrections)
+        cams = {c.name: c for c in load_cameras(run_cameras_file(res.path("fit"), res.path("sfm")))
+                if c.image is None}
         missing = [n for n in test if f"test_{n}" not in cams]
         if missing:
             raise RuntimeError(f"the run dropped the novel cameras of {missing}")

@@ -134,7 +134,11 @@ class FitParams:
     # (SfM's rotations 0.7 degrees off at the median), benchmarks/removal.py synthetic-photos: mask
     # PSNR 24.14 -> 25.86 dB (fit seed 0; 26.53 with seed 1), the fit 46 -> 51 s; its true cameras
     # with "on": 26.48 -> 26.75; lund + box (SfM's cameras given as known) with "on", 3e-4 from
-    # iteration 300: 15.61 -> 15.51.
+    # iteration 300: 15.61 -> 15.51. At the rates below (session 48), "on" for given cameras, fit seed 0
+    # unless said: lund + box 15.61 -> 15.68 (seed 1: 16.05 -> 16.00), statue + box 22.53 -> 22.43,
+    # synthetic-box 27.88 -> 27.84; the demo's 6 held-out views as novel cameras (--novel) 25.75 -> 25.11
+    # (23.28 before they carried their neighbours' corrections): no steady gain, so "auto" keeps given
+    # cameras as they are.
     pose_refine: Literal["auto", "on", "off"] = "auto"
     # One photo is rendered per iteration, so each photo's correction gets only about
     # (iterations - pose_start) / views Adam steps (75 on the demo). At 3e-4 from iteration 300 the
@@ -552,7 +556,20 @@ def fit_scene(sfm_dir: Path, out_dir: Path, params: FitParams, checkpoint_dir: P
     if trainer.eval_poses is not None:  # (the held-out score at the SfM poses, for comparison)
         given_poses_psnr = evaluate(model, test_views, trainer.active_sh_degree(trainer.step), params.backend)["psnr"]
     refined = {v.name: v.camera for v in trainer.refined_train_views() + trainer.aligned_eval_views()}
-    run_cameras = [_with_pose(c, refined.get(c.name)) for c in load_cameras(sfm_dir / "cameras.json")]
+    sfm_cameras = load_cameras(sfm_dir / "cameras.json")
+    novel = [c for c in sfm_cameras if c.image is None and c.name not in refined]
+    carried_to = len(novel) if trainer.poses is not None else 0
+    if carried_to:
+        # (they take their neighbours' corrections, the turn all views share included; see pose.py.
+        # benchmarks/removal.py --novel, the demo scene with 6 of its exact cameras novel and "on": their
+        # mask PSNR 23.28 at the given poses, 25.11 corrected; 25.75 without refinement)
+        from sgpor_pipeline.gaussians.pose import carry_corrections
+
+        given = {c.name: c for c in sfm_cameras}
+        trained = trainer.refined_train_views()
+        carried = carry_corrections([given[v.name] for v in trained], [v.camera for v in trained], novel)
+        refined.update({c.name: c for c in carried})
+    run_cameras = [_with_pose(c, refined.get(c.name)) for c in sfm_cameras]
     save_cameras(out_dir / CAMERAS_FILE, run_cameras)
     train_views = [dataclasses.replace(v, camera=_with_pose(v.camera, refined[v.name])) for v in train_views]
     test_views = [dataclasses.replace(v, camera=_with_pose(v.camera, refined[v.name])) for v in test_views]
@@ -582,6 +599,7 @@ def fit_scene(sfm_dir: Path, out_dir: Path, params: FitParams, checkpoint_dir: P
         "pose_refine": summary["pose_refine"],
         "heldout_poses_aligned": summary["heldout_poses_aligned"],
         "heldout_psnr_at_given_poses": given_poses_psnr,
+        "novel_cameras_corrected": carried_to,  # (with their neighbours' pose corrections)
     }
     curve = {"curve": trainer.curve, "events": trainer.events, "budget_history": summary["budget_history"],
              "resumed_from_iteration": summary["resumed_from_iteration"]}
@@ -704,8 +722,9 @@ def write_known_sfm(folder: Path, cameras: list, images: np.ndarray, depths: np.
 
 class FitStage(Stage):
     name = "fit"
-    VERSION = 3  # 2: the kernel sums SIMD lanes in a fixed tree (AVX2 and AVX-512 builds agree bitwise);
-    # 3: poses refined (pose_refine), cameras.json written
+    VERSION = 4  # 2: the kernel sums SIMD lanes in a fixed tree (AVX2 and AVX-512 builds agree bitwise);
+    # 3: poses refined (pose_refine), cameras.json written; 4: novel cameras carry their neighbours'
+    # pose corrections
     Params = FitParams
     inputs = ("sfm",)
     libraries = ("torch",)

@@ -3,6 +3,7 @@ moving the Gaussians instead of the camera, the gauge, and a fit that finds pert
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -20,6 +21,7 @@ from sgpor_pipeline.gaussians.pose import (
     PoseRefiner,
     axis_angle_to_matrix,
     axis_angle_to_quat,
+    carry_corrections,
     gauge_basis,
     quat_left_matrix,
 )
@@ -51,6 +53,39 @@ def ring_cameras(n: int = 6, radius: float = 3.0, size: tuple[int, int] = (64, 4
         m[:3, :3], m[:3, 3] = R, -R @ c
         cams.append(Camera(f"v{i}", w, h, K, m, image=f"v{i}"))
     return cams
+
+
+def _moved(cam: Camera, turn_cam: np.ndarray, move_cam: np.ndarray) -> Camera:
+    """``cam`` turned by ``turn_cam`` (rotation vector in its own axes) and its centre moved by
+    ``move_cam`` (in its own axes)."""
+    from scipy.spatial.transform import Rotation
+
+    rot = cam.cam_from_world[:3, :3]
+    rot_new = Rotation.from_rotvec(turn_cam).as_matrix() @ rot
+    centre = cam.center + rot.T @ move_cam
+    m = np.eye(4)
+    m[:3, :3], m[:3, 3] = rot_new, -rot_new @ centre
+    return Camera(cam.name, cam.width, cam.height, cam.K, m, image=cam.image)
+
+
+def test_novel_cameras_carry_the_turn_their_neighbours_share():
+    """Every training view pitched by the same 0.3 degrees about its own x axis and moved 1 % along
+    its optical axis (the shared part of the fit's corrections, in camera axes): a novel camera
+    between them gets the same pitch and move; one at a training view's centre gets that view's own
+    correction; with no training views nothing changes."""
+    ring = ring_cameras(12)
+    train, novel = ring[::2], ring[1::2]
+    pitch, forward = np.array([np.radians(0.3), 0.0, 0.0]), np.array([0.0, 0.0, 0.03])
+    corrected = [_moved(c, pitch, forward) for c in train]
+    out = carry_corrections(train, corrected, novel)
+    for got, cam in zip(out, novel):
+        want = _moved(cam, pitch, forward)
+        np.testing.assert_allclose(got.cam_from_world, want.cam_from_world, atol=1e-9)
+        assert got.name == cam.name and got.image == cam.image
+    own = [_moved(c, np.array([0.0, np.radians(0.2 * i), 0.0]), np.zeros(3)) for i, c in enumerate(train)]
+    at_view = carry_corrections(train, own, [train[2]])[0]
+    np.testing.assert_allclose(at_view.cam_from_world, own[2].cam_from_world, atol=1e-9)
+    assert carry_corrections([], [], novel)[0] is novel[0]
 
 
 @pytest.mark.parametrize("scale", [0.0, 1e-9, 1e-4, 0.3, 2.5])
@@ -278,14 +313,22 @@ def sfm_copy(sfm: Path, folder: Path, cameras: list[Camera], mode: str) -> Path:
 
 
 def test_known_cameras_are_not_refined_unless_asked(tmp_path, perturbed_sfm):
+    """Given cameras stay as they are with "auto"; with "on" they are refined, and a novel camera (no
+    photo) takes its neighbours' corrections (a small turn, not its given pose)."""
     sfm, _ = perturbed_sfm
-    known = sfm_copy(sfm, tmp_path / "sfm", load_cameras(sfm / "cameras.json"), "known_cameras")
+    cams = load_cameras(sfm / "cameras.json")
+    cams[3] = dataclasses.replace(cams[3], image=None)  # (a novel view)
+    known = sfm_copy(sfm, tmp_path / "sfm", cams, "known_cameras")
     for mode, refined in (("auto", False), ("on", True)):
         out = tmp_path / mode
         out.mkdir()
         res = fit_scene(known, out, params(pose_refine=mode, iterations=150), None, LOG)
         assert (res["pose_refine"] is not None) == refined, mode
-        assert (out / "cameras.json").is_file()
+        assert res["novel_cameras_corrected"] == int(refined)
+        novel = {c.name: c for c in load_cameras(out / "cameras.json")}[cams[3].name]
+        assert novel.image is None
+        turn = rotation_angle_deg(novel.cam_from_world[:3, :3], cams[3].cam_from_world[:3, :3])
+        assert (0.001 < turn < 1.0) if refined else turn == 0.0, (mode, turn)
 
 
 def test_the_run_reads_the_fits_cameras(tmp_path):

@@ -19,7 +19,7 @@ from sgpor_pipeline.dag import RunInputs
 from sgpor_pipeline.errors import PipelineError
 from sgpor_pipeline.imageio import read_image
 from sgpor_pipeline.orientation import Similarity
-from sgpor_pipeline.render import RenderParams, align_cameras, render_run, umeyama
+from sgpor_pipeline.render import RenderParams, align_cameras, carry_run_corrections, render_run, umeyama
 from sgpor_pipeline.runner import run_pipeline
 from sgpor_pipeline.scene import Camera, load_cameras, save_cameras
 from sgpor_pipeline.sfm import load_sfm
@@ -166,6 +166,37 @@ def test_alignment_modes_and_degenerate_paths(tiny_run):
     al = align_cameras(_transformed(line, sim), line, "similarity")
     assert al.relative < 1e-9 and al.rotation_deg < 1e-4
     np.testing.assert_allclose(al.transform.matrix, sim.inverse().matrix, atol=1e-9)
+
+
+def test_render_carries_the_fits_pose_corrections_to_cameras_given_as_sfm_placed_them():
+    """A run whose fit turned every photo by 0.3 degrees about its own x axis: a file with the photos'
+    SfM poses and a novel camera gets the turn on all of them (the photos exactly their refined poses);
+    a file of the refined cameras (export/cameras) and a file naming no run photo are taken as they are;
+    an unrefined run changes nothing."""
+    from scipy.spatial.transform import Rotation
+
+    def cam(name: str, angle: float, image: str | None, turn: float = 0.0) -> Camera:
+        eye = np.array([3 * math.cos(angle), 3 * math.sin(angle), 1.0])
+        m = look_at(eye, np.zeros(3))
+        m[:3, :3] = Rotation.from_rotvec([np.radians(turn), 0, 0]).as_matrix() @ m[:3, :3]
+        m[:3, 3] = -m[:3, :3] @ eye
+        return Camera(name, 64, 48, np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]]), m, image=image)
+
+    angles = np.linspace(0, 2 * math.pi, 10, endpoint=False)
+    sfm = [cam(f"p{i}", a, f"p{i}") for i, a in enumerate(angles)]
+    run = [cam(f"p{i}", a, f"p{i}", 0.3) for i, a in enumerate(angles)]
+    novel = cam("new", angles[3] + 0.3, None)
+    out, said = carry_run_corrections(sfm[:4] + [novel], run, sfm)
+    assert said.startswith("carried")
+    for got, want in zip(out[:4], run[:4]):
+        np.testing.assert_allclose(got.cam_from_world, want.cam_from_world, atol=1e-9)
+    np.testing.assert_allclose(out[4].cam_from_world, cam("new", angles[3] + 0.3, None, 0.3).cam_from_world,
+                               atol=1e-9)
+    for given in (run[:4] + [novel], [novel]):  # refined already; nothing named like a run photo
+        same, said = carry_run_corrections(given, run, sfm)
+        assert same == given and said.startswith("not carried"), said
+    same, said = carry_run_corrections(sfm[:4] + [novel], sfm, sfm)
+    assert same == sfm[:4] + [novel] and said.startswith("none")
 
 
 def test_umeyama_recovers_a_similarity():

@@ -8,10 +8,11 @@ result is an error that names the command building it). Cameras come from any fi
 and are either in the run's frame (the SfM frame: the frame of the stage cache and of
 ``export/cameras/``), or in another frame that shares image names with the run's registered views:
 then a similarity (scale, rotation, translation) fitted to the shared cameras' centres
-(:func:`umeyama`) maps every camera of the file into the run's frame. Where the fit refined the
-photos' poses and the file's cameras named like run photos have the poses SfM gave them (not the
-refined ones of ``export/cameras/``), every camera takes the corrections of its nearest run photos
-(:func:`carry_run_corrections`): the Gaussians were fitted to the corrected views.
+(:func:`umeyama`) maps every camera of the file into the run's frame. A camera named like a run
+photo is then rendered at that photo's run pose (with ``fit.pose_refine``, SfM's corrected), and every
+other camera turned and moved as its nearest such cameras were (:func:`carry_run_corrections`): the
+Gaussians were fitted at the run's poses, and the fit's corrections share a small turn that novel
+cameras need too.
 
 Out (``output``): ``<camera>.png`` per camera (file names made safe), ``depth/<camera>.npy`` (float32
 z-depth in the cameras file's units, 0 = nothing rendered) on request, ``cameras.json`` (the cameras
@@ -192,39 +193,24 @@ def safe_file_stem(name: str, taken: set[str]) -> str:
     return cand
 
 
-def carry_run_corrections(cams: list[Camera], run_cams: list[Camera], sfm_cams: list[Camera]
-                          ) -> tuple[list[Camera], str]:
-    """``cams`` (in the run's frame) with the fit's pose corrections carried to them, when the file
-    gave its cameras as SfM placed them: each takes the corrections of its nearest run photos
-    (:func:`~sgpor_pipeline.gaussians.pose.carry_corrections`; one named like a run photo takes that
-    photo's own). ``run_cams``: the run's cameras (refined), ``sfm_cams``: sfm's (as estimated or
-    given). The file's cameras named like run photos decide: nearer the refined poses (a file of
-    ``export/cameras/``) they are taken as they are; with none so named, too. Returns the cameras and
-    a line saying what was done."""
-    sfm_by_name = {c.name: c for c in sfm_cams}
-    pairs = [(sfm_by_name[c.name], c) for c in run_cams if c.image is not None and c.name in sfm_by_name]
-    if not any(not np.allclose(o.cam_from_world, r.cam_from_world) for o, r in pairs):
-        return cams, "none: the run's poses were not refined"
-    by_image = {r.image: (o, r) for o, r in pairs}
-    matched = [(c, *by_image[_match_key(c)]) for c in cams if _match_key(c) in by_image]
+def carry_run_corrections(cams: list[Camera], run_cams: list[Camera]) -> tuple[list[Camera], str]:
+    """``cams`` (in the run's frame) turned and moved as their nearest cameras named like run photos
+    must be to reach those photos' run poses, in their own camera axes
+    (:func:`~sgpor_pipeline.gaussians.pose.carry_corrections`): a camera named like a run photo gets
+    that photo's pose; the others take what their neighbours needed. The Gaussians were fitted at the
+    run's poses (with ``fit.pose_refine``, SfM's corrected, the corrections sharing a small turn a
+    novel camera needs too); a file of the run's own cameras (``export/cameras/``) is unchanged.
+    Returns the cameras and a line saying what was done."""
+    run_by_image = {c.image: c for c in run_cams if c.image is not None}
+    matched = [(c, run_by_image[_match_key(c)]) for c in cams if _match_key(c) in run_by_image]
     if not matched:
-        return cams, ("not carried: no camera names a run photo, so whether the poses include the fit's "
-                      "corrections is unknown; taken as they are")
-    spread = float(np.std(np.stack([r.center for _, r in pairs]), axis=0).sum()) or 1.0
-
-    def distance(a: Camera, b: Camera) -> float:  # degrees, plus the centres' distance (1 degree per 1 %)
-        return (rotation_angle_deg(a.cam_from_world[:3, :3], b.cam_from_world[:3, :3])
-                + 100.0 * float(np.linalg.norm(a.center - b.center)) / spread)
-
-    to_given = float(np.mean([distance(c, o) for c, o, _ in matched]))
-    to_refined = float(np.mean([distance(c, r) for c, _, r in matched]))
-    if to_refined <= to_given:
-        return cams, "not carried: the cameras named like run photos have their refined poses"
+        return cams, "none: no camera names a run photo"
     from .gaussians.pose import carry_corrections
 
-    original, corrected = zip(*pairs)
-    return (carry_corrections(list(original), list(corrected), cams),
-            f"carried: the cameras named like run photos have their poses as SfM gave them ({len(matched)})")
+    turns = [rotation_angle_deg(c.cam_from_world[:3, :3], r.cam_from_world[:3, :3]) for c, r in matched]
+    carried = carry_corrections([c for c, _ in matched], [r for _, r in matched], cams)
+    return carried, (f"carried from {len(matched)} camera(s) named like run photos (turned {np.median(turns):.3f} "
+                     f"degrees at the median to their run poses)")
 
 
 @dataclass
@@ -284,7 +270,7 @@ def render_run(out: Path, cameras_path: Path, output: Path | None = None,
     else:
         log.info(f"align: {al.message}")
     cams = [al.transform.camera(c) for c in file_cams]
-    cams, carried = carry_run_corrections(cams, run_cams, load_cameras(Path(sfm_dir) / "cameras.json"))
+    cams, carried = carry_run_corrections(cams, run_cams)
     log.info(f"render: the fit's pose corrections: {carried}")
     distorted = [c.name for c in cams if any(float(d) != 0.0 for d in c.distortion)]
     if distorted:

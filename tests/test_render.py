@@ -168,11 +168,12 @@ def test_alignment_modes_and_degenerate_paths(tiny_run):
     np.testing.assert_allclose(al.transform.matrix, sim.inverse().matrix, atol=1e-9)
 
 
-def test_render_carries_the_fits_pose_corrections_to_cameras_given_as_sfm_placed_them():
-    """A run whose fit turned every photo by 0.3 degrees about its own x axis: a file with the photos'
-    SfM poses and a novel camera gets the turn on all of them (the photos exactly their refined poses);
-    a file of the refined cameras (export/cameras) and a file naming no run photo are taken as they are;
-    an unrefined run changes nothing."""
+def test_render_carries_what_the_named_cameras_need_to_reach_the_run_poses():
+    """A run whose fit turned every photo by 0.3 degrees about its own x axis. A file with the photos'
+    SfM poses and a novel camera: the photos get their run poses, the novel camera the same turn. A
+    file whose cameras are off SfM's by -0.1 degrees (another estimate, or the truth) turns by 0.4. A
+    file of the run's own cameras, and an unrefined run, change nothing; a file naming no run photo
+    is taken as it is."""
     from scipy.spatial.transform import Rotation
 
     def cam(name: str, angle: float, image: str | None, turn: float = 0.0) -> Camera:
@@ -183,20 +184,24 @@ def test_render_carries_the_fits_pose_corrections_to_cameras_given_as_sfm_placed
         return Camera(name, 64, 48, np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]]), m, image=image)
 
     angles = np.linspace(0, 2 * math.pi, 10, endpoint=False)
+    a_new = angles[3] + 0.3
     sfm = [cam(f"p{i}", a, f"p{i}") for i, a in enumerate(angles)]
     run = [cam(f"p{i}", a, f"p{i}", 0.3) for i, a in enumerate(angles)]
-    novel = cam("new", angles[3] + 0.3, None)
-    out, said = carry_run_corrections(sfm[:4] + [novel], run, sfm)
-    assert said.startswith("carried")
-    for got, want in zip(out[:4], run[:4]):
-        np.testing.assert_allclose(got.cam_from_world, want.cam_from_world, atol=1e-9)
-    np.testing.assert_allclose(out[4].cam_from_world, cam("new", angles[3] + 0.3, None, 0.3).cam_from_world,
-                               atol=1e-9)
-    for given in (run[:4] + [novel], [novel]):  # refined already; nothing named like a run photo
-        same, said = carry_run_corrections(given, run, sfm)
-        assert same == given and said.startswith("not carried"), said
-    same, said = carry_run_corrections(sfm[:4] + [novel], sfm, sfm)
-    assert same == sfm[:4] + [novel] and said.startswith("none")
+    for offset in (0.0, -0.1):  # the file's cameras off SfM's by this (degrees, the same for all)
+        given = [cam(f"p{i}", a, f"p{i}", offset) for i, a in enumerate(angles[:4])] + [cam("new", a_new, None, offset)]
+        out, said = carry_run_corrections(given, run)
+        assert said.startswith("carried from 4"), said
+        for got, want in zip(out[:4], run[:4]):
+            np.testing.assert_allclose(got.cam_from_world, want.cam_from_world, atol=1e-9)
+        want = cam("new", a_new, None, 0.3)  # (turned 0.3 - offset)
+        np.testing.assert_allclose(out[4].cam_from_world, want.cam_from_world, atol=1e-9)
+    for given, ref in ((run[:4] + [cam("new", a_new, None)], run), (sfm[:4] + [cam("new", a_new, None)], sfm)):
+        out, _ = carry_run_corrections(given, ref)  # the run's own cameras; an unrefined run
+        for got, c in zip(out, given):
+            np.testing.assert_allclose(got.cam_from_world, c.cam_from_world, atol=1e-9)
+    novel = [cam("new", a_new, None)]
+    out, said = carry_run_corrections(novel, run)
+    assert out == novel and said.startswith("none")
 
 
 def test_umeyama_recovers_a_similarity():

@@ -569,6 +569,7 @@ def fit_scene(sfm_dir: Path, out_dir: Path, params: FitParams, checkpoint_dir: P
         trained = trainer.refined_train_views()
         carried = carry_corrections([given[v.name] for v in trained], [v.camera for v in trained], novel)
         refined.update({c.name: c for c in carried})
+        log.info(f"fit: {carried_to} novel camera(s) take the pose corrections of their nearest photos")
     run_cameras = [_with_pose(c, refined.get(c.name)) for c in sfm_cameras]
     save_cameras(out_dir / CAMERAS_FILE, run_cameras)
     train_views = [dataclasses.replace(v, camera=_with_pose(v.camera, refined[v.name])) for v in train_views]

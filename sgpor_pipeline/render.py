@@ -201,8 +201,7 @@ def carry_run_corrections(cams: list[Camera], run_cams: list[Camera]) -> tuple[l
     run's poses (with ``fit.pose_refine``, SfM's corrected, the corrections sharing a small turn a
     novel camera needs too); a file of the run's own cameras (``export/cameras/``) is unchanged.
     Returns the cameras and a line saying what was done."""
-    run_by_image = {c.image: c for c in run_cams if c.image is not None}
-    matched = [(c, run_by_image[_match_key(c)]) for c in cams if _match_key(c) in run_by_image]
+    matched = shared_views(cams, run_cams)
     if not matched:
         return cams, "none: no camera names a run photo"
     from .gaussians.pose import carry_corrections

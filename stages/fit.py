@@ -555,7 +555,8 @@ def fit_scene(sfm_dir: Path, out_dir: Path, params: FitParams, checkpoint_dir: P
     given_poses_psnr = None
     if trainer.eval_poses is not None:  # (the held-out score at the SfM poses, for comparison)
         given_poses_psnr = evaluate(model, test_views, trainer.active_sh_degree(trainer.step), params.backend)["psnr"]
-    refined = {v.name: v.camera for v in trainer.refined_train_views() + trainer.aligned_eval_views()}
+    trained = trainer.refined_train_views()
+    refined = {v.name: v.camera for v in trained + trainer.aligned_eval_views()}
     sfm_cameras = load_cameras(sfm_dir / "cameras.json")
     novel = [c for c in sfm_cameras if c.image is None and c.name not in refined]
     carried_to = len(novel) if trainer.poses is not None else 0
@@ -566,7 +567,6 @@ def fit_scene(sfm_dir: Path, out_dir: Path, params: FitParams, checkpoint_dir: P
         from sgpor_pipeline.gaussians.pose import carry_corrections
 
         given = {c.name: c for c in sfm_cameras}
-        trained = trainer.refined_train_views()
         carried = carry_corrections([given[v.name] for v in trained], [v.camera for v in trained], novel)
         refined.update({c.name: c for c in carried})
         log.info(f"fit: {carried_to} novel camera(s) take the pose corrections of their nearest photos")

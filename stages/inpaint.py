@@ -484,7 +484,9 @@ class InpaintStage(Stage):
     # pixel there, the holes' too; 12: the plane texture's fill re-ranks on the block's own known pixels
     # (plane_rerank_margin); 13: the plane texture's straight structure continued through its hole
     # (plane_structure); 14: the plane texture's Poisson blend reaches 15 px into its hole (plane_blend_reach);
-    # 15: the two borders of a hidden corner split off their region only (not the plane into 4 cells)
+    # 15: the two borders of a hidden corner split off their region only (not the plane into 4 cells);
+    # 16: that region ends where its borders' edges end in view; 17: its borders are seen within
+    # structure corner_reach of the hole
     VERSION = 17
     Params = InpaintParams
     inputs = ("remove",)

@@ -77,21 +77,24 @@ class Line:
     # name each other)
     corner: tuple[float, Line, float, float, float] | None = field(default=None, compare=False, repr=False)
 
-    def side(self, h: int, w: int) -> np.ndarray:
+    def distance(self, h: int, w: int) -> np.ndarray:
+        """[h,w] each pixel's signed distance to the line (px, positive on the normal's side)."""
         ys, xs = np.mgrid[0:h, 0:w]
-        return (xs * self.normal[0] + ys * self.normal[1] - self.rho) > 0
+        return xs * self.normal[0] + ys * self.normal[1] - self.rho
+
+    def side(self, h: int, w: int) -> np.ndarray:
+        return self.distance(h, w) > 0
 
     def cell_bit(self, h: int, w: int) -> np.ndarray:
         """The pixels on the line's + side, or for a corner's border those in the corner's region."""
         if self.corner is None:
             return self.side(h, w)
         own, other, other_side, reach, reach_other = self.corner
-        ys, xs = np.mgrid[0:h, 0:w]
         # distances into the region from each border; it reaches along each border as far as that
         # border's edge was seen (mip360 room: the rug's quadrant, unbounded, held the wood beyond the
         # rug's far side, and SBM pasted it into the rug's part of the hole)
-        into_own = (xs * self.normal[0] + ys * self.normal[1] - self.rho) * own
-        into_other = (xs * other.normal[0] + ys * other.normal[1] - other.rho) * other_side
+        into_own = self.distance(h, w) * own
+        into_other = other.distance(h, w) * other_side
         return (into_own > 0) & (into_other > 0) & (into_other <= reach) & (into_own <= reach_other)
 
     def to_dict(self) -> dict:
@@ -416,8 +419,7 @@ def draw_lines(image: np.ndarray, hole: np.ndarray, lines: list[Line]) -> np.nda
         ext = (ext > 0) & hole
         if ln.corner is not None:  # (beyond the corner it borders nothing)
             other, other_side = ln.corner[1], ln.corner[2]
-            ys, xs = np.mgrid[0:h, 0:w]
-            ext &= (xs * other.normal[0] + ys * other.normal[1] - other.rho) * other_side >= -1.0
+            ext &= other.distance(h, w) * other_side >= -1.0
         out[ext] = (0.0, 1.0, 1.0)
         for s in ln.segments:
             p0, p1 = (int(round(s[0])), int(round(s[1]))), (int(round(s[2])), int(round(s[3])))

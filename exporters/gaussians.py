@@ -184,7 +184,7 @@ class ObjectExporter(Exporter):
     """
 
     name = "object"
-    VERSION = 1
+    VERSION = 2  # 2: object.glb's normals of unit length
     needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE, "remove")
     description = "the removed object as object/object.ply and object/object.glb (export frame)"
     OBJECT_FILE = "object.ply"

@@ -6,6 +6,8 @@ all with vertex colours. How the mesh is made: :mod:`sgpor_pipeline.meshing`.
 
 from __future__ import annotations
 
+import json
+import struct
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -14,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from sgpor_pipeline.dag import Exporter, StageContext
-from sgpor_pipeline.meshing import MeshData, MeshSettings, mesh_from_gaussians
+from sgpor_pipeline.meshing import MeshData, MeshSettings, mesh_from_gaussians, unit_normals
 from sgpor_pipeline.orientation import ExportFrame, scene_center_radius
 from sgpor_pipeline.scene import Camera
 
@@ -32,19 +34,47 @@ from .gaussians import (
 #: glTF is Y up: (x, y, z) in the Z-up export frame -> (x, z, -y)
 GLTF_FROM_ZUP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 MESH_FILE = "mesh.ply"
+GLTF_ARRAY_BUFFER = 34962  # a buffer view's target: vertex attributes
+GLTF_ELEMENT_ARRAY_BUFFER = 34963  # ... indices
 
 
 def _trimesh(mesh: MeshData, rotation: np.ndarray | None = None):
     import trimesh
 
     v = np.asarray(mesh.vertices, np.float64)
-    n = None if mesh.normals is None else np.asarray(mesh.normals, np.float64)
+    n = unit_normals(v, mesh.faces, mesh.normals)  # (glTF requires unit length)
     if rotation is not None:
         v = v @ rotation.T
-        n = None if n is None else n @ rotation.T
+        n = n @ rotation.T
     rgba = np.concatenate([np.clip(np.round(mesh.colors * 255), 0, 255).astype(np.uint8),
                            np.full((len(v), 1), 255, np.uint8)], axis=1)
     return trimesh.Trimesh(v, np.asarray(mesh.faces, np.int64), vertex_normals=n, vertex_colors=rgba, process=False)
+
+
+def glb_with_buffer_targets(glb: bytes) -> bytes:
+    """The GLB with each buffer view that holds vertex attributes or indices marked as such
+    (``target`` ARRAY_BUFFER / ELEMENT_ARRAY_BUFFER), which trimesh leaves out and the Khronos glTF
+    validator asks for (BUFFER_VIEW_TARGET_MISSING); engines use it to upload the buffers."""
+    magic, version, _ = struct.unpack_from("<4sII", glb)
+    json_len, json_type = struct.unpack_from("<I4s", glb, 12)
+    if magic != b"glTF" or version != 2 or json_type != b"JSON":
+        raise ValueError("not a binary glTF 2.0 file")
+    doc = json.loads(glb[20:20 + json_len])
+    views = doc.get("bufferViews", [])
+    for mesh in doc.get("meshes", []):
+        for prim in mesh.get("primitives", []):
+            pairs = [(a, GLTF_ARRAY_BUFFER) for a in prim.get("attributes", {}).values()]
+            if "indices" in prim:
+                pairs.append((prim["indices"], GLTF_ELEMENT_ARRAY_BUFFER))
+            for accessor, target in pairs:
+                view = doc["accessors"][accessor].get("bufferView")
+                if view is not None:
+                    views[view]["target"] = target
+    text = json.dumps(doc, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 4)  # (chunks are 4-byte aligned, JSON padded with spaces)
+    rest = glb[20 + json_len:]
+    return struct.pack("<4sII", b"glTF", 2, 12 + 8 + len(text) + len(rest)) + struct.pack("<I4s", len(text),
+                                                                                         b"JSON") + text + rest
 
 
 def write_mesh(mesh: MeshData, folder: Path, stem: str = "mesh",
@@ -57,6 +87,8 @@ def write_mesh(mesh: MeshData, folder: Path, stem: str = "mesh",
         if fmt == "obj":
             data = tm.export(file_type="obj", include_color=True, include_normals=True)
             path.write_text(data)
+        elif fmt == "glb":
+            path.write_bytes(glb_with_buffer_targets(tm.export(file_type="glb")))
         else:
             tm.export(path, file_type=fmt)
         written.append(path)
@@ -96,7 +128,7 @@ def _make_mesh(ctx: StageContext, model, cameras) -> MeshData:
 
 class MeshExporter(Exporter):
     name = "mesh"
-    VERSION = 1
+    VERSION = 2  # 2: unit normals everywhere (glTF requires them; a decimation fold left zeros); GLB buffer targets
     needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE)
     description = "a coloured mesh (TSDF of rendered depth) as mesh.glb (Y up), mesh.obj and mesh.ply (Z up)"
 

@@ -214,7 +214,7 @@ def validate_stage(stage: Any) -> list[str]:
 
 class UsdExporter(Exporter):
     name = "usd"
-    VERSION = 1
+    VERSION = 2  # 2: the mesh collider's normals of unit length
     needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE)
     description = "scene.usda/.usdc/.usdz: Gaussians (UsdVol splat), mesh collider, cameras; Z up, metres"
 

@@ -488,6 +488,85 @@ def test_mesh_files_glb_is_y_up_with_colours(tmp_path):
     assert np.abs(back.colors - c).max() < 1 / 255 + 1e-6
 
 
+def _glb_normals(path) -> np.ndarray:
+    """The NORMAL accessor of a GLB's first primitive, as stored (float32), read without trimesh (which
+    may recompute normals on load)."""
+    import json
+    import struct
+
+    data = path.read_bytes()
+    json_len = struct.unpack("<I", data[12:16])[0]
+    doc = json.loads(data[20:20 + json_len])
+    binary = data[20 + json_len + 8:]
+    acc = doc["accessors"][doc["meshes"][0]["primitives"][0]["attributes"]["NORMAL"]]
+    view = doc["bufferViews"][acc["bufferView"]]
+    start = view.get("byteOffset", 0) + acc.get("byteOffset", 0)
+    assert acc["componentType"] == 5126 and acc["type"] == "VEC3"
+    return np.frombuffer(binary, np.float32, acc["count"] * 3, start).reshape(-1, 3)
+
+
+def test_unit_normals_repairs_zero_and_nan_normals():
+    from sgpor_pipeline.meshing import unit_normals
+
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 5], [9, 9, 9]], float)
+    # faces 0 and 1 are the same triangle folded back to back (their normals cancel at 0, 1, 2);
+    # face 2 is larger and stands up from the x axis
+    f = np.array([[0, 1, 2], [0, 2, 1], [0, 1, 3]])
+    n = np.array([[0, 0, 0], [0, 0, 2.0], [np.nan, 0, 0], [0, 0, 0], [0, 0, 0]])
+    out = unit_normals(v, f, n)
+    assert np.allclose(np.linalg.norm(out, axis=1), 1.0)
+    assert np.allclose(out[1], [0, 0, 1])  # a valid normal is only normalised
+    assert np.allclose(np.abs(out[0]), [0, 1, 0])  # cancelled: the largest face (0, 1, 3) lies in y = 0
+    assert np.allclose(np.abs(out[2]), [0, 0, 1])  # only the folded pair: the largest of them
+    assert np.allclose(np.abs(out[3]), [0, 1, 0])
+    assert np.allclose(out[4], [0, 0, 1])  # on no face
+    # no normals at all: the area-weighted normals of the faces
+    flat = unit_normals(v[:3], np.array([[0, 1, 2]]), None)
+    assert np.allclose(flat, [[0, 0, 1]] * 3)
+
+
+def test_glb_normals_are_unit_length(tmp_path):
+    """glTF requires unit normals (the Khronos validator's ACCESSOR_VECTOR3_NON_UNIT error): a mesh
+    with a zero normal, and one written without normals, both store unit normals."""
+    from sgpor_pipeline.exporters.mesh import write_mesh
+
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float)
+    f = np.array([[0, 1, 2], [0, 2, 1], [0, 1, 3]])
+    c = np.full((4, 3), 0.5, np.float32)
+    for normals in (np.array([[0, 0, 0], [0, 0, 1], [0, 0, 1], [0, 0, 0]], float), None):
+        (path,) = write_mesh(MeshData(v, f, c, normals), tmp_path, "mesh", formats=("glb",))
+        stored = _glb_normals(path)
+        assert stored.shape == (4, 3)
+        assert np.allclose(np.linalg.norm(stored, axis=1), 1.0, atol=1e-6)
+
+
+def test_glb_buffer_views_have_targets(tmp_path):
+    """Vertex attributes in ARRAY_BUFFER views, indices in an ELEMENT_ARRAY_BUFFER view (the Khronos
+    validator's BUFFER_VIEW_TARGET_MISSING); the file stays a valid GLB that trimesh reads back."""
+    import json
+    import struct
+
+    import trimesh
+
+    from sgpor_pipeline.exporters.mesh import GLTF_FROM_ZUP, write_mesh
+
+    rng = np.random.default_rng(1)
+    v, c = rng.uniform(size=(5, 3)), rng.uniform(size=(5, 3)).astype(np.float32)
+    f = np.array([[0, 1, 2], [2, 3, 4]])
+    (path,) = write_mesh(MeshData(v, f, c), tmp_path, "mesh", formats=("glb",))
+    data = path.read_bytes()
+    assert struct.unpack_from("<I", data, 8)[0] == len(data)
+    json_len = struct.unpack_from("<I", data, 12)[0]
+    assert json_len % 4 == 0 and data[16:20] == b"JSON"
+    doc = json.loads(data[20:20 + json_len])
+    prim = doc["meshes"][0]["primitives"][0]
+    views = doc["bufferViews"]
+    assert {views[doc["accessors"][a]["bufferView"]]["target"] for a in prim["attributes"].values()} == {34962}
+    assert views[doc["accessors"][prim["indices"]]["bufferView"]]["target"] == 34963
+    back = trimesh.load(path, force="mesh", process=False)
+    assert np.allclose(back.vertices, v @ GLTF_FROM_ZUP.T, atol=1e-6) and np.array_equal(back.faces, f)
+
+
 def test_object_asset_writer(tmp_path):
     """The removed object's own asset, and none after a fit without the object."""
     import trimesh

@@ -521,13 +521,15 @@ def test_rim_dark_share_sees_a_dark_footprint_beside_the_hole():
 def test_inpaint_stage_lifts_the_shadow_of_an_object_on_feet(tmp_path, monkeypatch):
     """An object raised on feet (``raised_box``) leaves thin holes: the views see the floor under it
     through the gap, in its shadow. No part is thick, so the plane texture is built from the thin
-    planar parts (``plane_thin_rim``) and used because it finds the shadow: every view's floor near the
-    object comes out closer to the truth. Without a shadow in the photos, the texture is not used and
-    the views' fills are those of ``plane_thin_rim = 0``."""
+    planar parts (``plane_thin_rim``) and finds the shadow: every view's floor near the object comes out
+    closer to the truth. Without a shadow in the photos the texture is used too (``plane_thin``
+    "always"); with ``plane_thin = "shadow"`` it is not, and the views' fills are those of
+    ``plane_thin_rim = 0``."""
     import json
 
     from sgpor_pipeline.dag import StageContext
-    from sgpor_pipeline.imageio import read_image, read_mask
+    from sgpor_pipeline.errors import PipelineError
+    from sgpor_pipeline.imageio import read_image, read_labels, read_mask
     from sgpor_pipeline.removal.multiview import write_remove_fixture
     from sgpor_pipeline.stages.inpaint import InpaintParams, InpaintStage
     from sgpor_pipeline.synthetic import SceneParams, generate_scene
@@ -571,12 +573,20 @@ def test_inpaint_stage_lifts_the_shadow_of_an_object_on_feet(tmp_path, monkeypat
 
     plain = generate_scene(SceneParams(**scene))  # no shadow in the photos
     report, ctx = inpaint(plain, "none")
+    assert report["plane"]["built"] and report["plane"]["thin_parts"], report["plane"]
+    assert "cast" not in report["plane"]["shadow"] and report["thick_reference"] == "plane"
+    assert not (ctx.out_dir / "plane" / "shading.png").exists()
+    taken = sum(int((read_labels(ctx.out_dir / "filled_from" / f"{c.name}.png") == 1).sum()) for c in plain.cameras)
+    assert taken > 0
+    report, ctx = inpaint(plain, "none_shadow_only", plane_thin="shadow")
     assert not report["plane"]["built"] and report["plane"]["thin_parts"], report["plane"]
     assert report["thick_reference"] is None
     _, ctx_off = inpaint(plain, "none_off", plane_thin_rim=0)
     for cam in plain.cameras:
         assert np.array_equal(read_image(ctx.out_dir / "images" / f"{cam.name}.png"),
                               read_image(ctx_off.out_dir / "images" / f"{cam.name}.png"))
+    with pytest.raises(PipelineError, match="plane_thin"):
+        inpaint(plain, "bad", plane_thin="never")
 
 
 def test_inpaint_stage_refills_the_floor_under_a_raised_object_through_floaters(tmp_path):

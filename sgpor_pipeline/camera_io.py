@@ -283,21 +283,25 @@ def _focal(fr: dict, top: dict, w: int, h: int) -> tuple[float | None, float | N
 
 
 def write_transforms_json(cameras: Sequence[Camera], path: str | Path, image_dir_prefix: str = "images/",
-                          image_ext: str = ".png") -> Path:
+                          image_ext: str = ".png", file_paths: Sequence[str] | None = None) -> Path:
     """Write a nerfstudio ``transforms.json`` (OpenGL camera-to-world) and return its path.
 
+    Each frame's ``file_path`` is ``image_dir_prefix`` + the image's (or the camera's) name +
+    ``image_ext``, or, given, the matching entry of ``file_paths`` (relative to the file's folder).
     Shared intrinsics are written once at the top level, otherwise per frame. Supported camera models:
     PINHOLE, SIMPLE_PINHOLE, OPENCV, FULL_OPENCV (k5 = k6 = 0), SIMPLE_RADIAL, RADIAL, OPENCV_FISHEYE.
     """
     path = Path(path)
+    if file_paths is not None and len(file_paths) != len(cameras):
+        raise ValueError(f"{len(file_paths)} file paths for {len(cameras)} cameras")
     frames = []
     intr = []
-    for c in cameras:
+    for k, c in enumerate(cameras):
         d = _intrinsics_dict(c, path)
         intr.append(d)
         c2w_gl = np.linalg.inv(c.cam_from_world) @ _GL_FROM_CV
         stem = c.image if c.image else c.name
-        frames.append({"file_path": f"{image_dir_prefix}{stem}{image_ext}",
+        frames.append({"file_path": f"{image_dir_prefix}{stem}{image_ext}" if file_paths is None else file_paths[k],
                        "transform_matrix": c2w_gl.tolist(),
                        "sgpor_name": c.name, "sgpor_image": c.image})
     out: dict = {}

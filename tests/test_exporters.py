@@ -21,7 +21,7 @@ from sgpor_pipeline.dag import RunInputs, StageContext
 from sgpor_pipeline.exporters.gaussians import SCENE_STAGE
 from sgpor_pipeline.gaussians.model import GaussianModel
 from sgpor_pipeline.gaussians.ply import read_ply, write_ply
-from sgpor_pipeline.imageio import write_mask01, write_png
+from sgpor_pipeline.imageio import read_rgb8, write_mask01, write_png
 from sgpor_pipeline.meshing import MeshData, MeshSettings, activated_tensors, mesh_from_gaussians, render_view
 from sgpor_pipeline.orientation import (
     FrameSettings,
@@ -425,6 +425,8 @@ class _Links(HTMLParser):
 
 
 def test_ply_splat_renders_and_report_exporters(tmp_path):
+    from sgpor_pipeline.camera_io import read_transforms_json
+    from sgpor_pipeline.exporters.cameras import CamerasExporter
     from sgpor_pipeline.exporters.gaussians import PlyExporter, SplatExporter
     from sgpor_pipeline.exporters.renders import RendersExporter
     from sgpor_pipeline.exporters.report import ReportExporter
@@ -437,7 +439,7 @@ def test_ply_splat_renders_and_report_exporters(tmp_path):
     masks[0][10:30, 20:40] = True
     ctx = make_run(tmp_path, m, cams, masks=[masks[0], None, masks[2]])
     out = ctx.out_dir
-    for exporter in (PlyExporter(), RendersExporter(), ReportExporter(), SplatExporter()):
+    for exporter in (PlyExporter(), RendersExporter(), ReportExporter(), SplatExporter(), CamerasExporter()):
         exporter.export(ctx, out)
 
     frame = json.loads((out / "export_frame.json").read_text())
@@ -453,6 +455,15 @@ def test_ply_splat_renders_and_report_exporters(tmp_path):
     for cam in cams[:3]:
         assert (out / "renders" / f"{cam.image}.png").is_file()
     assert (out / "renders" / "novel" / "novel_a.png").is_file()
+    # transforms.json is a dataset as it stands: every frame's image is the render at its camera
+    frames = json.loads((out / "cameras" / "transforms.json").read_text())["frames"]
+    assert [f["sgpor_name"] for f in frames] == [c.name for c in cams]
+    for fr, cam in zip(frames, cams):
+        image = out / "cameras" / fr["file_path"]
+        assert image.is_file() and image.resolve().is_relative_to((out / "renders").resolve()), fr["file_path"]
+        assert read_rgb8(image).shape == (cam.height, cam.width, 3)
+    back = read_transforms_json(out / "cameras" / "transforms.json")
+    assert [c.name for c in back] == [c.name for c in cams]
 
     page = (out / "report.html").read_text()
     assert '<&>' not in page and "&lt;&amp;&gt;" in page and "<b>escaped</b>" not in page

@@ -4,8 +4,8 @@ were fitted with (the fit's refined poses, ``fit.pose_refine``).
 ``cameras/transforms.json`` (nerfstudio / instant-ngp), ``cameras/sparse/`` (COLMAP text model,
 PINHOLE) and ``cameras/cameras.json`` (ours; OpenCV axes, cam_from_world), novel cameras included.
 The frames of transforms.json point at the ``renders`` exporter's images of the object-free scene
-(``../renders/<view>.png``, ``../renders/novel/<name>.png``), so with both exported it is a dataset
-nerfstudio or instant-ngp trains on as it is (``ns-train ... --data export/cameras/transforms.json``).
+(``../renders/<view>.png``, ``../renders/novel/<name>.png``; relative to the file, as nerfstudio and
+instant-ngp resolve them), so with both exported the object-free scene is a dataset in their layout.
 """
 
 from __future__ import annotations

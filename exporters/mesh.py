@@ -72,9 +72,9 @@ def glb_with_buffer_targets(glb: bytes) -> bytes:
                     views[view]["target"] = target
     text = json.dumps(doc, separators=(",", ":")).encode()
     text += b" " * (-len(text) % 4)  # (chunks are 4-byte aligned, JSON padded with spaces)
-    rest = glb[20 + json_len:]
-    return struct.pack("<4sII", b"glTF", 2, 12 + 8 + len(text) + len(rest)) + struct.pack("<I4s", len(text),
-                                                                                         b"JSON") + text + rest
+    rest = glb[20 + json_len:]  # the binary chunk, unchanged
+    header = struct.pack("<4sII", b"glTF", 2, 12 + 8 + len(text) + len(rest))
+    return header + struct.pack("<I4s", len(text), b"JSON") + text + rest
 
 
 def write_mesh(mesh: MeshData, folder: Path, stem: str = "mesh",

@@ -268,7 +268,8 @@ Protocols:
     unchanged (the sphere's texture finds no shadow and is not used; with it, 26.53 -> 25.06).
     ``synthetic-raised`` (session 49): the same box on feet without its shadows. Session 49 measured
     the thin parts' texture again, used without a shadow too (``inpaint.plane_thin``, "always" since;
-    "shadow" was the rule): fit seed 0 / 1, ours 28.85 / 29.10 -> 30.01 / 30.39; the demo's sphere
+    "shadow" was the rule): fit seed 0 / 1, ours 28.85 / 29.10 -> 30.01 / 30.39 (held-out views, seed 0:
+    26.66 -> 28.25); the demo's sphere
     (``synthetic``) seeds 0 / 1 / 2, 26.48 / 26.71 / 25.50 -> 26.54 / 26.94 / 25.95 (held-out views,
     ``--novel``: 25.75 / 25.24 / 25.25 -> 25.43 / 25.51 / 25.66). Every method, fit seed 0:
     synthetic-raised ours 30.01, delete-only 25.77, fsr-refit 23.06, no-sbm 29.26, no-rpr 30.01 (its

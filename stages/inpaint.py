@@ -333,8 +333,8 @@ class InpaintParams:
     # 25.75 -> 26.54 / 25.43; seed 1: 26.71 / 25.24 -> 26.94 / 25.51; seed 2: 25.50 / 25.25 -> 25.95 /
     # 25.66 (means 26.23 / 25.41 -> 26.48 / 25.53; holes 19.40 -> 19.69 dB). The box on feet without its
     # shadows (synthetic-raised), fit seed 0 / 1: 28.85 / 29.10 -> 30.01 / 30.39 (holes 25.13 / 25.69 ->
-    # 26.63 / 27.62). synthetic-cast (a shadow is found either way) unchanged at 22.11; scenes with a thick
-    # part never build this texture.
+    # 26.63 / 27.62; held-out views, seed 0: 26.66 -> 28.25). synthetic-cast (a shadow is found either
+    # way) unchanged at 22.11; scenes with a thick part never build this texture.
     plane_thin: Literal["always", "shadow"] = "always"
     # The shadow is sought only for an object whose visual hull reaches the plane in at least this share
     # of its silhouette (removal.plane.PlaneParams.shading_standing; a hovering object's shadow is left).

@@ -34,6 +34,6 @@ class CamerasExporter(Exporter):
         (folder / "sparse").mkdir(parents=True)
         save_cameras(folder / "cameras.json", cameras)
         # (it pointed at images/ beside it, which no exporter writes: nerfstudio found no image)
-        paths = [os.path.relpath(render_path(out_dir, c), folder) for c in cameras]
-        write_transforms_json(cameras, folder / "transforms.json", file_paths=[Path(p).as_posix() for p in paths])
+        paths = [Path(os.path.relpath(render_path(out_dir, c), folder)).as_posix() for c in cameras]
+        write_transforms_json(cameras, folder / "transforms.json", file_paths=paths)
         write_colmap_model([c for c in cameras if c.image is not None], folder / "sparse", binary=False)

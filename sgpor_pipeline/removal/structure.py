@@ -85,6 +85,10 @@ class Line:
     def side(self, h: int, w: int) -> np.ndarray:
         return self.distance(h, w) > 0
 
+    def ends(self) -> np.ndarray:
+        """[2 x segments, 2] the (x, y) ends of the line's segments."""
+        return np.concatenate([np.asarray(sg, np.float64).reshape(2, 2) for sg in self.segments])
+
     def cell_bit(self, h: int, w: int) -> np.ndarray:
         """The pixels on the line's + side, or for a corner's border those in the corner's region."""
         if self.corner is None:
@@ -108,7 +112,7 @@ class Line:
 def _reach(line: Line, border: Line, side: float, open_end: np.ndarray) -> float:
     """How far ``line``'s segments reach from ``border`` into its ``side`` (px, the farthest end); inf
     where that end lies on ``open_end`` (the edge may run on unseen)."""
-    ends = np.concatenate([np.asarray(sg, np.float64).reshape(2, 2) for sg in line.segments])
+    ends = line.ends()
     far = ends[int(np.argmax((ends @ border.normal - border.rho) * side))]
     h, w = open_end.shape
     x, y = int(np.clip(np.rint(far[0]), 0, w - 1)), int(np.clip(np.rint(far[1]), 0, h - 1))
@@ -335,7 +339,7 @@ def hole_lines(image: np.ndarray, known: np.ndarray, hole: np.ndarray, block: in
             continue
         if np.abs(hx * ln.normal[0] + hy * ln.normal[1] - ln.rho).min() > 1.0:  # it misses the hole
             continue
-        ends = np.concatenate([s.reshape(2, 2) for s in ln.segments])
+        ends = ln.ends()
         ex = np.clip(np.rint(ends[:, 0]), 0, w - 1).astype(int)
         ey = np.clip(np.rint(ends[:, 1]), 0, h - 1).astype(int)
         near_end = float(to_hole[ey, ex].min())
@@ -355,17 +359,18 @@ def hole_lines(image: np.ndarray, known: np.ndarray, hole: np.ndarray, block: in
         elif len(entries) == 1 and near_end <= corner_reach:
             one_sided.append((ln, entries[0]))
     # an edge whose segment ends this close to the image's border or to unknown pixels may run on unseen
-    open_end = cv2.distanceTransform(np.pad(known, 1).astype(np.uint8), cv2.DIST_L2, 3)[1:-1, 1:-1] <= OPEN_END
     corners = []
-    for a in one_sided:
-        for b in one_sided:
-            found = None if b is a else _corner(a, b, hole)
-            if found is not None:
-                # (a border of several hidden corners keeps the first: one region per line)
-                a[0].corner = (found[0], b[0], found[1], _reach(a[0], b[0], found[1], open_end),
-                               _reach(b[0], a[0], found[0], open_end))
-                corners.append(a[0])
-                break
+    if len(one_sided) > 1:  # (a hidden corner pairs two one-sided lines)
+        open_end = cv2.distanceTransform(np.pad(known, 1).astype(np.uint8), cv2.DIST_L2, 3)[1:-1, 1:-1] <= OPEN_END
+        for a in one_sided:
+            for b in one_sided:
+                found = None if b is a else _corner(a, b, hole)
+                if found is not None:
+                    # (a border of several hidden corners keeps the first: one region per line)
+                    a[0].corner = (found[0], b[0], found[1], _reach(a[0], b[0], found[1], open_end),
+                                   _reach(b[0], a[0], found[0], open_end))
+                    corners.append(a[0])
+                    break
     out = sorted(through + corners, key=lambda ln: -ln.length)
     return out[: p.max_lines]
 

@@ -499,16 +499,22 @@ def test_mesh_files_glb_is_y_up_with_colours(tmp_path):
     assert np.abs(back.colors - c).max() < 1 / 255 + 1e-6
 
 
-def _glb_normals(path) -> np.ndarray:
-    """The NORMAL accessor of a GLB's first primitive, as stored (float32), read without trimesh (which
-    may recompute normals on load)."""
+def _glb_chunks(path) -> tuple[dict, bytes]:
+    """A GLB's JSON document and binary chunk, read without trimesh (which may recompute normals on
+    load); checks the header's total length and the JSON chunk's type and 4-byte alignment."""
     import json
     import struct
 
     data = path.read_bytes()
-    json_len = struct.unpack("<I", data[12:16])[0]
-    doc = json.loads(data[20:20 + json_len])
-    binary = data[20 + json_len + 8:]
+    assert struct.unpack_from("<I", data, 8)[0] == len(data)
+    json_len = struct.unpack_from("<I", data, 12)[0]
+    assert json_len % 4 == 0 and data[16:20] == b"JSON"
+    return json.loads(data[20:20 + json_len]), data[20 + json_len + 8:]
+
+
+def _glb_normals(path) -> np.ndarray:
+    """The NORMAL accessor of a GLB's first primitive, as stored (float32)."""
+    doc, binary = _glb_chunks(path)
     acc = doc["accessors"][doc["meshes"][0]["primitives"][0]["attributes"]["NORMAL"]]
     view = doc["bufferViews"][acc["bufferView"]]
     start = view.get("byteOffset", 0) + acc.get("byteOffset", 0)
@@ -554,9 +560,6 @@ def test_glb_normals_are_unit_length(tmp_path):
 def test_glb_buffer_views_have_targets(tmp_path):
     """Vertex attributes in ARRAY_BUFFER views, indices in an ELEMENT_ARRAY_BUFFER view (the Khronos
     validator's BUFFER_VIEW_TARGET_MISSING); the file stays a valid GLB that trimesh reads back."""
-    import json
-    import struct
-
     import trimesh
 
     from sgpor_pipeline.exporters.mesh import GLTF_FROM_ZUP, write_mesh
@@ -565,11 +568,7 @@ def test_glb_buffer_views_have_targets(tmp_path):
     v, c = rng.uniform(size=(5, 3)), rng.uniform(size=(5, 3)).astype(np.float32)
     f = np.array([[0, 1, 2], [2, 3, 4]])
     (path,) = write_mesh(MeshData(v, f, c), tmp_path, "mesh", formats=("glb",))
-    data = path.read_bytes()
-    assert struct.unpack_from("<I", data, 8)[0] == len(data)
-    json_len = struct.unpack_from("<I", data, 12)[0]
-    assert json_len % 4 == 0 and data[16:20] == b"JSON"
-    doc = json.loads(data[20:20 + json_len])
+    doc, _ = _glb_chunks(path)
     prim = doc["meshes"][0]["primitives"][0]
     views = doc["bufferViews"]
     assert {views[doc["accessors"][a]["bufferView"]]["target"] for a in prim["attributes"].values()} == {34962}

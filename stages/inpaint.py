@@ -873,8 +873,9 @@ class InpaintStage(Stage):
             elif thin_plane:
                 ctx.log.info(f"inpaint: the views fill their holes themselves: {plane_info['reason']}")
             else:
-                ctx.log.warning(f"inpaint: thick_reference = plane: {plane_info['reason']}; each view fills "
-                                "its thick parts on its own")
+                # (the ordinary route for a hole that is not on one plane: nothing for the user to act on)
+                ctx.log.info(f"inpaint: thick_reference = plane: {plane_info['reason']}; each view fills "
+                             "its thick parts on its own")
                 thick_ref = -1
         if progressive:  # smallest hole first, as the remove stage completed the depths
             order = sorted(with_hole, key=lambda k: (int(holes[k].sum()), names[k]))

@@ -6,7 +6,8 @@
   held out) with its known cameras and points sampled on its true geometry (the fit stage's
   "known cameras" input, :func:`sgpor_pipeline.stages.fit.write_known_sfm`). Runs the default
   configuration (automatic budget, 2000 iterations), a grid of budgets x iterations, and the runs
-  behind the defaults: the MCMC strategy, SH degree 0, no initial top-up of the SfM points. Each
+  behind the defaults: the MCMC strategy, SH degree 0, no initial top-up of the SfM points, the first
+  half of the iterations at half resolution (``fit.coarse_until``, a speed option). Each
   reports wall seconds (initialisation included), process CPU seconds, the final Gaussian count and
   held-out PSNR/SSIM.
 * ``statue``: ``../shared/data/statue`` (29 PNG, 504x378) through the pipeline (ingest -> sfm -> fit,
@@ -237,7 +238,8 @@ def main(argv: list[str] | None = None) -> int:
                     for b in (10_000, 30_000, 100_000) for it in (1000, 3000)]
             grid += [("mcmc-b100k-2000", dict(budget=100_000, strategy="mcmc")),  # strategy choice
                      ("sh0-2000", dict(sh_degree=0)),  # SH degree choice
-                     ("no-topup-2000", dict(init_points=0))]  # initialisation: SfM points only
+                     ("no-topup-2000", dict(init_points=0)),  # initialisation: SfM points only
+                     ("coarse0.5-2000", dict(coarse_until=0.5))]  # half resolution for the first half
         for name, kw in grid:
             rows.append(run_synthetic(out, name, sfm, **kw))
             print(format_table(rows[-1:]).splitlines()[-1], flush=True)

@@ -23,7 +23,7 @@ import pytest
 import torch
 
 from sgpor_pipeline.dag import RunInputs, Stage, StageContext
-from sgpor_pipeline.errors import NonFiniteError
+from sgpor_pipeline.errors import NonFiniteError, PipelineError
 from sgpor_pipeline.gaussians import strategy as S
 from sgpor_pipeline.gaussians.model import GaussianModel, rgb_to_sh
 from sgpor_pipeline.gaussians.ply import property_names, read_ply, write_ply
@@ -394,6 +394,50 @@ def test_fit_resolution_and_budget_params(tmp_path, small_scene):
     assert res["count"] <= 450 and res["budget"] == 450 and not res["budget_auto"]
     assert res["heldout_is_training"] and res["heldout_views"] == []
     assert math.isfinite(res["heldout_psnr"])
+
+
+def test_a_coarse_phase_trains_on_downscaled_views_then_on_full_ones(tmp_path, small_scene, monkeypatch):
+    """``fit.coarse_until``: the first half of the iterations renders each view at half its size, its
+    intrinsics scaled with it and its image the area average of the full one; the rest, the held-out
+    scoring and the renders are at full size. The fit still learns the scene (the bound of
+    test_fit_reaches_psnr_on_a_small_scene)."""
+    import cv2
+
+    from sgpor_pipeline.gaussians import train as train_mod
+
+    seen: list[tuple[int, int, float, float]] = []
+    real = train_mod.rasterization
+
+    def spy(means, quats, scales, opacities, colors, viewmats, Ks, width, height, **kw):
+        seen.append((width, height, float(Ks[0, 0, 0]), float(Ks[0, 0, 2])))
+        return real(means, quats, scales, opacities, colors, viewmats, Ks, width, height, **kw)
+
+    monkeypatch.setattr(train_mod, "rasterization", spy)
+    sfm = make_sfm(tmp_path / "sfm", small_scene)
+    out = tmp_path / "fit"
+    out.mkdir()
+    res = fit_scene(sfm, out, quick_params(iterations=400, sh_degree=0, init_points=4000, coarse_until=0.5),
+                    None, LOG)
+    full = small_scene.cameras[1].K
+    assert {s[:2] for s in seen[:200]} == {(48, 36)} and {s[:2] for s in seen[200:400]} == {(96, 72)}
+    assert seen[0][2:] == pytest.approx((full[0, 0] / 2, full[0, 2] / 2), rel=1e-6)
+    assert seen[399][2:] == pytest.approx((full[0, 0], full[0, 2]), rel=1e-6)
+    assert all(s[:2] == (96, 72) for s in seen[400:]) and len(seen) > 400  # scoring and renders
+    assert res["training_resolution"] == [96, 72]
+    assert res["heldout_psnr"] >= 19.5 and res["heldout_psnr"] >= res["mean_color_baseline_psnr"] + 3.5, res
+
+    with pytest.raises(PipelineError, match="coarse_until"):
+        fit_scene(sfm, tmp_path / "bad", quick_params(coarse_until=1.5), None, LOG)
+
+    # the coarse view is the area average of the full one
+    view = train_mod.make_view("v", small_scene.images[1], small_scene.cameras[1])
+    model = GaussianModel.empty(0, 0)
+    trainer = train_mod.Trainer(model, S.ADCStrategy(1000, 10), [view], [],
+                                TrainParams(iterations=10, coarse_until=0.5), extent=1.0)
+    small, _ = trainer._view(0, 5)
+    expect = cv2.resize(view.image.numpy(), (48, 36), interpolation=cv2.INTER_AREA)
+    assert np.abs(small.image.numpy() - expect).max() < 1e-5
+    assert trainer._view(0, 6)[0] is view and not trainer._coarse
 
 
 def test_nan_guard_rolls_back_and_lowers_the_lr(tmp_path, small_scene, caplog):

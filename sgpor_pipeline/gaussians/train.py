@@ -61,6 +61,10 @@ class TrainParams:
     sh_degree: int = 3
     sh_degree_every: int = 500  # raise the active SH degree by one every this many iterations
     lambda_dssim: float = 0.2
+    # the first coarse_until x iterations train on the views downscaled by coarse_factor (a coarse
+    # render costs about 1 / factor^2 of the pixel work); 0 = always at full resolution
+    coarse_until: float = 0.0
+    coarse_factor: int = 2
     lr_means: float = 1.6e-4  # x scene extent, decays exponentially to lr_means_final
     lr_means_final: float = 1.6e-6
     lr_sh0: float = 2.5e-3
@@ -559,6 +563,7 @@ class Trainer:
         # the host each iteration synchronises a GPU twice
         self._cameras = [(v.viewmat.to(self.device), v.K.to(self.device)) for v in self.train_views]
         self.eval_views = [self._on_device(v) for v in eval_views]
+        self._coarse: dict[int, tuple[TrainView, tuple[torch.Tensor, torch.Tensor]]] = {}
         self.p = params
         self.extent = float(extent)
         self.checkpoint_dir = None if checkpoint_dir is None else Path(checkpoint_dir)
@@ -631,6 +636,28 @@ class Trainer:
         if self.p.sh_degree_every <= 0:
             return min(self.p.sh_degree, self.model.max_sh_degree)
         return min(self.p.sh_degree, self.model.max_sh_degree, step // self.p.sh_degree_every)
+
+    def coarse(self, step: int) -> bool:
+        """Whether iteration ``step`` trains at the reduced resolution (``coarse_until``)."""
+        return self.p.coarse_factor > 1 and step <= self.p.coarse_until * self.p.iterations
+
+    def _view(self, i: int, step: int) -> tuple[TrainView, tuple[torch.Tensor, torch.Tensor]]:
+        """Training view ``i`` and its camera tensors as iteration ``step`` trains on them: at full
+        resolution, or downscaled by ``coarse_factor`` (area average, intrinsics scaled; made once)."""
+        if not self.coarse(step):
+            self._coarse.clear()  # (the coarse phase is over: free its images)
+            return self.train_views[i], self._cameras[i]
+        if i not in self._coarse:
+            v = self.train_views[i]
+            H, W = v.image.shape[:2]
+            f = self.p.coarse_factor
+            h, w = max(1, round(H / f)), max(1, round(W / f))
+            img = F.interpolate(v.image.permute(2, 0, 1)[None], size=(h, w), mode="area")[0].permute(1, 2, 0)
+            wt = None if v.weight is None else F.interpolate(v.weight[None, None], size=(h, w), mode="area")[0, 0]
+            small = replace(v, image=img.contiguous(), weight=None if wt is None else wt.contiguous(),
+                            camera=v.camera.scaled(w, h))
+            self._coarse[i] = (small, (self._cameras[i][0], small.K.to(self.device)))
+        return self._coarse[i]
 
     def _next_view(self) -> int:
         """The index of the next training view (a fresh random order each epoch)."""
@@ -756,7 +783,7 @@ class Trainer:
         deg = self.active_sh_degree(step)
         k = (deg + 1) ** 2
         i = self._next_view()
-        view, (viewmat, K) = self.train_views[i], self._cameras[i]
+        view, (viewmat, K) = self._view(i, step)
         H, W = view.image.shape[:2]
         p = self.model.params
         # (the pair is read in place by the cpu kernel: no [N,16,3] copy, and gradients in place)

@@ -160,6 +160,9 @@ class FocusStrategy(Strategy):
     def is_growing(self, step: int) -> bool:
         return self.densify is not None and self.densify.is_growing(step)
 
+    def grad_mask(self, state: dict) -> torch.Tensor:
+        return state.get("eligible", self.trainable)
+
     def step_post_backward(self, model: GaussianModel, optimizers: dict, state: dict, step: int,
                            info: dict[str, Any], lr: float = 0.0) -> dict[str, int] | None:
         if self.densify is None:

@@ -634,6 +634,34 @@ def test_sh_as_dc_and_rest_pair_matches_one_tensor(dtype, sh_degree):
         assert one[0].abs().sum() > 0
 
 
+@pytest.mark.parametrize("backend", ["cpu", "torch"])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("sh_degree, mode", [(None, "RGB+ED"), (3, "RGB")])
+def test_grad_mask_zeroes_the_others_gradients_and_keeps_the_rest(backend, dtype, sh_degree, mode):
+    """``grad_mask``: the Gaussians outside it get exactly zero gradients (every parameter, and on
+    the cpu backend means2d); those inside get bitwise the gradients they get without a mask; the
+    render is the same."""
+    if backend == "cpu" and not cpu_kernel_available():
+        pytest.skip("needs the cpu kernel")
+    scene = random_scene(200, 40, 30, seed=7, dtype=dtype, sigma_px=2.0, sh_degree=sh_degree)
+    mask = torch.rand(200, generator=torch.Generator().manual_seed(2)) < 0.3
+    kw = {"render_mode": mode, "backgrounds": torch.tensor([0.2, 0.5, 0.9], dtype=dtype)}
+    full = run(scene, backend, **dict(kw))
+    part = run(scene, backend, **dict(kw), grad_mask=mask)
+    for k in ("render", "alpha", "contrib", "radii"):
+        assert torch.equal(full[k], part[k]), k
+    for k in (["g_means2d"] if backend == "cpu" else []) + ["g_" + n for n in PARAMS]:
+        dim = 1 if k == "g_means2d" else 0
+        inside = full[k].index_select(dim, mask.nonzero()[:, 0])
+        assert torch.equal(part[k].index_select(dim, mask.nonzero()[:, 0]), inside), k
+        assert (part[k].index_select(dim, (~mask).nonzero()[:, 0]) == 0).all(), k
+        assert inside.abs().sum() > 0 and full[k].index_select(dim, (~mask).nonzero()[:, 0]).abs().sum() > 0, k
+    with pytest.raises(RasterizerInputError, match="grad_mask"):
+        rasterization(**{k: v for k, v in scene.items()}, backend=backend, grad_mask=mask[:-1])
+    with pytest.raises(RasterizerInputError, match="grad_mask"):
+        rasterization(**{k: v for k, v in scene.items()}, backend=backend, grad_mask=mask.float())
+
+
 def test_sh_pair_is_checked():
     args = _valid_args()
     sh0, shN = torch.zeros(10, 1, 3), torch.zeros(10, 3, 3)

@@ -300,7 +300,7 @@ def _ptr(t: torch.Tensor | None) -> int | None:
 
 
 class _Cfg:
-    __slots__ = ("W", "H", "near", "far", "eps2d", "tile", "threads", "C", "N")
+    __slots__ = ("W", "H", "near", "far", "eps2d", "tile", "threads", "C", "N", "grad_mask")
 
     def __init__(self, **kw):
         for k, v in kw.items():
@@ -434,6 +434,13 @@ class _RasterFn(torch.autograd.Function):
             _ptr(g_op), cfg.threads)
         if rc != 0:
             raise RuntimeError(f"sgpor raster kernel: unsupported configuration (code {rc})")
+        if cfg.grad_mask is not None:
+            # zero records: sh_bwd and project_bwd skip the Gaussians whose gradients are all zero
+            m = cfg.grad_mask.to(dt)
+            g_m2 *= m[None, :, None]
+            g_con *= m[None, :, None]
+            g_f *= m[None, :, None]
+            g_op *= m
         return g_m2, g_con, g_f, g_op, None, None, None, None
 
 
@@ -452,13 +459,13 @@ def _bin(cfg: _Cfg, depths: torch.Tensor, rect: torch.Tensor, ntiles: torch.Tens
 
 
 def _project_and_bin(means, quats, scales, opacities, viewmats, Ks, width, height, near_plane, far_plane, eps2d,
-                     tile_size, num_threads):
+                     tile_size, num_threads, grad_mask=None):
     """Projection (differentiable) and tile binning of contiguous inputs: (cfg, means2d, conics, depths,
     radii, rect, bins)."""
     if not available():
         raise RuntimeError(f"the cpu rasterizer kernel is not available: {load_error()}")
     cfg = _Cfg(W=width, H=height, near=near_plane, far=far_plane, eps2d=eps2d, tile=tile_size,
-               threads=num_threads, C=viewmats.shape[0], N=means.shape[0])
+               threads=num_threads, C=viewmats.shape[0], N=means.shape[0], grad_mask=grad_mask)
     means2d, conics, depths, radii, rect, ntiles, total = _ProjectFn.apply(
         means, quats, scales, opacities, viewmats, Ks, cfg)
     bins = _bin(cfg, depths.detach(), rect, ntiles, int(total))
@@ -489,15 +496,17 @@ def render_median(means, quats, scales, opacities, viewmats, Ks, width, height, 
 
 
 def render(means, quats, scales, opacities, colors, sh_degree, viewmats, Ks, width, height,
-           near_plane, far_plane, eps2d, with_depth, contribution_mask, *, tile_size, num_threads):
-    """Render without background; returns (render [C,H,W,CH], alpha [C,H,W,1], meta)."""
+           near_plane, far_plane, eps2d, with_depth, contribution_mask, *, tile_size, num_threads,
+           grad_mask=None):
+    """Render without background; returns (render [C,H,W,CH], alpha [C,H,W,1], meta). ``grad_mask``
+    [N] bool: the Gaussians outside it get zero gradients (see rasterization)."""
     C = viewmats.shape[0]
     means = means.contiguous()
     opacities = opacities.contiguous()
     viewmats = viewmats.contiguous()
     cfg, means2d, conics, depths, radii, rect, bins = _project_and_bin(
         means, quats.contiguous(), scales.contiguous(), opacities, viewmats, Ks.contiguous(), width, height,
-        near_plane, far_plane, eps2d, tile_size, num_threads)
+        near_plane, far_plane, eps2d, tile_size, num_threads, grad_mask)
 
     feats = []
     if colors is not None:

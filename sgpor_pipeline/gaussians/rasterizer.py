@@ -306,6 +306,7 @@ def rasterization(
     num_threads: int | None = None,
     torch_block: int | None = 16,
     check_finite: bool = True,
+    grad_mask: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, dict[str, Any]]:
     """Render N 3D Gaussians into C pinhole cameras; differentiable w.r.t. the Gaussians.
 
@@ -346,6 +347,11 @@ def rasterization(
         check_finite: scan the inputs for NaN/inf (NonFiniteInputError). False is for a caller that
             has just checked them itself, as the trainer does after every step (the scan reads every
             input once: 1.7 ms at 95k Gaussians with degree-3 SH on 2 cores, a GPU synchronisation).
+        grad_mask: [N] bool, the Gaussians that get gradients: the others' gradients (means, quats,
+            scales, opacities, colours; on ``cpu`` also ``meta["means2d"]``'s) are exactly zero, the
+            masked-in ones' bitwise unchanged. The ``cpu`` kernel then skips the others' SH and
+            projection gradients (a re-fit of a few Gaussians among many: statue's finetune, 30k of
+            359k trained, 3.5 % faster).
 
     Returns:
         ``(render_colors, render_alphas, meta)``:
@@ -368,7 +374,17 @@ def rasterization(
     N, C, D, backgrounds = _validate(means, quats, scales, opacities, colors, viewmats, Ks, width,
                                      height, near_plane, far_plane, sh_degree, backgrounds,
                                      render_mode, tile_size, contribution_mask, check_finite)
+    if grad_mask is not None:
+        _check_tensor("grad_mask", grad_mask, (N,))
+        if grad_mask.dtype != torch.bool or grad_mask.device != means.device:
+            raise RasterizerInputError("grad_mask must be a bool tensor on the device of means")
     which = _resolve_backend(backend, means.device)
+    if grad_mask is not None and which != "cpu":  # (the cpu kernel masks its own gradient records)
+        means, quats, scales, opacities = (_mask_grad(x, grad_mask) for x in (means, quats, scales, opacities))
+        if isinstance(colors, tuple):
+            colors = tuple(_mask_grad(x, grad_mask) for x in colors)
+        elif colors is not None:  # [N,D] and [N,K,3] (SH) along dim 0, [C,N,D] along dim 1
+            colors = _mask_grad(colors, grad_mask, dim=1 if colors.dim() == 3 and sh_degree is None else 0)
     viewmats = viewmats.detach().to(means.dtype)
     Ks = Ks.detach().to(means.dtype)
     with_depth = render_mode != "RGB"
@@ -397,7 +413,8 @@ def rasterization(
                     means, quats, scales, opacities, viewmats, Ks, width, height, float(near_plane),
                     float(far_plane), float(eps2d), contribution_mask, tile_size=tile_size, num_threads=threads)
             else:
-                render, alpha, meta = _raster_cpu.render(*args, tile_size=tile_size, num_threads=threads)
+                render, alpha, meta = _raster_cpu.render(*args, tile_size=tile_size, num_threads=threads,
+                                                         grad_mask=grad_mask)
         else:
             render, alpha, meta = _render_torch(*args, block=torch_block, median=render_mode == "MD")
         if backgrounds is not None:
@@ -410,6 +427,26 @@ def rasterization(
     meta.update({"width": width, "height": height, "n_cameras": C, "tile_size": tile_size,
                  "backend": which})
     return render, alpha, meta
+
+
+class _MaskGrad(torch.autograd.Function):
+    """The identity; its gradient is zero along ``dim`` where ``mask`` is False."""
+
+    @staticmethod
+    def forward(ctx, x, mask, dim):  # type: ignore[override]
+        shape = [1] * x.dim()
+        shape[dim] = -1
+        ctx.save_for_backward(mask.view(shape))
+        return x.view_as(x)
+
+    @staticmethod
+    def backward(ctx, g):  # type: ignore[override]
+        (m,) = ctx.saved_tensors
+        return g * m.to(g.dtype), None, None
+
+
+def _mask_grad(x: torch.Tensor, mask: torch.Tensor, dim: int = 0) -> torch.Tensor:
+    return _MaskGrad.apply(x, mask, dim) if x.requires_grad else x
 
 
 def _render_torch(means, quats, scales, opacities, colors, sh_degree, viewmats, Ks, width, height,

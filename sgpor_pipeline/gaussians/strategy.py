@@ -147,6 +147,11 @@ class Strategy:
     def extra_loss(self, model: GaussianModel, step: int) -> torch.Tensor | None:
         return None
 
+    def grad_mask(self, state: dict) -> torch.Tensor | None:
+        """[N] bool: the Gaussians this strategy trains (the trainer passes it to the rasterizer,
+        which then skips the others' gradients); None = all of them."""
+        return None
+
     def step_pre_backward(self, model: GaussianModel, optimizers: dict, state: dict, step: int,
                           info: dict[str, Any]) -> None:
         if "means2d" in info and info["means2d"].requires_grad:

@@ -564,6 +564,7 @@ class Trainer:
         self._cameras = [(v.viewmat.to(self.device), v.K.to(self.device)) for v in self.train_views]
         self.eval_views = [self._on_device(v) for v in eval_views]
         self._coarse: dict[int, tuple[TrainView, tuple[torch.Tensor, torch.Tensor]]] = {}
+        self._grad_mask: tuple[torch.Tensor | None, torch.Tensor | None] = (None, None)
         self.p = params
         self.extent = float(extent)
         self.checkpoint_dir = None if checkpoint_dir is None else Path(checkpoint_dir)
@@ -793,11 +794,16 @@ class Trainer:
         if refine_pose:
             viewmat = self.poses.viewmat(i, viewmat)
             means, quats = self.poses.attach(i, means, quats)
+        grad_mask = self.strategy.grad_mask(self.sstate)
+        if grad_mask is not None and grad_mask.device != self.device:  # (moved once, not per iteration)
+            if self._grad_mask[0] is not grad_mask:
+                self._grad_mask = (grad_mask, grad_mask.to(self.device))
+            grad_mask = self._grad_mask[1]
         try:
             render, _alpha, info = rasterization(
                 means, quats, torch.exp(p["scales"]), torch.sigmoid(p["opacities"]), colors,
                 viewmat, K, W, H, sh_degree=deg, backgrounds=self.bg,
-                backend=self.p.backend, check_finite=not self._params_checked)
+                backend=self.p.backend, check_finite=not self._params_checked, grad_mask=grad_mask)
         except NonFiniteInputError as e:
             raise RollbackNeeded(f"non-finite rasterizer input ({e.message})") from None
         info["generator"] = self.gen

@@ -91,7 +91,8 @@ class FitParams:
     # 0.5 with 2600 iterations: 304 s, 26.39 / 0.820); the synthetic scene 65-69 -> 54 s, 30.28 / 0.858
     # -> 30.38 / 0.851; lund at 320x239 (training views) 103 -> 96 s, 24.45 / 0.770 -> 24.47 / 0.764.
     # The smaller the photos, the less of an iteration is pixel work, and the less it saves; SSIM loses
-    # a little on every scene, so it is not the default.
+    # a little on every scene, and the removal more: statue + box (benchmarks/removal.py, 384 px, one
+    # fit) fit 128 -> 105 s, finetune 61 -> 52 s, mask PSNR 22.78 -> 22.10 dB. So it is not the default.
     coarse_until: float = added_param(0.0)
     coarse_factor: int = added_param(2)
     # Every k-th view is held out of training to measure how the fit generalises (benchmarks/fit.py:

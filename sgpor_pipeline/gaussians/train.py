@@ -10,6 +10,10 @@
   means 1.6e-4 -> 1.6e-6 (exponential over the run) x scene extent, SH DC 2.5e-3, SH rest /20,
   opacity 5e-2, log-scales 5e-3, quaternions 1e-3;
 * the active SH degree raised by one every ``sh_degree_every`` iterations up to ``sh_degree``;
+* optionally a coarse phase: the first ``coarse_until`` of the iterations on the views downscaled by
+  ``coarse_factor`` (a speed option; measured in the fit stage's ``FitParams``);
+* only the strategy's ``grad_mask()`` Gaussians get gradients when it gives one (the finetune's
+  trainable set: the rasterizer then skips the others' gradient work);
 * densification by a :mod:`~sgpor_pipeline.gaussians.strategy` under a budget; with an automatic
   budget the cap starts proportional to the training pixels and grows while the training error
   still falls by more than ``budget_min_gain`` per growth window (:class:`BudgetController`);

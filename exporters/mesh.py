@@ -128,7 +128,8 @@ def _make_mesh(ctx: StageContext, model, cameras) -> MeshData:
 
 class MeshExporter(Exporter):
     name = "mesh"
-    VERSION = 2  # 2: unit normals everywhere (glTF requires them; a decimation fold left zeros); GLB buffer targets
+    VERSION = 3  # 2: unit normals everywhere (glTF requires them; a decimation fold left zeros); GLB buffer targets;
+    # 3: decimated by fast-simplification (meshing.decimate)
     needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE)
     description = "a coloured mesh (TSDF of rendered depth) as mesh.glb (Y up), mesh.obj and mesh.ply (Z up)"
 

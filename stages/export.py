@@ -9,6 +9,7 @@ stages are missing, is an error.
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -61,7 +62,8 @@ class ExportStage(Stage):
     VERSION = 1
     Params = ExportParams
     materialize_to = "export"
-    libraries = ("open3d", "usd-core", "trimesh")  # mesh and USD bytes are not stable across versions
+    # mesh and USD bytes are not stable across these libraries' versions
+    libraries = ("open3d", "usd-core", "trimesh", "fast-simplification")
 
     @classmethod
     def upstream(cls, params: ExportParams) -> tuple[str, ...]:
@@ -82,9 +84,12 @@ class ExportStage(Stage):
         return bool(selected_exporters(params))
 
     def run(self, ctx: StageContext) -> None:
-        done = []
+        seconds: dict[str, float] = {}
         for name, exporter in selected_exporters(ctx.params).items():
+            t0 = time.perf_counter()
             exporter().export(ctx, ctx.out_dir)
-            done.append(name)
+            seconds[name] = round(time.perf_counter() - t0, 3)
             ctx.log.debug(f"export: {name} written")
-        ctx.notes["exporters"] = done
+        ctx.notes["exporters"] = list(seconds)
+        ctx.notes["exporter_seconds"] = seconds  # (in the manifest: where the stage's time went)
+        ctx.log.info("export: " + ", ".join(f"{n} {s:.1f} s" for n, s in seconds.items()))

@@ -542,6 +542,31 @@ def test_unit_normals_repairs_zero_and_nan_normals():
     assert np.allclose(flat, [[0, 0, 1]] * 3)
 
 
+def test_decimation_keeps_the_surface_and_its_colours():
+    """meshing.decimate on a finely tessellated unit sphere (81,920 faces, colour = a function of the
+    position) down to 4,000 faces: about that many faces, every vertex on the sphere, colours those of
+    the surface where the vertex lies, normals of unit length after clean_mesh."""
+    import trimesh
+
+    from sgpor_pipeline.meshing import clean_mesh, decimate
+
+    sphere = trimesh.creation.icosphere(subdivisions=6)
+    v = np.asarray(sphere.vertices, np.float64)
+
+    def colour(x):
+        return ((x + 1) / 2).astype(np.float32)
+
+    dense = MeshData(v, np.asarray(sphere.faces, np.int64), colour(v))
+    out = decimate(dense, 4000)
+    assert 3600 <= len(out.faces) <= 4000 and out.faces.max() < len(out.vertices)
+    assert np.abs(np.linalg.norm(out.vertices, axis=1) - 1).max() < 0.02  # flat facets of a 4k-face sphere
+    assert np.abs(out.colors - colour(out.vertices)).max() < 0.05  # the nearest dense vertex's colour
+    cleaned = clean_mesh(dense, target_faces=4000)
+    assert len(cleaned.faces) == len(out.faces)
+    assert np.allclose(np.linalg.norm(cleaned.normals, axis=1), 1.0)
+    assert np.einsum("ij,ij->i", cleaned.normals, cleaned.vertices).min() > 0.9  # outward
+
+
 def test_glb_normals_are_unit_length(tmp_path):
     """glTF requires unit normals (the Khronos validator's ACCESSOR_VECTOR3_NON_UNIT error): a mesh
     with a zero normal, and one written without normals, both store unit normals."""

@@ -388,8 +388,12 @@ def decimate(mesh: MeshData, target_faces: int) -> MeshData:
     if len(faces) == 0:
         return MeshData(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.float32))
     _, nearest = cKDTree(mesh.vertices).query(vertices)
-    return MeshData(np.asarray(vertices, np.float64), np.asarray(faces, np.int64),
-                    np.asarray(mesh.colors, np.float32)[nearest])
+    out = MeshData(np.asarray(vertices, np.float64), np.asarray(faces, np.int64),
+                   np.asarray(mesh.colors, np.float32)[nearest])
+    # a collapse can leave a face of zero area (26 of statue's 200k): no normal, nothing to see
+    v, f = out.vertices, out.faces
+    area2 = np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+    return _compact(out, area2 > 0)
 
 
 # --------------------------------------------------------------------------------------------------

@@ -350,8 +350,8 @@ def rasterization(
         grad_mask: [N] bool, the Gaussians that get gradients: the others' gradients (means, quats,
             scales, opacities, colours; on ``cpu`` also ``meta["means2d"]``'s) are exactly zero, the
             masked-in ones' bitwise unchanged. The ``cpu`` kernel then skips the others' SH and
-            projection gradients (a re-fit of a few Gaussians among many: statue's finetune, 30k of
-            359k trained, 3.5 % faster).
+            projection gradients (a re-fit of a few Gaussians among many: statue's finetune trains
+            30k of 359k; per view sh_bwd 25 -> 17 ms, project_bwd 10.5 -> 6.8 ms).
 
     Returns:
         ``(render_colors, render_alphas, meta)``:

@@ -155,7 +155,7 @@ def first_non_finite(tensors: dict[str, torch.Tensor | None]) -> str | None:
 
 def _validate(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane,
               far_plane, sh_degree, backgrounds, render_mode, tile_size, contribution_mask,
-              check_finite=True):
+              check_finite=True, grad_mask=None):
     """Checks every argument; returns (N, C, D) with D the number of colour channels (0 for D/ED)."""
     _check_tensor("means", means, (None, 3), 2)
     N = means.shape[0]
@@ -239,6 +239,10 @@ def _validate(means, quats, scales, opacities, colors, viewmats, Ks, width, heig
         _check_tensor("contribution_mask", contribution_mask, (C, height, width), 3)
         if contribution_mask.dtype != torch.bool or contribution_mask.device != dev:
             raise RasterizerInputError("contribution_mask must be a bool tensor on the device of means")
+    if grad_mask is not None:
+        _check_tensor("grad_mask", grad_mask, (N,))
+        if grad_mask.dtype != torch.bool or grad_mask.device != dev:
+            raise RasterizerInputError("grad_mask must be a bool tensor on the device of means")
     inputs = {"means": means, "quats": quats, "scales": scales, "opacities": opacities}
     inputs.update({"colors[0] (sh0)": colors[0], "colors[1] (shN)": colors[1]} if isinstance(colors, tuple)
                   else {"colors": colors})
@@ -373,11 +377,7 @@ def rasterization(
     """
     N, C, D, backgrounds = _validate(means, quats, scales, opacities, colors, viewmats, Ks, width,
                                      height, near_plane, far_plane, sh_degree, backgrounds,
-                                     render_mode, tile_size, contribution_mask, check_finite)
-    if grad_mask is not None:
-        _check_tensor("grad_mask", grad_mask, (N,))
-        if grad_mask.dtype != torch.bool or grad_mask.device != means.device:
-            raise RasterizerInputError("grad_mask must be a bool tensor on the device of means")
+                                     render_mode, tile_size, contribution_mask, check_finite, grad_mask)
     which = _resolve_backend(backend, means.device)
     if grad_mask is not None and which != "cpu":  # (the cpu kernel masks its own gradient records)
         means, quats, scales, opacities = (_mask_grad(x, grad_mask) for x in (means, quats, scales, opacities))

@@ -140,7 +140,8 @@ class FocusStrategy(Strategy):
     Gaussians only (its copies are trainable, the others never change) up to the trainer's cap.
 
     The trainer passes :meth:`grad_mask` to the rasterizer, which gives the others exactly zero
-    gradients (Adam then leaves them as they are) and skips their SH and projection gradients. An
+    gradients (Adam then leaves them as they are) without computing them (the cpu kernel carries
+    only their transmittance through its backward, and skips their SH and projection gradients). An
     extra loss that renders on its own (the SDS term) reaches them too: with ``masks_in_place`` a
     hook zeroes every parameter's accumulated gradient outside the mask. The hook is attached to
     each parameter tensor once (marked on the tensor); a NaN rollback or a densification step

@@ -521,6 +521,56 @@ def test_the_rasterizer_scans_only_parameters_the_trainer_has_not_checked(tmp_pa
     assert res["iterations"] == 60 and all_finite(out / "gaussians.ply")
 
 
+def test_after_the_step_only_parameters_changed_since_adam_are_scanned(tmp_path, small_scene, monkeypatch):
+    # Adam keeps finite parameters finite when their gradients are (those are scanned before it), so
+    # after it the trainer scans only the parameters something else changed: all of them on the first
+    # iteration and when densification replaced them, the one the debug injection wrote into in place,
+    # none on an ordinary iteration. A strategy's NaN written in place is still caught by name.
+    from sgpor_pipeline.gaussians import train as T
+
+    sfm = make_sfm(tmp_path / "sfm", small_scene, n_points=500)
+    names = {"means", "quats", "scales", "opacities", "sh0", "shN"}
+    real, scans = T.first_non_finite, []
+
+    def spy(tensors):
+        if "loss" not in tensors and set(tensors) <= names:  # (the scan after the step)
+            scans.append(set(tensors))
+        return real(tensors)
+
+    monkeypatch.setattr(T, "first_non_finite", spy)
+    out = tmp_path / "fit"
+    out.mkdir()
+    res = fit_scene(sfm, out, quick_params(iterations=220, densify_until=1.0, debug_inject_nan_at=170), None, LOG)
+    assert [(rb["iteration"], rb["to_iteration"]) for rb in res["rollbacks"]] == [(170, 150)]
+    events = json.loads((out / "curve.json").read_text())["events"]
+    densified = {e["iteration"] for e in events if e["event"] == "adc"}
+    assert densified == {200}
+    iterations = list(range(1, 171)) + list(range(151, 221))  # (rolled back at 170 to 150)
+    assert len(scans) == len(iterations)
+    for k, it in enumerate(iterations):
+        first = k in (0, 170)  # the first iteration, and the first after the rollback
+        want = names if first or it in densified else {"means"} if k == 169 else set()
+        assert scans[k] == want, (k, it, scans[k])
+
+    # a NaN that the strategy writes in place (not a new tensor) is caught and named
+    real_post = S.ADCStrategy.step_post_backward
+
+    def poisoning(self, model, optimizers, state, step, info, lr=0.0):
+        changed = real_post(self, model, optimizers, state, step, info, lr)
+        if step == 30 and not getattr(self, "poisoned", False):
+            self.poisoned = True
+            with torch.no_grad():
+                model.params["opacities"][3] = float("nan")
+        return changed
+
+    monkeypatch.setattr(S.ADCStrategy, "step_post_backward", poisoning)
+    out2 = tmp_path / "fit2"
+    out2.mkdir()
+    res = fit_scene(sfm, out2, quick_params(iterations=60), None, LOG)
+    assert [(rb["iteration"], rb["what"]) for rb in res["rollbacks"]] == [(30, "non-finite parameter 'opacities'")]
+    assert res["iterations"] == 60 and all_finite(out2 / "gaussians.ply")
+
+
 def test_hard_cases_stay_finite(tmp_path, small_scene):
     # (a) only 20 SfM points
     sfm = make_sfm(tmp_path / "sfm20", small_scene, n_points=20)

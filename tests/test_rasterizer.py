@@ -546,10 +546,14 @@ def test_count_non_finite_counts_nan_and_inf(dtype, monkeypatch):
     assert count_non_finite(x.requires_grad_()) == 3  # a leaf needing gradients
     assert count_non_finite(torch.zeros(0, 3, dtype=dtype)) == 0
     assert count_non_finite(torch.arange(5)) == 0  # integers cannot hold NaN
-    big = torch.zeros(1 << 21, dtype=dtype)  # above a million values the kernel scans with threads
+    big = torch.zeros(1 << 21, dtype=dtype)  # from 2^18 values the kernel scans with threads
     nan, inf = float("nan"), float("inf")
     big[[0, 12345, (1 << 20) + 7, (1 << 21) - 1]] = torch.tensor([nan, inf, -inf, nan], dtype=dtype)
     assert count_non_finite(big) == 4 and count_non_finite(big[1:-1]) == 2
+    for n in ((1 << 18) - 1, 1 << 18, (1 << 18) + 3, 1001):  # either side of the threads' threshold,
+        part = big[(1 << 21) - n:].clone()  # and lengths no vector width divides
+        part[[0, n // 2]] = torch.tensor([inf, -inf], dtype=dtype)
+        assert count_non_finite(part) == 3, n
     # the torch fallback (no kernel, or a tensor off the CPU) gives the same counts
     monkeypatch.setattr(_raster_cpu, "count_nonfinite", lambda t: None)
     assert count_non_finite(x) == 3 and count_non_finite(x[:, :, 2:]) == 1

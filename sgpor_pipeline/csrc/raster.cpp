@@ -42,10 +42,10 @@ template <typename T, int TS, int CH>
 void bwd_impl(int C, int N, int W, int H, const void* packed, const int64_t* tile_off,
               const Isect* isect, const int64_t* goff, const T* tfinal,
               const int32_t* last, const T* g_out, const T* g_alpha, T* g_means2d, T* g_conics,
-              T* g_feats, T* g_opac, int nthreads) {
+              T* g_feats, T* g_opac, const uint8_t* train, int nthreads) {
   const GaussPix<T, CH>* gp = static_cast<const GaussPix<T, CH>*>(packed);
   raster_bwd<T, TS, CH>(C, N, W, H, gp, tile_off, isect, goff, tfinal, last, g_out, g_alpha,
-                        g_means2d, g_conics, g_feats, g_opac, nthreads);
+                        g_means2d, g_conics, g_feats, g_opac, nthreads, train);
 }
 
 template <typename T, int TS>
@@ -64,12 +64,13 @@ int fwd_ch(int CH, int C, int N, int W, int H, const T* m2, const T* con, const 
 template <typename T, int TS>
 int bwd_ch(int CH, int C, int N, int W, int H, const void* pk, const int64_t* to,
            const Isect* isect, const int64_t* goff, const T* tf,
-           const int32_t* last, const T* go, const T* ga, T* gm2, T* gcon, T* gf, T* gop, int nt) {
+           const int32_t* last, const T* go, const T* ga, T* gm2, T* gcon, T* gf, T* gop,
+           const uint8_t* tr, int nt) {
   switch (CH) {
-    case 1: bwd_impl<T, TS, 1>(C, N, W, H, pk, to, isect, goff, tf, last, go, ga, gm2, gcon, gf, gop, nt); return 0;
-    case 2: bwd_impl<T, TS, 2>(C, N, W, H, pk, to, isect, goff, tf, last, go, ga, gm2, gcon, gf, gop, nt); return 0;
-    case 3: bwd_impl<T, TS, 3>(C, N, W, H, pk, to, isect, goff, tf, last, go, ga, gm2, gcon, gf, gop, nt); return 0;
-    case 4: bwd_impl<T, TS, 4>(C, N, W, H, pk, to, isect, goff, tf, last, go, ga, gm2, gcon, gf, gop, nt); return 0;
+    case 1: bwd_impl<T, TS, 1>(C, N, W, H, pk, to, isect, goff, tf, last, go, ga, gm2, gcon, gf, gop, tr, nt); return 0;
+    case 2: bwd_impl<T, TS, 2>(C, N, W, H, pk, to, isect, goff, tf, last, go, ga, gm2, gcon, gf, gop, tr, nt); return 0;
+    case 3: bwd_impl<T, TS, 3>(C, N, W, H, pk, to, isect, goff, tf, last, go, ga, gm2, gcon, gf, gop, tr, nt); return 0;
+    case 4: bwd_impl<T, TS, 4>(C, N, W, H, pk, to, isect, goff, tf, last, go, ga, gm2, gcon, gf, gop, tr, nt); return 0;
     default: return -1;
   }
 }
@@ -78,7 +79,7 @@ int bwd_ch(int CH, int C, int N, int W, int H, const void* pk, const int64_t* to
 
 #define SGPOR_API extern "C" __attribute__((visibility("default")))
 
-SGPOR_API int sgpor_abi_version() { return 6; }  // 3: sgpor_ssim_fwd / _bwd; 4: SH in two row arrays; 5: masked_ssd
+SGPOR_API int sgpor_abi_version() { return 7; }  // 3: sgpor_ssim_fwd / _bwd; 4: SH in two row arrays; 5: masked_ssd; 7: raster_bwd train mask
 // 6: masked_ssd_u8
 
 SGPOR_API int sgpor_cpu_level() {
@@ -104,22 +105,30 @@ SGPOR_API void sgpor_last_stats(int64_t* out) {
 }
 
 // Number of NaN/inf values (exponent bits all ones), by integer bit tests: the kernel is built
-// with -ffinite-math-only, under which std::isfinite may be folded to true. Serial below a million
-// values (a few microseconds per 100k; no parallel region), threaded above: the trainer scans every
-// parameter and gradient each iteration (SH coefficients: 48 values per Gaussian). Integer counts:
-// the result does not depend on the thread count.
-constexpr int64_t kParallelScan = int64_t(1) << 20;
-SGPOR_API int64_t sgpor_count_nonfinite_f32(const uint32_t* x, int64_t n) {
+// with -ffinite-math-only, under which std::isfinite may be folded to true. The trainer scans every
+// parameter and gradient each iteration (13 tensors; SH coefficients: 48 values per Gaussian), so
+// both branches must be vectorised: the serial branch of "parallel for simd ... if()" is not (GCC:
+// 1M floats took 0.7 ms, 10x a torch.sum of them, a tenth of a fit's iteration in all). Threaded
+// from 256k values (a parallel region costs a few microseconds). Integer counts: the result does not
+// depend on the thread count.
+constexpr int64_t kParallelScan = int64_t(1) << 18;
+template <typename U>
+int64_t scan_nonfinite(const U* x, int64_t n, U exponent) {
   int64_t bad = 0;
-#pragma omp parallel for simd reduction(+ : bad) schedule(static) if (n >= kParallelScan)
-  for (int64_t i = 0; i < n; ++i) bad += (x[i] & 0x7f800000u) == 0x7f800000u;
+  if (n >= kParallelScan) {
+#pragma omp parallel for simd reduction(+ : bad) schedule(static)
+    for (int64_t i = 0; i < n; ++i) bad += (x[i] & exponent) == exponent;
+  } else {
+#pragma omp simd reduction(+ : bad)
+    for (int64_t i = 0; i < n; ++i) bad += (x[i] & exponent) == exponent;
+  }
   return bad;
 }
+SGPOR_API int64_t sgpor_count_nonfinite_f32(const uint32_t* x, int64_t n) {
+  return scan_nonfinite(x, n, uint32_t(0x7f800000u));
+}
 SGPOR_API int64_t sgpor_count_nonfinite_f64(const uint64_t* x, int64_t n) {
-  int64_t bad = 0;
-#pragma omp parallel for simd reduction(+ : bad) schedule(static) if (n >= kParallelScan)
-  for (int64_t i = 0; i < n; ++i) bad += (x[i] & 0x7ff0000000000000ull) == 0x7ff0000000000000ull;
-  return bad;
+  return scan_nonfinite(x, n, uint64_t(0x7ff0000000000000ull));
 }
 
 SGPOR_API int sgpor_max_threads() {
@@ -197,13 +206,13 @@ SGPOR_API int sgpor_max_threads() {
       int C, int N, int CH, int W, int H, int tile, const void* packed, const int64_t* tile_off,    \
       const Isect* isect, const int64_t* goff, const T* tfinal,                                     \
       const int32_t* last, const T* g_out, const T* g_alpha, T* g_means2d, T* g_conics,            \
-      T* g_feats, T* g_opac, int nthreads) {                                                        \
+      T* g_feats, T* g_opac, const uint8_t* train, int nthreads) {                                 \
     if (tile == 8)                                                                                  \
       return bwd_ch<T, 8>(CH, C, N, W, H, packed, tile_off, isect, goff, tfinal, last, g_out,    \
-                          g_alpha, g_means2d, g_conics, g_feats, g_opac, nthreads);                 \
+                          g_alpha, g_means2d, g_conics, g_feats, g_opac, train, nthreads);          \
     if (tile == 16)                                                                                 \
       return bwd_ch<T, 16>(CH, C, N, W, H, packed, tile_off, isect, goff, tfinal, last, g_out,   \
-                           g_alpha, g_means2d, g_conics, g_feats, g_opac, nthreads);                \
+                           g_alpha, g_means2d, g_conics, g_feats, g_opac, train, nthreads);         \
     return -2;                                                                                      \
   }                                                                                                 \
   SGPOR_API double sgpor_ssim_fwd_##SUF(int C, int H, int W, const T* x, const T* y,               \

@@ -967,7 +967,8 @@ template <typename T, int TS, int CH>
 void raster_bwd(int C, int N, int W, int H, const GaussPix<T, CH>* gp, const int64_t* tile_off,
                 const Isect* isect, const int64_t* gauss_off,
                 const T* tfinal, const int32_t* last_in, const T* g_out, const T* g_alpha,
-                T* g_means2d, T* g_conics, T* g_feats, T* g_opac, int nthreads) {
+                T* g_means2d, T* g_conics, T* g_feats, T* g_opac, int nthreads,
+                const uint8_t* train = nullptr) {
   PhaseTimer timer_("raster_bwd");
   constexpr int P = TS * TS;
   const int tw = (W + TS - 1) / TS, th = (H + TS - 1) / TS;
@@ -1040,6 +1041,38 @@ void raster_bwd(int C, int N, int W, int H, const GaussPix<T, CH>* gp, const int
       for (int j = 0; j < TS; ++j) thrl[j] = ((col[j] >= gx0) & (col[j] <= gx1)) ? thr : T(-1e30);
       T f[CH];
       for (int ch = 0; ch < CH; ++ch) f[ch] = g.f[ch];
+      if (train != nullptr && !train[isect[s].gid]) {
+        // a frozen Gaussian (the finetune trains a tenth of them): its record is zero and only what
+        // the Gaussians in front need is carried, the transmittance and D1, by the same expressions
+        // as below (the trained Gaussians' gradients are bit for bit those of an unmasked pass)
+        for (int r = r0; r <= r1; ++r) {
+          if (kk >= rlast[r]) continue;
+          ++rows_done;
+          const T dy = T(Y0 + r) + T(0.5) - g.v;
+          const T cy = hc * dy * dy, by = hb * dy;
+          const int p0 = r * TS;
+#pragma omp simd
+          for (int j = 0; j < TS; ++j) {
+            const int p = p0 + j;
+            const T dx = px[j] - u;
+            const T sig2 = (ha * dx + by) * dx + cy;
+            const T G = exp2_kernel(-std::min(sig2, T(kSigmaLog2Max)));
+            const T al = std::min(T(kAlphaMax), o * G);
+            const bool in = (sig2 <= thrl[j]) & (al >= T(kAlphaMin)) & (kk < last[p]);
+            const T a = in ? al : T(0);
+            const T inv_om = T(1) / (T(1) - a);
+            const T Tb = Tc[p] * inv_om;
+            const T w = a * Tb;
+            T F = 0;
+            for (int ch = 0; ch < CH; ++ch) F += dC[ch][p] * f[ch];
+            D1[p] += w * F;
+            Tc[p] = Tb;
+          }
+        }
+        T* rr = &rec[int64_t(isect[s].gen) * R];
+        for (int i = 0; i < R; ++i) rr[i] = 0;
+        continue;
+      }
       for (int i = 0; i < NA; ++i)
         for (int j = 0; j < TS; ++j) acc[i][j] = 0;
       for (int r = r0; r <= r1; ++r) {

@@ -48,7 +48,7 @@ _SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
                         _P, _P, _I]),
     "raster_median": (_I, [_I, _I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I]),
     "raster_bwd": (_I, [_I, _I, _I, _I, _I, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P, _P,
-                        _I]),
+                        _P, _I]),
     "ssim_fwd": (_D, [_I, _I, _I, _P, _P, _P, _P, _I]),
     "ssim_bwd": (None, [_I, _I, _I, _P, _P, _P, _P, _D, _P, _I]),
 }
@@ -109,7 +109,7 @@ def _open(path: Path) -> ctypes.CDLL:
     # sgpor_pipeline/__init__.py sets it before torch is imported through the package.
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     lib = ctypes.CDLL(str(path))
-    if lib.sgpor_abi_version() != 6:
+    if lib.sgpor_abi_version() != 7:
         raise OSError(f"{path.name}: unexpected ABI version")
     for base, (res, args) in _SIGNATURES.items():
         for suf in ("f32", "f64"):
@@ -428,19 +428,15 @@ class _RasterFn(torch.autograd.Function):
         g_con = torch.empty(C, N, 3, dtype=dt)
         g_f = torch.empty(C, N, CH, dtype=dt)
         g_op = torch.empty(N, dtype=dt)
+        # with a grad_mask the kernel gives the other Gaussians zero gradients without computing them
+        # (it still carries their transmittance); sh_bwd and project_bwd then skip them as all zero
+        train = None if cfg.grad_mask is None else cfg.grad_mask.contiguous()  # (bool: one byte, 0/1)
         rc = _fn("raster_bwd", dt)(
             C, N, CH, cfg.W, cfg.H, cfg.tile, _ptr(packed), _ptr(tile_off), _ptr(isect), _ptr(goff),
             _ptr(tfinal), _ptr(last), _ptr(g_out), _ptr(g_alpha), _ptr(g_m2), _ptr(g_con), _ptr(g_f),
-            _ptr(g_op), cfg.threads)
+            _ptr(g_op), _ptr(train), cfg.threads)
         if rc != 0:
             raise RuntimeError(f"sgpor raster kernel: unsupported configuration (code {rc})")
-        if cfg.grad_mask is not None:
-            # zero records: sh_bwd and project_bwd skip the Gaussians whose gradients are all zero
-            m = cfg.grad_mask.to(dt)
-            g_m2 *= m[None, :, None]
-            g_con *= m[None, :, None]
-            g_f *= m[None, :, None]
-            g_op *= m
         return g_m2, g_con, g_f, g_op, None, None, None, None
 
 

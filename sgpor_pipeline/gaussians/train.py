@@ -21,7 +21,8 @@
   every ``checkpoint_every`` iterations and every ``checkpoint_seconds``; :meth:`Trainer.train`
   resumes from one when it finds it;
 * a NaN guard (the kernel's bit scan on a CPU: ``torch.isfinite`` is slow there): a NaN/inf in the
-  loss, a gradient or a parameter is reported by name and training rolls back to the last
+  loss, a gradient or a parameter (scanned when loaded and after the strategy changed it: Adam keeps
+  finite parameters finite) is reported by name and training rolls back to the last
   in-memory snapshot with the learning rates halved; more than
   ``max_rollbacks`` rollbacks without progress raise :class:`~sgpor_pipeline.errors.NonFiniteError`;
 * evaluation on held-out views (PSNR, SSIM) every ``eval_every`` iterations, and a training curve.
@@ -537,6 +538,12 @@ def _make_optimizer(param: torch.nn.Parameter, lr: float) -> torch.optim.Adam:
         return torch.optim.Adam([param], lr=lr, eps=1e-15)
 
 
+def _unchanged(seen: tuple[torch.Tensor, int] | None, param: torch.Tensor) -> bool:
+    """Whether ``param`` is the tensor ``seen`` recorded, not changed in place since (torch counts
+    in-place changes in ``_version``)."""
+    return seen is not None and seen[0] is param and seen[1] == param._version
+
+
 def _atomic_save(obj: Any, path: Path) -> None:
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     with open(tmp, "wb") as f:
@@ -830,6 +837,10 @@ class Trainer:
         for opt in self.optimizers.values():
             opt.step()
             opt.zero_grad(set_to_none=True)
+        # Adam keeps finite parameters finite when their gradients are (its step is bounded by a few
+        # learning rates), so only the parameters changed after it are scanned below: those the
+        # strategy replaced (a new tensor) or changed in place (torch bumps the version counter)
+        after_adam = {n: (q, q._version) for n, q in p.items()} if self._params_checked else {}
         if refine_pose:
             self.poses.step(self.lr_scale)
             self.poses.zero_grad()
@@ -843,7 +854,8 @@ class Trainer:
             self.nan_injections += 1
             with torch.no_grad():
                 self.model.params["means"][0, 0] = float("nan")
-        bad = first_non_finite(dict(self.model.params))
+        bad = first_non_finite({n: q for n, q in self.model.params.items()
+                                if not _unchanged(after_adam.get(n), q)})
         if bad is not None:
             raise RollbackNeeded(f"non-finite parameter '{bad}'")
         # the next iteration's rasterizer need not scan them again (exp(log-scales) may still

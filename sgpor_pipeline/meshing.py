@@ -20,9 +20,8 @@ Steps (:func:`mesh_from_gaussians`):
 Everything here works in the frame of the Gaussians and cameras given (the SfM frame in the
 pipeline); the exporters map the result to the export frame.
 
-These settings are not export-stage parameters yet: :meth:`MeshSettings.from_params` reads any
-attribute ``mesh_<field>`` of the export stage's parameters (e.g. ``mesh_target_faces``), so they
-take effect as soon as ``ExportParams`` grows them.
+The export stage's parameters ``mesh_<field>`` set them (e.g. ``export.mesh_target_faces``), read by
+:meth:`MeshSettings.from_params`.
 """
 
 from __future__ import annotations

@@ -34,10 +34,9 @@ scene stands on); ``"center"``: the point the cameras look at; ``"none"``: the S
 Heading: the first registered camera (by name) looks along +Y (its viewing direction projected on
 the horizontal plane), so the result does not depend on the SfM frame's arbitrary rotation.
 
-These settings are not export-stage parameters yet: :meth:`FrameSettings.from_params` reads any
-same-named attribute of the export stage's parameters (``up``, ``scale``, ``known_distance``,
-``origin``), so they take effect as soon as ``ExportParams`` grows them; until then the defaults
-above apply.
+The export stage's parameters of the same names set them (``export.up``, ``export.scale``,
+``export.known_distance``, ``export.origin``; the CLI's ``--up`` and ``--scale``), read by
+:meth:`FrameSettings.from_params`.
 """
 
 from __future__ import annotations

@@ -1041,10 +1041,12 @@ void raster_bwd(int C, int N, int W, int H, const GaussPix<T, CH>* gp, const int
       for (int j = 0; j < TS; ++j) thrl[j] = ((col[j] >= gx0) & (col[j] <= gx1)) ? thr : T(-1e30);
       T f[CH];
       for (int ch = 0; ch < CH; ++ch) f[ch] = g.f[ch];
-      if (train != nullptr && !train[isect[s].gid]) {
-        // a frozen Gaussian (the finetune trains a tenth of them): its record is zero and only what
-        // the Gaussians in front need is carried, the transmittance and D1, by the same expressions
-        // as below (the trained Gaussians' gradients are bit for bit those of an unmasked pass)
+      // The entry's rows in this tile. Without gradients (a Gaussian outside the grad_mask: the
+      // finetune trains a tenth of them) only what the Gaussians in front need is carried, the
+      // transmittance and D1, by the same expressions: the trained Gaussians' gradients are bit
+      // for bit those of an unmasked pass.
+      auto rows_pass = [&](auto with_grad) {
+        constexpr bool kGrad = decltype(with_grad)::value;
         for (int r = r0; r <= r1; ++r) {
           if (kk >= rlast[r]) continue;
           ++rows_done;
@@ -1055,63 +1057,48 @@ void raster_bwd(int C, int N, int W, int H, const GaussPix<T, CH>* gp, const int
           for (int j = 0; j < TS; ++j) {
             const int p = p0 + j;
             const T dx = px[j] - u;
-            const T sig2 = (ha * dx + by) * dx + cy;
+            const T sig2 = (ha * dx + by) * dx + cy;  // as in the forward
             const T G = exp2_kernel(-std::min(sig2, T(kSigmaLog2Max)));
-            const T al = std::min(T(kAlphaMax), o * G);
+            const T oG = o * G;
+            const T al = std::min(T(kAlphaMax), oG);
             const bool in = (sig2 <= thrl[j]) & (al >= T(kAlphaMin)) & (kk < last[p]);
             const T a = in ? al : T(0);
             const T inv_om = T(1) / (T(1) - a);
-            const T Tb = Tc[p] * inv_om;
+            const T Tcur = Tc[p];
+            const T Tb = Tcur * inv_om;  // transmittance in front of this Gaussian
             const T w = a * Tb;
             T F = 0;
             for (int ch = 0; ch < CH; ++ch) F += dC[ch][p] * f[ch];
-            D1[p] += w * F;
-            Tc[p] = Tb;
+            if constexpr (kGrad) {
+              // dL/dalpha = (sum_ch dC (T_behind f - S_behind) + dL/dA T_final) / (1 - alpha)
+              const T dal = inv_om * (dAf[p] + Tcur * F - D1[p]);
+              D1[p] += w * F;
+              for (int ch = 0; ch < CH; ++ch) acc[6 + ch][j] += w * dC[ch][p];
+              Tc[p] = Tb;
+              const bool live = in & (oG <= T(kAlphaMax));  // a clamped alpha passes no gradient
+              const T dsig = live ? -a * dal : T(0);
+              acc[5][j] += live ? G * dal : T(0);
+              // dx is constant down a column: the dx factors are applied once per entry below
+              const T t1 = dsig * dy;
+              acc[0][j] += dsig;
+              acc[1][j] += t1;
+              acc[4][j] += t1 * dy;
+            } else {
+              D1[p] += w * F;
+              Tc[p] = Tb;
+            }
           }
         }
+      };
+      if (train != nullptr && !train[isect[s].gid]) {
+        rows_pass(std::false_type{});
         T* rr = &rec[int64_t(isect[s].gen) * R];
         for (int i = 0; i < R; ++i) rr[i] = 0;
         continue;
       }
       for (int i = 0; i < NA; ++i)
         for (int j = 0; j < TS; ++j) acc[i][j] = 0;
-      for (int r = r0; r <= r1; ++r) {
-        if (kk >= rlast[r]) continue;
-        ++rows_done;
-        const T dy = T(Y0 + r) + T(0.5) - g.v;
-        const T cy = hc * dy * dy, by = hb * dy;
-        const int p0 = r * TS;
-#pragma omp simd
-        for (int j = 0; j < TS; ++j) {
-          const int p = p0 + j;
-          const T dx = px[j] - u;
-          const T sig2 = (ha * dx + by) * dx + cy;  // as in the forward
-          const T G = exp2_kernel(-std::min(sig2, T(kSigmaLog2Max)));
-          const T oG = o * G;
-          const T al = std::min(T(kAlphaMax), oG);
-          const bool in = (sig2 <= thrl[j]) & (al >= T(kAlphaMin)) & (kk < last[p]);
-          const T a = in ? al : T(0);
-          const T inv_om = T(1) / (T(1) - a);
-          const T Tcur = Tc[p];
-          const T Tb = Tcur * inv_om;  // transmittance in front of this Gaussian
-          const T w = a * Tb;
-          T F = 0;
-          for (int ch = 0; ch < CH; ++ch) F += dC[ch][p] * f[ch];
-          // dL/dalpha = (sum_ch dC (T_behind f - S_behind) + dL/dA T_final) / (1 - alpha)
-          const T dal = inv_om * (dAf[p] + Tcur * F - D1[p]);
-          D1[p] += w * F;
-          for (int ch = 0; ch < CH; ++ch) acc[6 + ch][j] += w * dC[ch][p];
-          Tc[p] = Tb;
-          const bool live = in & (oG <= T(kAlphaMax));  // a clamped alpha passes no gradient
-          const T dsig = live ? -a * dal : T(0);
-          acc[5][j] += live ? G * dal : T(0);
-          // dx is constant down a column: the dx factors are applied once per entry below
-          const T t1 = dsig * dy;
-          acc[0][j] += dsig;
-          acc[1][j] += t1;
-          acc[4][j] += t1 * dy;
-        }
-      }
+      rows_pass(std::true_type{});
       // opaque(): these products must not fuse into lane_sum's first additions (an FMA there
       // would round differently from one vector width to another: v3 and v4 must agree)
 #pragma omp simd

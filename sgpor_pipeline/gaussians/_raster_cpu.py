@@ -182,7 +182,7 @@ def _fn(name: str, dtype: torch.dtype):
 
 
 def count_nonfinite(x: torch.Tensor) -> int | None:
-    """NaN/inf count of a CPU float32/float64 tensor by the kernel (no torch op; threads above 2^20 values), or
+    """NaN/inf count of a CPU float32/float64 tensor by the kernel (no torch op; threads from 2^18 values), or
     None when the kernel cannot do it (other dtype or device, no kernel)."""
     if not available() or x.device.type != "cpu" or x.dtype not in (torch.float32, torch.float64):
         return None

@@ -1021,12 +1021,28 @@ void raster_bwd(int C, int N, int W, int H, const GaussPix<T, CH>* gp, const int
     }
     const int64_t s0 = tile_off[ct], s1 = tile_off[ct + 1];
     const uint64_t zero = runtime_zero();  // see opaque()
-    for (int64_t s = s0 + kmax; s < s1; ++s) {
-      T* rr = &rec[int64_t(isect[s].gen) * R];
-      for (int i = 0; i < R; ++i) rr[i] = 0;
+    // With a grad_mask, the entries in front of the frontmost trained one need no pass: an entry's
+    // gradient depends only on itself and the entries behind it (a tile with no trained entry at
+    // all is skipped whole). Their records are zero, as those behind the last contributing entry.
+    int64_t s_lo = s0;
+    if (train != nullptr) {
+      s_lo = s0 + kmax;
+      for (int64_t s = s0; s < s0 + kmax; ++s)
+        if (train[isect[s].gid]) {
+          s_lo = s;
+          break;
+        }
     }
-    for (int64_t s = s0 + kmax - 1; s >= s0; --s) {  // back to front
-      if (s - kPrefetch >= s0) {
+    auto zero_records = [&](int64_t from, int64_t to) {
+      for (int64_t s = from; s < to; ++s) {
+        T* rr = &rec[int64_t(isect[s].gen) * R];
+        for (int i = 0; i < R; ++i) rr[i] = 0;
+      }
+    };
+    zero_records(s0, s_lo);
+    zero_records(s0 + kmax, s1);
+    for (int64_t s = s0 + kmax - 1; s >= s_lo; --s) {  // back to front
+      if (s - kPrefetch >= s_lo) {
         __builtin_prefetch(&g_cam[isect[s - kPrefetch].gid]);
         __builtin_prefetch(&rec[int64_t(isect[s - kPrefetch].gen) * R], 1);
       }

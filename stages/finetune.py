@@ -4,8 +4,10 @@ In: the remove stage's scene (background + new hole Gaussians, ``seed_ids.npy``)
 masks and holes, the refine stage's inpainted images, and the sfm stage's photos. Only the hole
 Gaussians, the Gaussians within ``neighbour_radius`` x the local spacing of them, and those seen
 through the holes are trained; every other Gaussian keeps exactly its fitted values (its gradient is
-zeroed before Adam, whose state then stays zero: no drift). Loss L1 + D-SSIM (lambda 0.2), short, no
-densification.
+zero, the rasterizer's ``grad_mask``, and Adam's state then stays zero: no drift). Loss L1 + D-SSIM
+(lambda 0.2), short, no densification (``densify_budget`` 0). The model is trained with the trainable
+Gaussians last, so that Adam steps only that tail (statue: 30k of 359k Gaussians, 12.6 ms of a full
+step saved per iteration); the PLY keeps the remove stage's order.
 
 Targets (``targets``): "photos" (default) supervises each view with the photo outside the object
 mask (dilated by ``mask_margin`` px) and with the refine stage's image inside it (the inpainted fill
@@ -192,6 +194,12 @@ class FocusStrategy(Strategy):
                 p._sgpor_focus_hook = True
 
 
+def _reordered(model: GaussianModel, order: np.ndarray) -> GaussianModel:
+    """The same Gaussians in the order ``order`` (indices into ``model``)."""
+    idx = torch.from_numpy(np.asarray(order, np.int64)).to(model.device)
+    return GaussianModel({n: q.detach().index_select(0, idx) for n, q in model.params.items()}, model.max_sh_degree)
+
+
 def crop_camera(cam: Camera, y0: int, y1: int, x0: int, x1: int) -> Camera:
     """The camera that sees only pixels [y0:y1, x0:x1] of ``cam`` (principal point shifted)."""
     K = cam.K.copy()
@@ -290,7 +298,10 @@ def trainable_gaussians(model: GaussianModel, seed_ids: np.ndarray, cameras: lis
 
 class FinetuneStage(Stage):
     name = "finetune"
-    VERSION = 4  # 3: the mask margin grows with a square kernel (as the remove stage's context); 4: seen_weight
+    # 3: the mask margin grows with a square kernel (as the remove stage's context); 4: seen_weight;
+    # 5: trains with the trainable Gaussians last (Adam on that tail only): the same model in another
+    # order, which torch's vectorised kernels round differently in the last bits (the PLY keeps its order)
+    VERSION = 5
     Params = FinetuneParams
     inputs = ("sfm", "remove", "refine")
     libraries = ("torch",)
@@ -365,6 +376,13 @@ class FinetuneStage(Stage):
         for name in ("lr_sh0", "lr_opacities", "lr_scales", "lr_quats"):
             setattr(tp, name, getattr(base, name) * p.lr_scale)
         sds_term = None
+        order = None
+        if densify is None:
+            # the trained Gaussians last: the trainer then steps Adam on that tail only
+            # (Trainer._trained_tail); the original order is restored after training
+            order = np.argsort(trainable, kind="stable")
+            model = _reordered(model, order)
+            trainable = trainable[order]
         if sds_dir is not None:
             t0 = time.perf_counter()
             sds_term = SDSTerm(sd.load_model(sds_dir), cameras, holes, p)
@@ -378,6 +396,8 @@ class FinetuneStage(Stage):
         ctx.log.info(f"finetune: training {int(trainable.sum())} of {len(model)} Gaussians on {trainer.device}")
         summary = trainer.train()
         trainer.model.to("cpu")  # the renders and the PLY are made on the CPU, as the later stages run
+        if order is not None:
+            trainer.model = _reordered(trainer.model, np.argsort(order))
         info = {"trainable": int(trainable.sum()), "gaussians": n_before, "hole_gaussians": int(len(seed_ids)),
                 "hole_pixels": hole_px, "targets": p.targets, "train_psnr": summary.get("heldout_psnr"),
                 "device": str(trainer.device),

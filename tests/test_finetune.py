@@ -213,3 +213,48 @@ def test_finetune_densifies_only_the_trainable_gaussians(tmp_path):
     assert frozen <= {r.tobytes() for r in rows(after)}
     plain, plain_model, _ = run_finetune(tmp_path / "plain", inputs, iterations=100, device="cpu")
     assert len(plain_model) == len(before) and "densify" not in plain
+
+
+def test_the_trainer_steps_adam_on_the_trained_tail_only(tmp_path):
+    """With the trainable Gaussians last (the finetune orders them so), the trainer steps Adam on the
+    rows from the first of them (aligned down to 16 rows) only, with the same bits as the full step;
+    with them scattered it takes the full step."""
+    import logging
+
+    from sgpor_pipeline.gaussians.train import Trainer, TrainParams, make_view, scene_extent
+    from sgpor_pipeline.stages.finetune import FocusStrategy, _reordered
+
+    inputs = plane_inputs(tmp_path / "in")
+    cams = load_cameras(inputs["remove"] / "cameras.json")
+    views = [make_view(c.image, read_rgb8(inputs["refine"] / "images" / f"{c.image}.png"), c) for c in cams]
+    base = read_ply(inputs["remove"] / "gaussians.ply")
+    trainable = np.zeros(len(base), bool)
+    trainable[np.load(inputs["remove"] / "seed_ids.npy")] = True
+    order = np.argsort(trainable, kind="stable")
+
+    def train(model, mask, full):
+        tp = TrainParams(iterations=20, sh_degree=0, sh_degree_every=0, eval_every=0, checkpoint_every=0,
+                         budget=len(model))
+        trainer = Trainer(model, FocusStrategy(torch.from_numpy(mask)), views, [], tp, scene_extent(cams),
+                          logger=logging.getLogger("test"))
+        if full:
+            real = trainer._trained_tail
+            trainer._trained_tail = lambda: (real()[0], None)
+        trainer.train(resume=False)
+        return trainer
+
+    tail = train(_reordered(base, order), trainable[order], full=False)
+    start = tail._grad_mask[3]
+    first = int(np.flatnonzero(trainable[order])[0])
+    assert start is not None and start % 16 == 0 and first - 16 < start <= first
+    full = train(_reordered(base, order), trainable[order], full=True)
+    for n in base.params:
+        assert torch.equal(tail.model.params[n], full.model.params[n]), n
+        st_tail = tail.optimizers[n].state.get(tail.model.params[n], {})
+        st_full = full.optimizers[n].state.get(full.model.params[n], {})
+        assert st_tail.keys() == st_full.keys(), n  # (none for shN: degree 0 gives it no gradient)
+        assert all(torch.equal(st_tail[k], st_full[k]) for k in st_tail), n
+    restored = _reordered(tail.model, np.argsort(order))
+    assert untouched(base, restored, trainable) and changed(base, restored)[trainable].mean() > 0.9
+    scattered = train(read_ply(inputs["remove"] / "gaussians.ply"), trainable, full=False)
+    assert scattered._grad_mask[3] is None  # (the seeds are not the last Gaussians here)

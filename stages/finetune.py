@@ -7,7 +7,10 @@ through the holes are trained; every other Gaussian keeps exactly its fitted val
 zero, the rasterizer's ``grad_mask``, and Adam's state then stays zero: no drift). Loss L1 + D-SSIM
 (lambda 0.2), short, no densification (``densify_budget`` 0). The model is trained with the trainable
 Gaussians last, so that Adam steps only that tail (statue: 30k of 359k Gaussians, 12.6 ms of a full
-step saved per iteration); the PLY keeps the remove stage's order.
+step saved per iteration); the PLY keeps the remove stage's order. Each view is trained on the crop
+that the trainable Gaussians reach (``crop``; the other pixels' loss is a constant): statue's views
+to 69 % of their pixels, training 57.3 -> 47.7 s with renders that agree to 75 dB; lund + box 92 %;
+the demo's whole views.
 
 Targets (``targets``): "photos" (default) supervises each view with the photo outside the object
 mask (dilated by ``mask_margin`` px) and with the refine stage's image inside it (the inpainted fill
@@ -55,12 +58,20 @@ from sgpor_pipeline.gaussians.model import GaussianModel
 from sgpor_pipeline.gaussians.ply import read_ply, write_ply
 from sgpor_pipeline.gaussians.rasterizer import rasterization
 from sgpor_pipeline.gaussians.strategy import ADCParams, ADCStrategy, Strategy
-from sgpor_pipeline.gaussians.train import Trainer, TrainParams, make_view, render_view, scene_extent, stage_device
+from sgpor_pipeline.gaussians.train import (
+    Trainer,
+    TrainParams,
+    TrainView,
+    make_view,
+    render_view,
+    scene_extent,
+    stage_device,
+)
 from sgpor_pipeline.hashing import hash_obj
 from sgpor_pipeline.imageio import read_mask, read_rgb8, write_png
 from sgpor_pipeline.removal import diffusion as sd
 from sgpor_pipeline.removal.holes import subset
-from sgpor_pipeline.removal.selection import contribution_scores, median_spacing, within_margin
+from sgpor_pipeline.removal.selection import contribution_scores, median_spacing, render_channels, within_margin
 from sgpor_pipeline.scene import Camera, load_cameras
 
 
@@ -113,6 +124,16 @@ class FinetuneParams:
     # energy in two views' holes 0.0163 / 0.0144 -> 0.0158 / 0.0146; 32k Gaussians added). Off.
     densify_budget: float = added_param(0.0)
     densify_grad2d: float = added_param(0.0002)
+    # Each view is trained on the crop of it that the trainable Gaussians reach (where any of them
+    # has alpha >= 1/255 at the start), grown by crop_margin px at the training resolution: 10 px keep
+    # the D-SSIM windows of those pixels whole (its radius 5, twice), the rest lets the Gaussians move.
+    # The other pixels' render does not depend on them (every other Gaussian is frozen), so their loss
+    # only adds a constant; the crop's loss is scaled by its share of the view's loss normaliser
+    # (TrainView.loss_scale), so the gradients are the whole view's. A view that no trainable Gaussian
+    # reaches is left out. finetune.json records the crops' share of the pixels and how much of the
+    # trained Gaussians' reach at the end fell outside them.
+    crop: bool = True
+    crop_margin: int = 24
 
     def sds(self) -> sd.SDSParams:
         return sd.SDSParams(prompt=self.sds_prompt, guidance=self.sds_guidance, min_t=self.sds_min_t,
@@ -203,6 +224,43 @@ def crop_camera(cam: Camera, y0: int, y1: int, x0: int, x1: int) -> Camera:
     return Camera(cam.name, x1 - x0, y1 - y0, K, cam.cam_from_world.copy(), cam.image)
 
 
+def reach(model: GaussianModel, camera: Camera, backend: str = "auto") -> np.ndarray:
+    """[H,W] bool: the pixels where some Gaussian of ``model`` has alpha >= 1/255 (its reach)."""
+    if len(model) == 0:
+        return np.zeros((camera.height, camera.width), bool)
+    _, alpha, _ = render_channels(model, camera, torch.zeros((len(model), 1)), backend)
+    return alpha > 0
+
+
+def crop_views(views: list[TrainView], reaches: list[np.ndarray], margin: int
+               ) -> tuple[list[TrainView | None], list[tuple[int, int, int, int] | None]]:
+    """Each view cropped to the bounding box of its ``reach`` grown by ``margin`` px (None where the
+    reach is empty or the crop has no supervised pixel), with the loss scale that keeps its
+    gradients those of the whole view (the crop's share of the loss normaliser: pixels, or weight)."""
+    out: list[TrainView | None] = []
+    boxes: list[tuple[int, int, int, int] | None] = []
+    for v, r in zip(views, reaches):
+        H, W = v.image.shape[:2]
+        ys, xs = np.nonzero(r)
+        if not len(ys):
+            out.append(None)
+            boxes.append(None)
+            continue
+        y0, y1 = max(0, int(ys.min()) - margin), min(H, int(ys.max()) + 1 + margin)
+        x0, x1 = max(0, int(xs.min()) - margin), min(W, int(xs.max()) + 1 + margin)
+        weight = None if v.weight is None else v.weight[y0:y1, x0:x1].contiguous()
+        whole = float(H * W) if v.weight is None else float(v.weight.sum())
+        part = float((y1 - y0) * (x1 - x0)) if weight is None else float(weight.sum())
+        if part <= 0:
+            out.append(None)
+            boxes.append(None)
+            continue
+        out.append(TrainView(v.name, v.image[y0:y1, x0:x1].contiguous(), crop_camera(v.camera, y0, y1, x0, x1),
+                             weight, loss_scale=part / whole))
+        boxes.append((y0, y1, x0, x1))
+    return out, boxes
+
+
 class SDSTerm:
     """The SDS regulariser: every ``every``-th iteration, render one view's hole crop (views in turn)
     with gradients and return ``lambda_sds x`` :func:`~sgpor_pipeline.removal.diffusion.sds_loss`.
@@ -291,12 +349,25 @@ def trainable_gaussians(model: GaussianModel, seed_ids: np.ndarray, cameras: lis
     return out
 
 
+def _reach_outside(trained: GaussianModel, whole_views: list[TrainView], boxes: list, backend: str) -> float:
+    """The share of the trained Gaussians' reach over the whole training views that lies outside the
+    crops (a view left out counts whole)."""
+    outside = total = 0
+    for v, box in zip(whole_views, boxes):
+        r = reach(trained, v.camera, backend)
+        n = int(r.sum())
+        total += n
+        outside += n if box is None else n - int(r[box[0]:box[1], box[2]:box[3]].sum())
+    return outside / total if total else 0.0
+
+
 class FinetuneStage(Stage):
     name = "finetune"
     # 3: the mask margin grows with a square kernel (as the remove stage's context); 4: seen_weight;
     # 5: trains with the trainable Gaussians last (Adam on that tail only): the same model in another
-    # order, which torch's vectorised kernels round differently in the last bits (the PLY keeps its order)
-    VERSION = 5
+    # order, which torch's vectorised kernels round differently in the last bits (the PLY keeps its order);
+    # 6: each view trained on the crop its trainable Gaussians reach (``crop``)
+    VERSION = 6
     Params = FinetuneParams
     inputs = ("sfm", "remove", "refine")
     libraries = ("torch",)
@@ -328,6 +399,9 @@ class FinetuneStage(Stage):
         if not p.seen_weight >= 0:
             raise PipelineError(f"finetune.seen_weight must be >= 0 (got {p.seen_weight})",
                                 fix="use 0 (the default: the seen background is not supervised) or 1")
+        if p.crop_margin < 0:
+            raise PipelineError(f"finetune.crop_margin must be >= 0 (got {p.crop_margin})",
+                                fix="use e.g. 24 (px around the pixels the trainable Gaussians reach), or crop = false")
         if not p.densify_budget >= 0:
             raise PipelineError(f"finetune.densify_budget must be >= 0 (got {p.densify_budget})",
                                 fix="use 0 (off: no new Gaussians) or e.g. 0.5 (up to half as many new as trained)")
@@ -353,6 +427,25 @@ class FinetuneStage(Stage):
                                                   "iterations": 0, "skipped": skipped})
             return
         views = [self._view(ctx, c, h, p, r) for c, h, r in zip(cameras, holes, relit)]
+        boxes: list | None = None
+        whole_views: list[TrainView] = []
+        crop_info: dict[str, Any] | None = None
+        if p.crop:
+            t0 = time.perf_counter()
+            trained = subset(model, trainable)
+            cropped, boxes = crop_views(views, [reach(trained, v.camera, p.backend) for v in views], p.crop_margin)
+            if any(c is not None for c in cropped):  # (else no view shows them: train on the whole views)
+                whole_views = views
+                whole_px = sum(v.image.shape[0] * v.image.shape[1] for v in views)
+                views = [c for c in cropped if c is not None]
+                crop_info = {"margin": p.crop_margin, "views": len(views), "views_left_out": len(cropped) - len(views),
+                             "pixel_share": sum(v.image.shape[0] * v.image.shape[1] for v in views) / whole_px,
+                             "seconds": time.perf_counter() - t0}
+                ctx.log.info(f"finetune: training on the crops the trainable Gaussians reach: "
+                             f"{100 * crop_info['pixel_share']:.0f} % of the views' pixels, "
+                             f"{crop_info['views_left_out']} view(s) they do not reach left out")
+            else:
+                boxes = None
         densify = None
         n_before = len(model)  # (the trainer changes the model in place)
         budget = n_before
@@ -391,6 +484,9 @@ class FinetuneStage(Stage):
         ctx.log.info(f"finetune: training {int(trainable.sum())} of {len(model)} Gaussians on {trainer.device}")
         summary = trainer.train()
         trainer.model.to("cpu")  # the renders and the PLY are made on the CPU, as the later stages run
+        if crop_info is not None and boxes is not None and densify is None:
+            crop_info["reach_outside_at_end"] = _reach_outside(subset(trainer.model, trainable), whole_views, boxes,
+                                                               p.backend)
         if order is not None:
             trainer.model = subset(trainer.model, np.argsort(order))
         info = {"trainable": int(trainable.sum()), "gaussians": n_before, "hole_gaussians": int(len(seed_ids)),
@@ -399,6 +495,8 @@ class FinetuneStage(Stage):
                 "seconds": summary.get("train_seconds"),
                 "iterations": summary.get("iterations"),
                 "resumed_from_iteration": summary.get("resumed_from_iteration")}
+        if crop_info is not None:
+            info["crop"] = crop_info
         if densify is not None:
             info["densify"] = {"budget": budget - n_before, "net_added": len(trainer.model) - n_before,
                                "trainable_after": int(trainer.sstate["eligible"].sum())}

@@ -21,15 +21,17 @@ from sgpor_pipeline.scene import Camera, load_cameras, save_cameras
 from sgpor_pipeline.stages.finetune import FinetuneParams, FinetuneStage
 
 
-def plane_inputs(root: Path, side: int = 30, w: int = 64, h: int = 48, seed: int = 0) -> dict[str, Path]:
+def plane_inputs(root: Path, side: int = 30, w: int = 64, h: int = 48, seed: int = 0,
+                 hole_box: tuple[float, float] = (1 / 3, 2 / 3), seed_extent: float = 0.35) -> dict[str, Path]:
     """The remove and refine folders of a plane scene: Gaussians on z = 2 with random colours, the
-    ones in the middle marked as hole seeds (grey), the fills a smooth colour ramp."""
+    ones in the middle (``seed_extent``) marked as hole seeds (grey), the fills a smooth colour ramp
+    in the holes (the image's box from ``hole_box[0]`` to ``hole_box[1]`` of each side)."""
     rng = np.random.default_rng(seed)
     g = np.linspace(-1.2, 1.2, side)
     X, Y = np.meshgrid(g, g)
     xyz = np.stack([X.ravel(), Y.ravel(), np.full(X.size, 2.0)], axis=1)
     model = GaussianModel.empty(len(xyz), 0)
-    seeds = np.flatnonzero(np.abs(xyz[:, :2]).max(axis=1) < 0.35)
+    seeds = np.flatnonzero(np.abs(xyz[:, :2]).max(axis=1) < seed_extent)
     rgb = rng.random((len(xyz), 3))
     rgb[seeds] = 0.5
     with torch.no_grad():
@@ -53,7 +55,8 @@ def plane_inputs(root: Path, side: int = 30, w: int = 64, h: int = 48, seed: int
     fill = np.stack([0.2 + 0.6 * xx, 0.3 + 0.5 * yy, 0.6 - 0.3 * xx], -1).astype(np.float32)
     for cam in cams:
         hole = np.zeros((h, w), bool)
-        hole[h // 3: 2 * h // 3, w // 3: 2 * w // 3] = True
+        (y0, y1), (x0, x1) = ([int(n * f + 1e-9) for f in hole_box] for n in (h, w))  # (1/3: n // 3)
+        hole[y0:y1, x0:x1] = True
         write_mask01(remove / "holes" / f"{cam.image}.png", hole)
         img = render_view(model, cam, backend="torch").numpy()
         write_png(refine / "images" / f"{cam.image}.png", np.where(hole[..., None], fill, img))
@@ -259,3 +262,65 @@ def test_the_trainer_steps_adam_on_the_trained_tail_only(tmp_path):
     assert untouched(base, restored, trainable) and changed(base, restored)[trainable].mean() > 0.9
     scattered = train(read_ply(inputs["remove"] / "gaussians.ply"), trainable, full=False)
     assert scattered._grad_mask[3] is None  # (the seeds are not the last Gaussians here)
+
+
+@pytest.mark.parametrize("weighted", [False, True])
+def test_a_cropped_view_gives_the_whole_views_gradients(tmp_path, weighted):
+    """The finetune's crop (``crop_views``): the loss of the crop around the trainable Gaussians'
+    reach, scaled by its ``loss_scale``, has the gradients of the whole view's loss, the D-SSIM
+    windows included, once the margin covers them (10 px); without a margin they differ at the
+    crop's border. A view they do not reach is left out."""
+    from sgpor_pipeline.gaussians.rasterizer import rasterization
+    from sgpor_pipeline.gaussians.train import make_view, photometric_loss
+    from sgpor_pipeline.removal.holes import subset
+    from sgpor_pipeline.stages.finetune import crop_views, reach
+
+    inputs = plane_inputs(tmp_path / "in", w=96, h=72)
+    cam = load_cameras(inputs["remove"] / "cameras.json")[1]
+    model = read_ply(inputs["remove"] / "gaussians.ply")
+    trainable = np.zeros(len(model), bool)
+    trainable[np.load(inputs["remove"] / "seed_ids.npy")] = True
+    rng = np.random.default_rng(3)
+    weight = rng.random((cam.height, cam.width)).astype(np.float32) if weighted else None
+    view = make_view(cam.image, rng.random((cam.height, cam.width, 3)).astype(np.float32), cam, 0, weight)
+    r = reach(subset(model, trainable), cam, "auto")
+    assert 0 < r.mean() < 0.5
+
+    def grads(v):
+        p = {n: t.detach().clone().requires_grad_(True) for n, t in model.params.items()}
+        vm, K = v.viewmat, v.K
+        img, _, _ = rasterization(p["means"], p["quats"], torch.exp(p["scales"]), torch.sigmoid(p["opacities"]),
+                                  p["sh0"], vm, K, v.camera.width, v.camera.height, sh_degree=0,
+                                  backgrounds=torch.zeros(3), grad_mask=torch.from_numpy(trainable))
+        (photometric_loss(img[0], v.image, 0.2, v.weight) * v.loss_scale).backward()
+        return {n: t.grad[torch.from_numpy(trainable)] for n, t in p.items() if t.grad is not None}
+
+    whole = grads(view)
+    (crop,), (box,) = crop_views([view], [r], 12)
+    assert crop.image.shape[0] * crop.image.shape[1] < 0.7 * cam.width * cam.height and 0 < crop.loss_scale < 1
+    assert crop.camera.width == box[3] - box[2] and crop.camera.height == box[1] - box[0]
+    part = grads(crop)
+    scale = max(float(g.abs().max()) for g in whole.values())
+    for n, g in whole.items():
+        assert torch.allclose(part[n], g, rtol=1e-3, atol=1e-5 * scale), n
+    (tight,), _ = crop_views([view], [r], 0)
+    loose = grads(tight)
+    assert any(not torch.allclose(loose[n], g, rtol=1e-3, atol=1e-5 * scale) for n, g in whole.items())
+    (none,), (no_box,) = crop_views([view], [np.zeros_like(r)], 12)
+    assert none is None and no_box is None
+
+
+def test_the_finetune_on_crops_matches_the_whole_views(tmp_path):
+    """``crop`` on (the default) trains on the crops and records them; its renders are those of the
+    re-fit on the whole views up to float rounding."""
+    inputs = plane_inputs(tmp_path / "in", side=40, w=128, h=96, hole_box=(0.42, 0.58), seed_extent=0.15)
+    on, _, d_on = run_finetune(tmp_path / "on", inputs, device="cpu", crop_margin=12)
+    off, _, d_off = run_finetune(tmp_path / "off", inputs, device="cpu", crop=False)
+    assert "crop" not in off and on["crop"]["views"] == 4 and on["crop"]["views_left_out"] == 0
+    assert 0 < on["crop"]["pixel_share"] < 0.8 and on["crop"]["reach_outside_at_end"] < 0.01
+    for name in ("v0", "v1", "v2", "v3"):
+        a = read_rgb8(d_on / "renders" / f"{name}.png").astype(np.float64) / 255
+        b = read_rgb8(d_off / "renders" / f"{name}.png").astype(np.float64) / 255
+        assert -10 * np.log10(((a - b) ** 2).mean() + 1e-12) > 45.0, name
+    with pytest.raises(PipelineError, match="crop_margin"):
+        run_finetune(tmp_path / "bad", inputs, device="cpu", crop_margin=-1)

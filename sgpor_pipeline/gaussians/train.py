@@ -119,6 +119,9 @@ class TrainView:
     image: torch.Tensor  # [H,W,3] float32 in [0,1]
     camera: Camera
     weight: torch.Tensor | None = None  # [H,W] float32 per-pixel loss weight (None = all 1)
+    # The view's loss is multiplied by this: a crop of a larger image (the finetune's) gives its loss
+    # the weight its pixels have in the whole image's mean, so its gradients are the whole image's.
+    loss_scale: float = 1.0
 
     @property
     def viewmat(self) -> torch.Tensor:
@@ -880,7 +883,8 @@ class Trainer:
             raise RollbackNeeded(f"non-finite rasterizer input ({e.message})") from None
         info["generator"] = self.gen
         self.strategy.step_pre_backward(self.model, self.optimizers, self.sstate, step, info)
-        loss = photometric_loss(render[0], view.image, self.p.lambda_dssim, view.weight)
+        view_loss = photometric_loss(render[0], view.image, self.p.lambda_dssim, view.weight)
+        loss = view_loss if view.loss_scale == 1.0 else view_loss * view.loss_scale
         extra = self.strategy.extra_loss(self.model, step)
         if extra is not None:
             loss = loss + extra
@@ -927,7 +931,8 @@ class Trainer:
         # overflow to inf: the projection culls such a Gaussian, as tests/test_fit.py checks)
         self._params_checked = True
         self.step = step
-        return float(loss.detach())
+        # logged: the view's own loss (a crop's mean over its pixels, not scaled by loss_scale)
+        return float(view_loss.detach()) + (0.0 if extra is None else float(extra.detach()))
 
     # the loop ----------------------------------------------------------------------------------
 

@@ -62,6 +62,7 @@ from sgpor_pipeline.gaussians.train import (
     Trainer,
     TrainParams,
     TrainView,
+    evaluate,
     make_view,
     render_view,
     scene_extent,
@@ -484,13 +485,17 @@ class FinetuneStage(Stage):
         ctx.log.info(f"finetune: training {int(trainable.sum())} of {len(model)} Gaussians on {trainer.device}")
         summary = trainer.train()
         trainer.model.to("cpu")  # the renders and the PLY are made on the CPU, as the later stages run
-        if crop_info is not None and boxes is not None and densify is None:
-            crop_info["reach_outside_at_end"] = _reach_outside(subset(trainer.model, trainable), whole_views, boxes,
-                                                               p.backend)
+        train_psnr = summary.get("heldout_psnr")
+        if crop_info is not None:
+            # (the trainer scored its crops: the whole views keep the figure comparable)
+            train_psnr = evaluate(trainer.model, whole_views, backend=p.backend)["psnr"]
+            if densify is None:
+                crop_info["reach_outside_at_end"] = _reach_outside(subset(trainer.model, trainable), whole_views,
+                                                                   boxes, p.backend)
         if order is not None:
             trainer.model = subset(trainer.model, np.argsort(order))
         info = {"trainable": int(trainable.sum()), "gaussians": n_before, "hole_gaussians": int(len(seed_ids)),
-                "hole_pixels": hole_px, "targets": p.targets, "train_psnr": summary.get("heldout_psnr"),
+                "hole_pixels": hole_px, "targets": p.targets, "train_psnr": train_psnr,
                 "device": str(trainer.device),
                 "seconds": summary.get("train_seconds"),
                 "iterations": summary.get("iterations"),

@@ -132,7 +132,8 @@ class FinetuneParams:
     # only adds a constant; the crop's loss is scaled by its share of the view's loss normaliser
     # (TrainView.loss_scale), so the gradients are the whole view's. A view that no trainable Gaussian
     # reaches is left out. finetune.json records the crops' share of the pixels and how much of the
-    # trained Gaussians' reach at the end fell outside them.
+    # trained Gaussians' reach at the end fell outside them. Not with densify_budget > 0 (ADC's
+    # thresholds are in units of the image's size).
     crop: bool = True
     crop_margin: int = 24
 
@@ -431,7 +432,7 @@ class FinetuneStage(Stage):
         boxes: list | None = None
         whole_views: list[TrainView] = []
         crop_info: dict[str, Any] | None = None
-        if p.crop:
+        if p.crop and p.densify_budget == 0:  # (ADC measures its gradients in units of the image's size)
             t0 = time.perf_counter()
             trained = subset(model, trainable)
             cropped, boxes = crop_views(views, [reach(trained, v.camera, p.backend) for v in views], p.crop_margin)
@@ -489,9 +490,8 @@ class FinetuneStage(Stage):
         if crop_info is not None:
             # (the trainer scored its crops: the whole views keep the figure comparable)
             train_psnr = evaluate(trainer.model, whole_views, backend=p.backend)["psnr"]
-            if densify is None:
-                crop_info["reach_outside_at_end"] = _reach_outside(subset(trainer.model, trainable), whole_views,
-                                                                   boxes, p.backend)
+            crop_info["reach_outside_at_end"] = _reach_outside(subset(trainer.model, trainable), whole_views, boxes,
+                                                               p.backend)
         if order is not None:
             trainer.model = subset(trainer.model, np.argsort(order))
         info = {"trainable": int(trainable.sum()), "gaussians": n_before, "hole_gaussians": int(len(seed_ids)),

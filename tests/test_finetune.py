@@ -206,6 +206,7 @@ def test_finetune_densifies_only_the_trainable_gaussians(tmp_path):
     assert added == info["densify"]["net_added"] > 0
     assert added <= info["densify"]["budget"] == int(np.ceil(0.5 * trainable.sum()))
     assert info["densify"]["trainable_after"] == trainable.sum() + added  # (nothing is transparent here)
+    assert "crop" not in info  # (ADC's thresholds are in units of the image's size: whole views)
 
     def rows(model: GaussianModel) -> np.ndarray:
         return np.concatenate([model.params[n].detach().reshape(len(model), -1).numpy()

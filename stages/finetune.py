@@ -445,7 +445,9 @@ class FinetuneStage(Stage):
                              "seconds": time.perf_counter() - t0}
                 ctx.log.info(f"finetune: training on the crops the trainable Gaussians reach: "
                              f"{100 * crop_info['pixel_share']:.0f} % of the views' pixels, "
-                             f"{crop_info['views_left_out']} view(s) they do not reach left out")
+                             f"{crop_info['views_left_out']} view(s) they do not reach left out"
+                             if crop_info["pixel_share"] < 0.995 or crop_info["views_left_out"] else
+                             "finetune: the trainable Gaussians reach the whole of every view (no crop)")
             else:
                 boxes = None
         densify = None

@@ -242,24 +242,21 @@ def crop_views(views: list[TrainView], reaches: list[np.ndarray], margin: int
     out: list[TrainView | None] = []
     boxes: list[tuple[int, int, int, int] | None] = []
     for v, r in zip(views, reaches):
-        H, W = v.image.shape[:2]
+        crop, box = None, None
         ys, xs = np.nonzero(r)
-        if not len(ys):
-            out.append(None)
-            boxes.append(None)
-            continue
-        y0, y1 = max(0, int(ys.min()) - margin), min(H, int(ys.max()) + 1 + margin)
-        x0, x1 = max(0, int(xs.min()) - margin), min(W, int(xs.max()) + 1 + margin)
-        weight = None if v.weight is None else v.weight[y0:y1, x0:x1].contiguous()
-        whole = float(H * W) if v.weight is None else float(v.weight.sum())
-        part = float((y1 - y0) * (x1 - x0)) if weight is None else float(weight.sum())
-        if part <= 0:
-            out.append(None)
-            boxes.append(None)
-            continue
-        out.append(TrainView(v.name, v.image[y0:y1, x0:x1].contiguous(), crop_camera(v.camera, y0, y1, x0, x1),
-                             weight, loss_scale=part / whole))
-        boxes.append((y0, y1, x0, x1))
+        if len(ys):
+            H, W = v.image.shape[:2]
+            y0, y1 = max(0, int(ys.min()) - margin), min(H, int(ys.max()) + 1 + margin)
+            x0, x1 = max(0, int(xs.min()) - margin), min(W, int(xs.max()) + 1 + margin)
+            weight = None if v.weight is None else v.weight[y0:y1, x0:x1].contiguous()
+            whole = float(H * W) if v.weight is None else float(v.weight.sum())
+            part = float((y1 - y0) * (x1 - x0)) if weight is None else float(weight.sum())
+            if part > 0:
+                crop = TrainView(v.name, v.image[y0:y1, x0:x1].contiguous(),
+                                 crop_camera(v.camera, y0, y1, x0, x1), weight, loss_scale=part / whole)
+                box = (y0, y1, x0, x1)
+        out.append(crop)
+        boxes.append(box)
     return out, boxes
 
 
@@ -429,8 +426,8 @@ class FinetuneStage(Stage):
                                                   "iterations": 0, "skipped": skipped})
             return
         views = [self._view(ctx, c, h, p, r) for c, h, r in zip(cameras, holes, relit)]
-        boxes: list | None = None
-        whole_views: list[TrainView] = []
+        whole_views: list[TrainView] = []  # (with crop_info: the views before cropping, and their boxes)
+        boxes: list = []
         crop_info: dict[str, Any] | None = None
         if p.crop and p.densify_budget == 0:  # (ADC measures its gradients in units of the image's size)
             t0 = time.perf_counter()
@@ -448,8 +445,6 @@ class FinetuneStage(Stage):
                              f"{crop_info['views_left_out']} view(s) they do not reach left out"
                              if crop_info["pixel_share"] < 0.995 or crop_info["views_left_out"] else
                              "finetune: the trainable Gaussians reach the whole of every view (no crop)")
-            else:
-                boxes = None
         densify = None
         n_before = len(model)  # (the trainer changes the model in place)
         budget = n_before

@@ -1108,8 +1108,7 @@ void raster_bwd(int C, int N, int W, int H, const GaussPix<T, CH>* gp, const int
       };
       if (train != nullptr && !train[isect[s].gid]) {
         rows_pass(std::false_type{});
-        T* rr = &rec[int64_t(isect[s].gen) * R];
-        for (int i = 0; i < R; ++i) rr[i] = 0;
+        zero_records(s, s + 1);
         continue;
       }
       for (int i = 0; i < NA; ++i)

@@ -325,3 +325,47 @@ def test_the_finetune_on_crops_matches_the_whole_views(tmp_path):
         assert -10 * np.log10(((a - b) ** 2).mean() + 1e-12) > 45.0, name
     with pytest.raises(PipelineError, match="crop_margin"):
         run_finetune(tmp_path / "bad", inputs, device="cpu", crop_margin=-1)
+
+
+def test_harmonize_moves_the_targets_mask_region_to_the_photos_colours(tmp_path):
+    """finetune.harmonize: the target inside the object mask (the fill, the render after deletion) is
+    corrected towards the photo around the mask (removal.harmonize); outside it the photo stays. Here the
+    photos are brighter than the renders by 0.1 (another exposure): the hole's fill is lifted by about
+    that much, and not without the option."""
+    inputs = plane_inputs(tmp_path / "in")
+    cams = load_cameras(inputs["remove"] / "cameras.json")
+    (inputs["remove"] / "masks").mkdir()
+    sfm = tmp_path / "in" / "sfm"
+    (sfm / "images").mkdir(parents=True)
+    for cam in cams:
+        hole = read_mask(inputs["remove"] / "holes" / f"{cam.image}.png")
+        write_mask01(inputs["remove"] / "masks" / f"{cam.image}.png", hole)  # (the mask is all hole here)
+        fill = read_rgb8(inputs["refine"] / "images" / f"{cam.image}.png").astype(np.float32) / 255
+        write_png(sfm / "images" / f"{cam.image}.png", np.clip(fill + 0.1, 0, 1))
+    inputs = {**inputs, "sfm": sfm}
+    cam = cams[0]
+    hole = read_mask(inputs["remove"] / "holes" / f"{cam.image}.png")
+    fill = read_rgb8(inputs["refine"] / "images" / f"{cam.image}.png").astype(np.float32) / 255
+    views = {}
+    for on in (False, True):
+        ctx = StageContext.standalone(tmp_path / str(on), "finetune", FinetuneParams(max_size=0, harmonize=on), inputs)
+        views[on] = FinetuneStage._view(ctx, cam, hole, ctx.params).image.numpy()
+    inner = hole & ~np.pad(~hole, 4, constant_values=True)[4:-4, 4:-4]  # (inside, away from the band)
+    np.testing.assert_allclose(views[False][inner], fill[inner], atol=1 / 255)
+    lift = (views[True] - views[False])[inner]
+    assert np.abs(lift - 0.1).mean() < 0.01
+    ys, xs = hole.nonzero()
+    far = np.ones_like(hole)
+    far[ys.min() - 6:ys.max() + 7, xs.min() - 6:xs.max() + 7] = False  # (beyond the mask's band and ring)
+    np.testing.assert_array_equal(views[True][far], views[False][far])  # the photo
+    # a view larger than the training size: the correction is computed at that size and upsampled
+    small = {}
+    for on in (False, True):
+        ctx = StageContext.standalone(tmp_path / f"s{on}", "finetune", FinetuneParams(max_size=32, harmonize=on),
+                                      inputs)
+        small[on] = FinetuneStage._view(ctx, cam, hole, ctx.params).image.numpy()
+    assert small[True].shape == (24, 32, 3)
+    inner_small = inner[::2, ::2] & inner[1::2, 1::2]
+    assert np.abs((small[True] - small[False])[inner_small] - 0.1).mean() < 0.01
+    with pytest.raises(PipelineError, match="harmonize_ring"):
+        run_finetune(tmp_path / "bad", inputs, harmonize_ring=0)

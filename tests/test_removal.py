@@ -866,7 +866,8 @@ def test_the_context_shows_the_colour_of_a_partly_transparent_background(scene_a
 def test_finetune_views_leave_the_seen_background_unsupervised(tmp_path):
     """The finetune's targets: the photo outside the grown mask, the refine stage's image inside it;
     the grown mask outside the hole (the render after deletion, DC colours only) has loss weight
-    ``seen_weight``: 0 by default, no weight map at 1; a negative weight is refused."""
+    ``seen_weight``: 0 by default, no weight map at 1; a negative weight is refused. (With ``harmonize``
+    the mask's target is first corrected towards the photo around it.)"""
     from types import SimpleNamespace
 
     from sgpor_pipeline.errors import PipelineError
@@ -887,10 +888,13 @@ def test_finetune_views_leave_the_seen_background_unsupervised(tmp_path):
     ctx = SimpleNamespace(inputs={s: tmp_path / s for s in ("refine", "sfm", "remove")})
     K = np.array([[20.0, 0, w / 2], [0, 20.0, h / 2], [0, 0, 1]])
     cam = Camera("v", w, h, K, np.eye(4), image="v")
-    view = FinetuneStage._view(ctx, cam, hole, FinetuneParams(max_size=0))
+    view = FinetuneStage._view(ctx, cam, hole, FinetuneParams(max_size=0, harmonize=False))
     band = within_margin(mask, 2)
     img = view.image.numpy()
     assert np.allclose(img[band], 0.2, atol=1 / 255) and np.allclose(img[~band], 0.8, atol=1 / 255)
+    # harmonize (the default): the mask's target takes the photo's colour at its rim (a constant offset)
+    on = FinetuneStage._view(ctx, cam, hole, FinetuneParams(max_size=0)).image.numpy()
+    assert np.allclose(on, 0.8, atol=2 / 255)
     wt = view.weight.numpy()
     assert (wt[band & ~hole] == 0).all() and (wt[hole] == 1).all() and (wt[~band] == 1).all()
     assert FinetuneStage._view(ctx, cam, hole, FinetuneParams(max_size=0, seen_weight=1.0)).weight is None

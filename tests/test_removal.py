@@ -892,16 +892,25 @@ def test_finetune_views_leave_the_seen_background_unsupervised(tmp_path):
     band = within_margin(mask, 2)
     img = view.image.numpy()
     assert np.allclose(img[band], 0.2, atol=1 / 255) and np.allclose(img[~band], 0.8, atol=1 / 255)
-    # harmonize (the default): the mask's target takes the photo's colour at its rim (a constant offset)
-    on = FinetuneStage._view(ctx, cam, hole, FinetuneParams(max_size=0)).image.numpy()
-    assert np.allclose(on, 0.8, atol=2 / 255)
+    # harmonize (the default): the mask's target takes the photo's colour at its rim (a constant offset),
+    # and the seen part, whose render is that far off (0.6 >= seen_offset), is supervised in full
+    on = FinetuneStage._view(ctx, cam, hole, FinetuneParams(max_size=0))
+    assert np.allclose(on.image.numpy(), 0.8, atol=2 / 255)
+    assert (on.weight.numpy() == 1).all()
+    scaled = FinetuneStage._view(ctx, cam, hole, FinetuneParams(max_size=0, seen_offset=1.2)).weight.numpy()
+    assert np.allclose(scaled[band & ~hole], 0.5, atol=0.01)  # 0.6 / 1.2
+    off = FinetuneStage._view(ctx, cam, hole, FinetuneParams(max_size=0, seen_offset=0)).weight.numpy()
+    assert (off[band & ~hole] == 0).all()
     wt = view.weight.numpy()
     assert (wt[band & ~hole] == 0).all() and (wt[hole] == 1).all() and (wt[~band] == 1).all()
     assert FinetuneStage._view(ctx, cam, hole, FinetuneParams(max_size=0, seen_weight=1.0)).weight is None
-    half = FinetuneStage._view(ctx, cam, hole, FinetuneParams(max_size=0, seen_weight=0.5)).weight.numpy()
+    half = FinetuneStage._view(ctx, cam, hole, FinetuneParams(max_size=0, seen_weight=0.5,
+                                                              harmonize=False)).weight.numpy()
     assert (half[band & ~hole] == 0.5).all()
     with pytest.raises(PipelineError, match="seen_weight"):
         FinetuneStage().run(SimpleNamespace(params=FinetuneParams(seen_weight=-1.0)))
+    with pytest.raises(PipelineError, match="seen_offset"):
+        FinetuneStage().run(SimpleNamespace(params=FinetuneParams(seen_offset=-1.0)))
 
 
 def test_masks_given_views_picks_the_given_masks_by_name(tmp_path):

@@ -399,29 +399,28 @@ def _reach_outside(trained: GaussianModel, whole_views: list[TrainView], boxes: 
 
 
 def harmonized_fill(fill: np.ndarray, photo: np.ndarray, region: np.ndarray, relit: np.ndarray,
-                    p: FinetuneParams) -> tuple[np.ndarray, np.ndarray]:
-    """``harmonize``: the fill (uint8) with its ``region`` (the object mask and the holes) made seamless
-    with the photo around it (:func:`~sgpor_pipeline.removal.harmonize.rim_harmonized`; on the mask's
-    ring the fill is the render: the remove stage's context margin), and the photo, both float in [0, 1].
-    The correction is smooth, so on views larger than the training size it is computed at that size
-    (its ring and sigma in training pixels; a mask covering most of a 1600 px photo is otherwise a
-    Laplace system of millions of unknowns) and added upsampled."""
+                    p: FinetuneParams) -> np.ndarray:
+    """``harmonize``: the fill (float in [0, 1]) with its ``region`` (the object mask and the holes)
+    made seamless with the photo around it (:func:`~sgpor_pipeline.removal.harmonize.rim_harmonized`;
+    on the mask's ring the fill is the render: the remove stage's context margin). The correction is
+    smooth, so on views larger than the training size it is computed at that size (its ring and sigma
+    in training pixels; a mask covering most of a 1600 px photo is otherwise a Laplace system of
+    millions of unknowns) and added upsampled."""
     import cv2
 
-    fill_f, photo_f = fill.astype(np.float32) / 255.0, photo.astype(np.float32) / 255.0
     h, w = region.shape
     tw, th = training_size(w, h, p.max_size)
     if (tw, th) == (w, h):
-        return rim_harmonized(fill_f, photo_f, region, p.harmonize_ring, p.harmonize_sigma, exclude=relit), photo_f
+        return rim_harmonized(fill, photo, region, p.harmonize_ring, p.harmonize_sigma, exclude=relit)
 
     def small(a: np.ndarray) -> np.ndarray:
         return cv2.resize(a, (tw, th), interpolation=cv2.INTER_AREA)
 
-    fs = small(fill_f)
-    correction = rim_harmonized(fs, small(photo_f), small(region.astype(np.float32)) > 0.5, p.harmonize_ring,
+    fs = small(fill)
+    correction = rim_harmonized(fs, small(photo), small(region.astype(np.float32)) > 0.5, p.harmonize_ring,
                                 p.harmonize_sigma, exclude=small(relit.astype(np.float32)) > 0.5) - fs
     up = cv2.resize(correction, (w, h), interpolation=cv2.INTER_LINEAR)
-    return np.clip(fill_f + up, 0.0, 1.0), photo_f
+    return np.clip(fill + up, 0.0, 1.0)
 
 
 class FinetuneStage(Stage):
@@ -614,8 +613,8 @@ class FinetuneStage(Stage):
             raise PipelineError(f"finetune: the photo and the inpainted image of {cam.image} differ in size",
                                 path=photo_path, fix="rerun from the sfm stage (--force sfm)")
         if p.harmonize:
-            before = fill.astype(np.float32) / 255.0
-            fill, photo = harmonized_fill(fill, photo, mask | hole, relit, p)
+            before, photo = fill.astype(np.float32) / 255.0, photo.astype(np.float32) / 255.0
+            fill = harmonized_fill(before, photo, mask | hole, relit, p)
             if p.seen_offset > 0 and seen.any() and p.seen_weight < 1:
                 off = np.abs(fill - before).mean(axis=2)
                 weight = np.where(seen, np.maximum(np.minimum(off / p.seen_offset, 1.0), p.seen_weight),

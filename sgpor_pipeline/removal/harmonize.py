@@ -43,10 +43,9 @@ def rim_harmonized(image: np.ndarray, photo: np.ndarray, region: np.ndarray, rin
     smooth = cv2.GaussianBlur(diff, (0, 0), sigma) / np.maximum(cv2.GaussianBlur(w, (0, 0), sigma), 1e-9)[..., None]
     # f = image + c: lap(f) = lap(image) in the region, f = image + smoothed difference on the ring's
     # pixels that touch it; pixels beside the region that are not on the ring (excluded) are Neumann
-    boundary = band
     target = np.where(band[..., None], out + smooth, out)
     # (anchor: a region part that touches no ring pixel keeps the image's colours)
-    fixed = poisson_blend(target, out, region, boundary=boundary, anchor=1e-6)
+    fixed = poisson_blend(target, out, region, boundary=band, anchor=1e-6)
     out[region] = fixed[region]
     out[band] = np.clip(target[band], 0.0, 1.0)
     return out.astype(np.asarray(image).dtype)

@@ -82,6 +82,7 @@ from sgpor_pipeline.errors import PipelineError
 from sgpor_pipeline.hashing import hash_obj
 from sgpor_pipeline.imageio import read_image, read_labels, read_mask, read_rgb8, write_labels, write_mask01, write_png
 from sgpor_pipeline.removal import diffusion as sd
+from sgpor_pipeline.removal.lattice import LatticeParams, lattice_fill
 from sgpor_pipeline.removal.multiview import (
     CONSENSUS,
     FILLED_INPAINTED,
@@ -222,6 +223,16 @@ class InpaintParams:
     # the default (0).
     blend_reach: float = added_param(0.0)
     plane_blend_reach: float = 15.0
+    # A regular pattern on the plane (tiles, a patterned rug): where the texture's dominant period
+    # predicts the hole's seen rim (removal/lattice.py: rim score >= plane_lattice_score, autocorrelation
+    # >= 0.5), the hole is first filled by translating the texture by it, and SBM describes and re-ranks
+    # its blocks with that fill as the hole's initial content (SBMParams.guide_weight), so every block
+    # keeps the pattern's phase. benchmarks/removal.py, fit seed 0, the synthetic scene's grid of discs:
+    # plane fill PSNR 20.72 -> 21.19 (pasting the translation, Poisson-blended, instead: 21.11), mask
+    # PSNR 26.66 -> 26.70; the textures without a period (synthetic-box, mip360 kitchen and room) have
+    # no offset that passes and keep their fill.
+    plane_lattice: bool = True
+    plane_lattice_score: float = 0.6
     paste_temperature: float = added_param(1.0)  # SBMParams.paste_temperature
     depth_weight: float = added_param(0.0)  # SBMParams.depth_weight: retrieval guided by the completed depth
     # The method (DESIGN.md section 7): views agree by construction. Mask PSNR / feat, multi-view vs
@@ -405,6 +416,9 @@ class InpaintParams:
         sbm = self.sbm()
         return replace(sbm, rerank_margin=self.plane_rerank_margin, order=self.plane_order,
                        overlap=self.plane_overlap, blend_reach=self.plane_blend_reach)
+
+    def lattice(self) -> LatticeParams:
+        return LatticeParams(min_score=self.plane_lattice_score)
 
     def carry_rim(self) -> int:
         """``carry_max_rim`` resolved: the block size for -1."""
@@ -810,8 +824,13 @@ class InpaintStage(Stage):
                             write_png(folder / "structure.png", draw_lines(tex.image, tex.hole, lines))
                     tb = build_source_bank([PLANE_NAME], [tex.image], [~tex.seen], [tex.hole], tsbm,
                                            labels=None if labels is None else [labels])
+                    guide = None
+                    if uses_sbm and p.plane_lattice:  # a regular pattern: SBM starts from its translation
+                        lat = lattice_fill(tex.image, tex.hole, tex.seen, p.lattice())
+                        info["lattice"] = {"used": False} if lat is None else dict(lat.info, used=True)
+                        guide = None if lat is None else lat.image
                     img = fill_view(tex.image, tex.hole, "sbm" if uses_sbm else backend, tb if uses_sbm else None,
-                                    tsbm, labels=labels)[0]
+                                    tsbm, labels=labels, guide=guide)[0]
                 write_png(folder / "texture.png", tex.image)
                 write_mask01(folder / "hole.png", tex.hole)
                 write_mask01(folder / "seen.png", tex.seen)

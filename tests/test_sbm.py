@@ -888,6 +888,7 @@ def test_inpaint_stage_fills_the_thick_planar_parts_once_on_the_plane(scene, tmp
     assert report["thick_reference"] == "plane" and report["plane"]["built"], report["plane"]
     assert report["plane"]["rms_relative"] < 0.01 and report["plane"]["hole_texels"] > 0
     assert 0.0 <= report["plane"]["rim_dark_share"] < 0.1  # no footprint here: no hint in the log
+    assert report["plane"]["lattice"]["used"] in (True, False)  # a period looked for (plane_lattice)
     assert all(v["projected"] > 0 for v in report["views"].values())
     for f in ("texture.png", "seen.png", "hole.png", "filled.png", "plane.json"):
         assert (tmp_path / "plane" / "inpaint" / "plane" / f).exists()

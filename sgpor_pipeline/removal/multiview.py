@@ -550,7 +550,7 @@ def planar_parts(hole: np.ndarray, depth: np.ndarray, max_misfit: float, ring: i
 
 def fill_view(render: np.ndarray, hole: np.ndarray, backend: str, bank, params,
               prior: tuple[np.ndarray, np.ndarray] | None = None, depth: np.ndarray | None = None,
-              labels: np.ndarray | None = None):
+              labels: np.ndarray | None = None, guide: np.ndarray | None = None):
     """Complete one view's hole: first the ``prior`` pixels (colours, mask) carried from a reference
     view, then the rest with ``backend`` ("sbm": :func:`~sgpor_pipeline.removal.sbm.inpaint_view`
     with ``bank``, ``params``, the view's completed ``depth`` and structure ``labels``; "opencv": xphoto FSR).
@@ -574,7 +574,7 @@ def fill_view(render: np.ndarray, hole: np.ndarray, backend: str, bank, params,
     result = None
     if todo.any():
         if backend == "sbm":
-            result = inpaint_view(img, hole, bank, params, known=known, depth=depth, labels=labels)
+            result = inpaint_view(img, hole, bank, params, known=known, depth=depth, labels=labels, guide=guide)
             img = result.image
         elif backend == "opencv":
             img = fsr_inpaint(img, todo)

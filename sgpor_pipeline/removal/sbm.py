@@ -897,7 +897,7 @@ def _label_agreement(target: np.ndarray, bank: SourceBank, pos: np.ndarray, bloc
 
 def inpaint_view(image: np.ndarray, hole: np.ndarray, bank: SourceBank, params: SBMParams,
                  known: np.ndarray | None = None, depth: np.ndarray | None = None,
-                 labels: np.ndarray | None = None) -> SBMResult:
+                 labels: np.ndarray | None = None, guide: np.ndarray | None = None) -> SBMResult:
     """Complete the ``hole`` pixels of ``image`` (float RGB) from the bank's source blocks.
 
     ``known``: hole pixels already filled (e.g. projected from a reference view); they are kept and
@@ -915,7 +915,7 @@ def inpaint_view(image: np.ndarray, hole: np.ndarray, bank: SourceBank, params: 
     hole = np.asarray(hole, bool)
     todo = hole.copy() if known is None else hole & ~np.asarray(known, bool)
     h, w = todo.shape
-    coarse = coarse_guide(img, todo, bank, params)
+    coarse = coarse_guide(img, todo, bank, params) if guide is None else to_float32(guide)
     s = params.block_size
     t = params.target_stride
     k = params.top_k

@@ -1,0 +1,192 @@
+"""Regular textures: fill a hole by translating the texture by its dominant period.
+
+A floor of tiles, a patterned rug, parquet or bricks repeats itself: in a rectified texture (the
+plane texture of :mod:`sgpor_pipeline.removal.plane`) the hidden part equals the seen part shifted by
+one period. Block matching fills such a hole block by block, and each block may settle on another
+phase of the pattern, which breaks it (the synthetic scene's grid of discs). Following He and Sun
+("Statistics of patch offsets for image completion", ECCV 2012), the texture's dominant offsets are
+the peaks of its autocorrelation over the known pixels (masked, normalised, by FFT) that stand
+``min_prominence`` above the valley on the way from the zero offset (a smooth texture correlates
+highly at short offsets, but only on the flank of the zero offset's peak). Each is scored by how well
+it predicts the known rim of the hole (the band within ``rim`` px of it: the rim is seen, so the score
+is a real test of the offset, not of its peak). The offsets that repeat the texture
+(``min_correlation``) and predict the rim (``min_score``) are used: each hole pixel takes the texture
+at the best of them whose source is known. Otherwise (a lawn, a carpet's random pile, a street, two
+regions side by side) the texture has no period to follow and the caller fills as before.
+
+The score is 1 - MSE(rim, rim shifted) / (2 var(rim)): 1 for an exact period, about 0 for unrelated
+texture (the MSE of two independent samples is twice the variance), below 0 for anti-correlated.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+
+from sgpor_pipeline.errors import PipelineError
+
+
+@dataclass
+class LatticeParams:
+    min_score: float = 0.6  # the best offset's rim score needed to fill by translation
+    max_offsets: int = 8  # autocorrelation peaks tried
+    min_shift: int = 4  # px: shorter offsets are the texture's smoothness, not its period
+    min_overlap: float = 0.25  # share of the known pixels an offset must overlap with themselves
+    min_prominence: float = 0.1  # a peak's correlation above the lowest on the way from the zero offset
+    # a period repeats over the whole texture: a peak below this is a coincidence of two regions (mip360
+    # kitchen's table and mat: 0.35, room's carpet and rug: 0.46; the synthetic scene's grid of discs: 0.66)
+    min_correlation: float = 0.5
+    rim: int = 7  # px: the band of known pixels around the hole that scores each offset
+    min_rim_pixels: int = 30  # fewer rim pixels to score an offset with: not tried
+
+    def validate(self) -> None:
+        if not self.min_score <= 1.0:
+            raise PipelineError(f"lattice min_score must be <= 1 (got {self.min_score})")
+        if self.max_offsets < 1 or self.min_shift < 1 or self.rim < 1:
+            raise PipelineError("lattice max_offsets, min_shift and rim must be >= 1 "
+                                f"(got {self.max_offsets}, {self.min_shift}, {self.rim})")
+        if not -1.0 <= self.min_correlation <= 1.0:
+            raise PipelineError(f"lattice min_correlation must be in [-1, 1] (got {self.min_correlation})")
+        if not 0.0 < self.min_overlap <= 1.0:
+            raise PipelineError(f"lattice min_overlap must be in (0, 1] (got {self.min_overlap})")
+
+
+@dataclass
+class Offset:
+    dy: int
+    dx: int
+    correlation: float  # masked normalised autocorrelation at this offset
+    rim_score: float = float("nan")  # how well it predicts the hole's known rim (module doc)
+
+
+@dataclass
+class LatticeFill:
+    image: np.ndarray  # HxWx3 float32: the hole filled by translation, the rest as given
+    filled: np.ndarray  # HxW bool: the hole pixels it filled
+    guide: np.ndarray  # HxWx3 float32: the fill, and outside the hole the image at the best offset (the
+    # gradients a Poisson blend across the hole's border should follow)
+    offsets: list[Offset]  # the offsets used, best first
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+def _correlate(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """sum_p a(p) b(p + o) for every offset o, as a (2H, 2W) array whose index (H, W) is o = 0."""
+    h, w = a.shape
+    fa = np.fft.rfft2(a, (2 * h, 2 * w))
+    fb = np.fft.rfft2(b, (2 * h, 2 * w))
+    return np.fft.fftshift(np.fft.irfft2(np.conj(fa) * fb, (2 * h, 2 * w)))
+
+
+def dominant_offsets(image: np.ndarray, known: np.ndarray, params: LatticeParams) -> list[Offset]:
+    """The peaks of the masked, normalised autocorrelation of ``image`` (HxWx3) over the ``known``
+    pixels, strongest first (at most ``max_offsets``; of a pair o, -o both are listed)."""
+    known = np.asarray(known, bool)
+    n = int(known.sum())
+    if n < 4 * params.min_shift ** 2:
+        return []
+    h, w = known.shape
+    k = known.astype(np.float64)
+    centred = (np.asarray(image, np.float64) - np.asarray(image, np.float64)[known].mean(axis=0)) * k[..., None]
+    num = np.zeros((2 * h, 2 * w))
+    e_a = np.zeros((2 * h, 2 * w))
+    e_b = np.zeros((2 * h, 2 * w))
+    for c in range(centred.shape[2]):
+        ch = centred[..., c]
+        num += _correlate(ch, ch)
+        e_a += _correlate(ch * ch, k)  # energy of the first factor where the second is known
+        e_b += _correlate(k, ch * ch)
+    overlap = _correlate(k, k)
+    ncc = num / np.sqrt(np.maximum(e_a * e_b, 1e-12))
+    ncc[overlap < 0.5 * params.min_overlap * n] = -1.0  # (too few pixels to correlate: noise)
+    # local maxima of the whole function, the zero offset's peak included: a smooth texture (or one
+    # upsampled from coarser views) correlates highly at short offsets, but only as the flank of that
+    # peak, which holds no maximum; a period is a peak of its own, with a valley before it
+    ncc = ncc.astype(np.float32)  # (the maxima test compares it with its dilation, a float32 image)
+    peak = ncc >= cv2.dilate(ncc, np.ones((5, 5), np.uint8))
+    oy, ox = np.mgrid[-h:h, -w:w]
+    peak &= (overlap >= params.min_overlap * n) & (np.hypot(oy, ox) >= params.min_shift) & (ncc > 0.0)
+    ys, xs = np.nonzero(peak)
+    # a lattice's multiples correlate as well as its basis: among the peaks nearly as strong as the best,
+    # the shortest first (a short shift copies from nearby, in the same light), then the rest by strength
+    val = ncc[ys, xs]
+    near = val >= (val.max() - 0.1 if len(val) else 0.0)
+    length = np.hypot(ys - h, xs - w)
+    out = []
+    for i in np.lexsort((length, np.where(near, 0.0, -val), ~near)):
+        y, x = int(ys[i]), int(xs[i])
+        t = np.linspace(0.0, 1.0, 33)[1:-1]  # the valley between the zero offset and the peak
+        valley = float(ncc[np.round(h + t * (y - h)).astype(int), np.round(w + t * (x - w)).astype(int)].min())
+        if ncc[y, x] - valley >= params.min_prominence:
+            out.append(Offset(y - h, x - w, float(ncc[y, x])))
+            if len(out) == params.max_offsets:
+                break
+    return out
+
+
+def _shift(a: np.ndarray, dy: int, dx: int, fill: float = 0) -> np.ndarray:
+    """out[p] = a[p + (dy, dx)] (``fill`` where that lies off the image)."""
+    h, w = a.shape[:2]
+    out = np.full_like(a, fill)
+    ys, yd = (slice(dy, h), slice(0, h - dy)) if dy >= 0 else (slice(0, h + dy), slice(-dy, h))
+    xs, xd = (slice(dx, w), slice(0, w - dx)) if dx >= 0 else (slice(0, w + dx), slice(-dx, w))
+    out[yd, xd] = a[ys, xs]
+    return out
+
+
+def lattice_fill(image: np.ndarray, hole: np.ndarray, known: np.ndarray, params: LatticeParams) -> LatticeFill | None:
+    """The ``hole`` of ``image`` filled by translation along the texture's period (module doc), or None
+    when no offset predicts the hole's known rim with a score of at least ``min_score``.
+
+    ``known``: the pixels that may be copied (seen, outside the hole). Each hole pixel takes the best
+    offset whose source is known, else the next; sources filled in an earlier pass count as known, so
+    a hole wider than the period is filled too. A pixel no offset reaches is left as given (the caller
+    fills it).
+    """
+    params.validate()
+    img = np.asarray(image, np.float32)
+    hole = np.asarray(hole, bool)
+    known = np.asarray(known, bool) & ~hole
+    if not hole.any():
+        return None
+    offsets = dominant_offsets(img, known, params)
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * params.rim + 1, 2 * params.rim + 1))
+    band = cv2.dilate(hole.astype(np.uint8), k).astype(bool) & known
+    if not offsets or band.sum() < params.min_rim_pixels:
+        return None
+    var2 = 2.0 * float(img[band].var(axis=0).sum())
+    for o in offsets:
+        ok = band & _shift(known, o.dy, o.dx, False)
+        if ok.sum() < params.min_rim_pixels or var2 <= 0:
+            continue
+        err = float(((img[ok] - _shift(img, o.dy, o.dx)[ok]) ** 2).sum(axis=1).mean())
+        o.rim_score = 1.0 - err / var2
+    scored = sorted((o for o in offsets if np.isfinite(o.rim_score)), key=lambda o: -o.rim_score)
+    info: dict[str, Any] = {"offsets": [[o.dy, o.dx, round(o.correlation, 4), round(o.rim_score, 4)]
+                                        for o in scored]}
+    # the offsets that repeat the texture and predict the rim, best first
+    use = [o for o in scored if o.rim_score >= params.min_score and o.correlation >= params.min_correlation]
+    if not use:
+        return None
+    out = img.copy()
+    have = known.copy()
+    todo = hole.copy()
+    passes = 0  # pass after pass: sources filled earlier count
+    while todo.any():
+        before = int(todo.sum())
+        for o in use:
+            take = todo & _shift(have, o.dy, o.dx, False)
+            if take.any():
+                out[take] = _shift(out, o.dy, o.dx)[take]
+                todo &= ~take
+                have |= take
+        passes += 1
+        if int(todo.sum()) == before:
+            break
+    info.update(used=[[o.dy, o.dx] for o in use], passes=passes, left=int(todo.sum()))
+    best = use[0]
+    outside = ~hole & _shift(known, best.dy, best.dx, False)
+    guide = np.where(outside[..., None], _shift(img, best.dy, best.dx), out).astype(np.float32)
+    return LatticeFill(out, hole & ~todo, guide, use, info)

@@ -6,7 +6,7 @@
                                            synthetic-raised-cast,synthetic-box-1mask,synthetic-cast,
                                            synthetic-raised-cast-1mask,lund-1mask,statue-box-1mask,
                                            synthetic-box-edge,synthetic-box-corner,synthetic-photos,
-                                           synthetic-raised]]
+                                           synthetic-raised,synthetic-box-coins,synthetic-box-brick]]
                                  [--set STAGE.PARAM=VALUE ...]   (overrides for every run of (a), (b), (c))
                                  [--novel]   (+ the novel-view protocol (d) on the scenes of (a) and (b))
                                  [--fit-seeds 0,1,2]   (every method on each seed's fit; targets on the mean)
@@ -199,6 +199,10 @@ SYNTHETIC_SCENES: dict[str, dict[str, Any]] = {
     # border through what the box hides (as the mats on mip360 kitchen's table); inpaint.plane_structure
     "synthetic-box-edge": {"object_kind": "box", "rug_place": "edge"},
     "synthetic-box-corner": {"object_kind": "box", "rug_place": "corner"},
+    # synthetic-box on a rug with a regular pattern: a grid of coins, a wall of bricks (tiles, parquet,
+    # a patterned rug); inpaint.plane_lattice
+    "synthetic-box-coins": {"object_kind": "box", "rug_texture": "coins"},
+    "synthetic-box-brick": {"object_kind": "box", "rug_texture": "brick"},
     # the demo from its photos, as a user runs it: SfM estimates the cameras (FROM_PHOTOS)
     "synthetic-photos": {},
 }
@@ -219,6 +223,7 @@ PREFIX = {"synthetic": "synthetic", "synthetic-box": "synthetic_box", "synthetic
           "synthetic-box-1mask": "synthetic_box_1mask", "synthetic-cast": "synthetic_cast",
           "synthetic-raised-cast-1mask": "synthetic_raised_cast_1mask",
           "synthetic-box-edge": "synthetic_box_edge", "synthetic-box-corner": "synthetic_box_corner",
+          "synthetic-box-coins": "synthetic_box_coins", "synthetic-box-brick": "synthetic_box_brick",
           "synthetic-photos": "synthetic_photos",
           "lund": "lund_inserted", "lund-1mask": "lund_inserted_1mask",
           "statue-box": "statue_inserted", "statue-box-1mask": "statue_inserted_1mask"}
@@ -1180,8 +1185,9 @@ def main(argv: list[str] | None = None) -> int:
                          "(the box from one given mask), synthetic-cast (the sphere with its shadows), "
                          "synthetic-raised-cast-1mask (the box on feet from one given mask), lund-1mask (lund + "
                          "box from one given mask), statue-box-1mask (statue + box, likewise), synthetic-box-edge, "
-                         "synthetic-box-corner (the rug's edge or corner under the box), synthetic-photos (the "
-                         "demo from its photos: SfM instead of its cameras)")
+                         "synthetic-box-corner (the rug's edge or corner under the box), synthetic-box-coins, "
+                         "synthetic-box-brick (the box on a rug of coins in a grid, or of bricks), synthetic-photos "
+                         "(the demo from its photos: SfM instead of its cameras)")
     ap.add_argument("--verbose", action="store_true", help="log every stage")
     ap.add_argument("--novel", action="store_true",
                     help="also protocol (d): every method scored at held-out views it never saw (a second run "

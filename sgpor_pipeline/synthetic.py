@@ -90,6 +90,10 @@ class SceneParams:
     # passes under the object's centre) or "corner" (its corner lies there): straight borders that run
     # through what the object hides, as mats on a table do.
     rug_place: str = "centre"
+    # The rug's texture, one of BACKGROUND_TEXTURES ("coins": a regular grid of coins, "brick": a wall of
+    # bricks); "" = drawn with the scene. Set, it is made with its own seed, so the rest of the scene
+    # stays the same.
+    rug_texture: str = ""
     shadows: bool = True  # hard shadows cast by the background objects (never by the object)
     # How the object darkens the background in ``images`` (never in ``images_gt``), as in a real
     # photo: "none"; "contact" (its ambient occlusion: the floor darkens where it stands); "cast"
@@ -654,8 +658,12 @@ def _build_layout(p: SceneParams, rng: np.random.Generator):
         rug_rot = _rot_z(rng.uniform(0, np.pi))
         corners = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]]) * rug_half @ rug_rot.T + rug_c
         rug_tex = pick(BACKGROUND_TEXTURES)
-        surfaces.append(_Surface("rug", "plane", _texture(rug_tex, rng, size), rug_c, rug_half, rug_rot,
-                                 fit=True, mesh=_quad(corners)))
+        rug_img = _texture(rug_tex, rng, size)
+        if p.rug_texture:
+            if p.rug_texture not in BACKGROUND_TEXTURES:
+                raise ValueError(f"rug_texture must be one of {', '.join(BACKGROUND_TEXTURES)}, got {p.rug_texture!r}")
+            rug_img = _texture(p.rug_texture, np.random.default_rng([p.seed, 1]), size)
+        surfaces.append(_Surface("rug", "plane", rug_img, rug_c, rug_half, rug_rot, fit=True, mesh=_quad(corners)))
     obj_c = np.array([*rng.uniform(-0.2, 0.2, 2), base + half[2]])
     if p.rug and p.rug_place != "centre":  # (after every draw: the rest of the scene stays the same)
         if p.rug_place not in ("edge", "corner"):

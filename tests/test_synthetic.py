@@ -252,3 +252,16 @@ def test_insert_object_matches_synthetic_geometry():
     assert all(m.any() for m in masks)
     with pytest.raises(PipelineError, match="expected"):
         insert_object([imgs[0][:10]], sc.cameras[:1])
+
+
+def test_rug_texture_sets_the_rugs_pattern_only():
+    from sgpor_pipeline.synthetic import SceneParams, generate_scene
+
+    small = dict(seed=0, object_kind="box", n_views=4, width=64, height=48)
+    drawn = generate_scene(SceneParams(**small))
+    coins = generate_scene(SceneParams(**small, rug_texture="coins"))
+    np.testing.assert_array_equal(coins.object_bounds, drawn.object_bounds)  # the rest of the scene stays
+    assert not np.array_equal(coins.images_gt, drawn.images_gt)
+    np.testing.assert_array_equal(coins.images_gt[:, :8], drawn.images_gt[:, :8])  # the far wall, above the rug
+    with pytest.raises(ValueError, match="rug_texture"):
+        generate_scene(SceneParams(**small, rug_texture="tiles"))

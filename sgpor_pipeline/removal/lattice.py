@@ -3,13 +3,16 @@
 A floor of tiles, a patterned rug, parquet or bricks repeats itself: in a rectified texture (the
 plane texture of :mod:`sgpor_pipeline.removal.plane`) the hidden part equals the seen part shifted by
 one period. Block matching fills such a hole block by block, and each block may settle on another
-phase of the pattern, which breaks it (the synthetic scene's grid of discs). Following He and Sun
-("Statistics of patch offsets for image completion", ECCV 2012), the texture's dominant offsets are
-the peaks of its autocorrelation over the known pixels (masked, normalised, by FFT) that stand
+phase of the pattern, which breaks it (the synthetic scenes' grids of discs and coins). Following He
+and Sun ("Statistics of patch offsets for image completion", ECCV 2012), each connected part of the
+hole is filled on its own: the dominant offsets of the texture around it (the known pixels within
+``context`` x sqrt(its area) px: a rug's pattern, not the floor's that fills the rest of a plane
+texture) are the peaks of its autocorrelation (masked, normalised, by FFT) that stand
 ``min_prominence`` above the valley on the way from the zero offset (a smooth texture correlates
 highly at short offsets, but only on the flank of the zero offset's peak). Each is scored by how well
-it predicts the known rim of the hole (the band within ``rim`` px of it: the rim is seen, so the score
-is a real test of the offset, not of its peak). The offsets that repeat the texture
+it predicts the known rim of the part (the band within ``rim`` px of it, where at least
+``min_rim_cover`` of it has a known source: the rim is seen, so the score is a real test of the
+offset, not of its peak). The offsets that repeat the texture
 (``min_correlation``) and predict the rim (``min_score``) are used: each hole pixel takes the texture
 at the best of them whose source is known. Otherwise (a lawn, a carpet's random pile, a street, two
 regions side by side) the texture has no period to follow and the caller fills as before.
@@ -37,10 +40,17 @@ class LatticeParams:
     min_overlap: float = 0.25  # share of the known pixels an offset must overlap with themselves
     min_prominence: float = 0.1  # a peak's correlation above the lowest on the way from the zero offset
     # a period repeats over the whole texture: a peak below this is a coincidence of two regions (mip360
-    # kitchen's table and mat: 0.35, room's carpet and rug: 0.46; the synthetic scene's grid of discs: 0.66)
-    min_correlation: float = 0.5
+    # kitchen's table and mat: 0.35 (rim score 0.57); room's carpet and rug: 0.46, but its rim score is
+    # -0.02). Periods: the synthetic scene's grid of discs 0.62, synthetic-box-coins' coins 0.48 (their
+    # rows are not quite regular, and the floor around the rug counts too)
+    min_correlation: float = 0.4
     rim: int = 7  # px: the band of known pixels around the hole that scores each offset
     min_rim_pixels: int = 30  # fewer rim pixels to score an offset with: not tried
+    min_rim_cover: float = 0.5  # share of a part's rim an offset must have known sources for
+    # the periods of a hole's part are looked for within context x sqrt(its area) px of it (at least
+    # min_context): the pattern around it, not a floor's that fills the rest of the texture
+    context: float = 2.0
+    min_context: int = 32
 
     def validate(self) -> None:
         if not self.min_score <= 1.0:
@@ -50,6 +60,11 @@ class LatticeParams:
                                 f"(got {self.max_offsets}, {self.min_shift}, {self.rim})")
         if not -1.0 <= self.min_correlation <= 1.0:
             raise PipelineError(f"lattice min_correlation must be in [-1, 1] (got {self.min_correlation})")
+        if self.context <= 0 or self.min_context < 1:
+            raise PipelineError(f"lattice context must be > 0 and min_context >= 1 (got {self.context}, "
+                                f"{self.min_context})")
+        if not 0.0 < self.min_rim_cover <= 1.0:
+            raise PipelineError(f"lattice min_rim_cover must be in (0, 1] (got {self.min_rim_cover})")
         if not 0.0 < self.min_overlap <= 1.0:
             raise PipelineError(f"lattice min_overlap must be in (0, 1] (got {self.min_overlap})")
 
@@ -66,9 +81,7 @@ class Offset:
 class LatticeFill:
     image: np.ndarray  # HxWx3 float32: the hole filled by translation, the rest as given
     filled: np.ndarray  # HxW bool: the hole pixels it filled
-    guide: np.ndarray  # HxWx3 float32: the fill, and outside the hole the image at the best offset (the
-    # gradients a Poisson blend across the hole's border should follow)
-    offsets: list[Offset]  # the offsets used, best first
+    offsets: list[Offset]  # the offsets used in the largest part it filled, best first (rim_score there)
     info: dict[str, Any] = field(default_factory=dict)
 
 
@@ -136,14 +149,25 @@ def _shift(a: np.ndarray, dy: int, dx: int, fill: float = 0) -> np.ndarray:
     return out
 
 
+def _rim_score(img: np.ndarray, known: np.ndarray, band: np.ndarray, o: Offset, params: LatticeParams) -> float:
+    """1 - MSE / (2 var) of the ``band`` predicted by the texture at offset ``o`` (module doc); NaN when
+    under ``min_rim_cover`` of the band has a known source there (a few pixels can match by chance)."""
+    ok = band & _shift(known, o.dy, o.dx, False)
+    var2 = 2.0 * float(img[band].var(axis=0).sum())
+    if ok.sum() < max(params.min_rim_pixels, params.min_rim_cover * band.sum()) or var2 <= 0:
+        return float("nan")
+    return 1.0 - float(((img[ok] - _shift(img, o.dy, o.dx)[ok]) ** 2).sum(axis=1).mean()) / var2
+
+
 def lattice_fill(image: np.ndarray, hole: np.ndarray, known: np.ndarray, params: LatticeParams) -> LatticeFill | None:
     """The ``hole`` of ``image`` filled by translation along the texture's period (module doc), or None
-    when no offset predicts the hole's known rim with a score of at least ``min_score``.
+    when no part of it has an offset that repeats the texture and predicts the part's known rim.
 
-    ``known``: the pixels that may be copied (seen, outside the hole). Each hole pixel takes the best
-    offset whose source is known, else the next; sources filled in an earlier pass count as known, so
-    a hole wider than the period is filled too. A pixel no offset reaches is left as given (the caller
-    fills it).
+    ``known``: the pixels that may be copied (seen, outside the hole). Each connected part of the hole
+    is scored on its own rim (a part beside the pattern and a part on the plain floor around it need
+    not share a period). A pixel takes the best of its part's offsets whose source is known, else the
+    next; sources filled in an earlier pass count as known, so a part wider than the period is filled
+    too. A pixel no offset reaches, and a part with no offset, are left as given (the caller fills them).
     """
     params.validate()
     img = np.asarray(image, np.float32)
@@ -151,42 +175,57 @@ def lattice_fill(image: np.ndarray, hole: np.ndarray, known: np.ndarray, params:
     known = np.asarray(known, bool) & ~hole
     if not hole.any():
         return None
-    offsets = dominant_offsets(img, known, params)
     k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * params.rim + 1, 2 * params.rim + 1))
-    band = cv2.dilate(hole.astype(np.uint8), k).astype(bool) & known
-    if not offsets or band.sum() < params.min_rim_pixels:
-        return None
-    var2 = 2.0 * float(img[band].var(axis=0).sum())
-    for o in offsets:
-        ok = band & _shift(known, o.dy, o.dx, False)
-        if ok.sum() < params.min_rim_pixels or var2 <= 0:
-            continue
-        err = float(((img[ok] - _shift(img, o.dy, o.dx)[ok]) ** 2).sum(axis=1).mean())
-        o.rim_score = 1.0 - err / var2
-    scored = sorted((o for o in offsets if np.isfinite(o.rim_score)), key=lambda o: -o.rim_score)
-    info: dict[str, Any] = {"offsets": [[o.dy, o.dx, round(o.correlation, 4), round(o.rim_score, 4)]
-                                        for o in scored]}
-    # the offsets that repeat the texture and predict the rim, best first
-    use = [o for o in scored if o.rim_score >= params.min_score and o.correlation >= params.min_correlation]
-    if not use:
-        return None
+    n_parts, parts = cv2.connectedComponents(hole.astype(np.uint8), connectivity=8)
+    h, w = hole.shape
+    found: list[list[int]] = []
     out = img.copy()
     have = known.copy()
-    todo = hole.copy()
-    passes = 0  # pass after pass: sources filled earlier count
-    while todo.any():
-        before = int(todo.sum())
-        for o in use:
-            take = todo & _shift(have, o.dy, o.dx, False)
-            if take.any():
-                out[take] = _shift(out, o.dy, o.dx)[take]
-                todo &= ~take
-                have |= take
-        passes += 1
-        if int(todo.sum()) == before:
-            break
-    info.update(used=[[o.dy, o.dx] for o in use], passes=passes, left=int(todo.sum()))
-    best = use[0]
-    outside = ~hole & _shift(known, best.dy, best.dx, False)
-    guide = np.where(outside[..., None], _shift(img, best.dy, best.dx), out).astype(np.float32)
-    return LatticeFill(out, hole & ~todo, guide, use, info)
+    filled = np.zeros_like(hole)
+    info_parts: list[dict[str, Any]] = []
+    lead: list[Offset] = []  # the offsets of the largest part filled
+    lead_size = 0
+    passes = 0
+    for i in range(1, n_parts):
+        part = parts == i
+        band = cv2.dilate(part.astype(np.uint8), k).astype(bool) & known
+        offsets: list[Offset] = []
+        if band.sum() >= params.min_rim_pixels:
+            # the periods of the texture around this part (a rug's pattern, not the floor's around it)
+            reach = int(max(params.context * np.sqrt(part.sum()), params.min_context))
+            ys, xs = np.nonzero(part)
+            y0, y1 = max(0, ys.min() - reach), min(h, ys.max() + reach + 1)
+            x0, x1 = max(0, xs.min() - reach), min(w, xs.max() + reach + 1)
+            near = cv2.distanceTransform((~part[y0:y1, x0:x1]).astype(np.uint8), cv2.DIST_L2, 5) <= reach
+            offsets = dominant_offsets(img[y0:y1, x0:x1], known[y0:y1, x0:x1] & near, params)
+            found.append([[o.dy, o.dx, round(o.correlation, 4)] for o in offsets])
+        scored = [(o, _rim_score(img, known, band, o, params)) for o in offsets]
+        # the offsets that repeat the texture and predict this part's rim, best first
+        use = sorted(((o, sc) for o, sc in scored
+                      if sc >= params.min_score and o.correlation >= params.min_correlation), key=lambda t: -t[1])
+        rec: dict[str, Any] = {"texels": int(part.sum()), "offsets": found[-1] if offsets else [],
+                               "offsets_used": [[o.dy, o.dx, round(sc, 4)] for o, sc in use]}
+        info_parts.append(rec)
+        if not use:
+            continue
+        todo = part.copy()
+        while todo.any():  # pass after pass: sources filled earlier count
+            before = int(todo.sum())
+            for o, _ in use:
+                take = todo & _shift(have, o.dy, o.dx, False)
+                if take.any():
+                    out[take] = _shift(out, o.dy, o.dx)[take]
+                    todo &= ~take
+                    have |= take
+            passes += 1
+            if int(todo.sum()) == before:
+                break
+        filled |= part & ~todo
+        rec["left"] = int(todo.sum())
+        if rec["texels"] > lead_size:
+            lead, lead_size = [Offset(o.dy, o.dx, o.correlation, sc) for o, sc in use], rec["texels"]
+    if not filled.any():
+        return None
+    info: dict[str, Any] = {"parts": info_parts, "offsets_used": [[o.dy, o.dx] for o in lead], "passes": passes,
+                            "left": int((hole & ~filled).sum())}
+    return LatticeFill(out, filled, lead, info)

@@ -516,8 +516,9 @@ class InpaintStage(Stage):
     # 15: the two borders of a hidden corner split off their region only (not the plane into 4 cells);
     # 16: that region ends where its borders' edges end in view; 17: its borders are seen within
     # structure corner_reach of the hole; 18: the thin parts' plane texture used without a shadow too
-    # (plane_thin)
-    VERSION = 18
+    # (plane_thin); 19: the plane texture's regular patterns translated by their period first
+    # (plane_lattice; the version marks the results of its development versions stale)
+    VERSION = 19
     Params = InpaintParams
     inputs = ("remove",)
     libraries = ("torch",)
@@ -834,7 +835,7 @@ class InpaintStage(Stage):
                     if uses_sbm and p.plane_lattice:  # a regular pattern: SBM starts from its translation
                         lat = lattice_fill(tex.image, tex.hole, tex.seen, p.lattice())
                         info["lattice"] = {"used": False} if lat is None else dict(lat.info, used=True)
-                        guide = None if lat is None else lat.image
+                        guide = None if lat is None else (lat.image, lat.filled)
                     img = fill_view(tex.image, tex.hole, "sbm" if uses_sbm else backend, tb if uses_sbm else None,
                                     tsbm, labels=labels, guide=guide)[0]
                 write_png(folder / "texture.png", tex.image)

@@ -169,3 +169,22 @@ def test_inpaint_stage_keeps_the_coins_grid_under_the_box(tmp_path):
     with pytest.raises(PipelineError, match="min_correlation"):
         InpaintStage().run(StageContext.standalone(tmp_path / "bad", "inpaint",
                                                    InpaintParams(plane_lattice_correlation=3.0), {"remove": remove}))
+
+
+def test_the_guide_counts_only_where_its_mask_says():
+    """A guide for part of the hole (the parts a translation filled): the rest starts empty, as
+    without a guide, so garbage there does not steer the blocks."""
+    from sgpor_pipeline.removal.sbm import SBMParams, build_source_bank, inpaint_view
+
+    truth = discs(96, 128, period=(14.0, 19.0), angle=0.3)
+    hole = blob(96, 128, 48, 64, 15)
+    img = truth.copy()
+    img[hole] = 0.0
+    p = SBMParams()
+    bank = build_source_bank(["t"], [img], [hole], [hole], p)
+    alone = inpaint_view(img, hole, bank, p).image
+    garbage = np.ones_like(img)  # white: nothing like the pattern
+    masked_out = inpaint_view(img, hole, bank, p, guide=garbage, guide_mask=np.zeros_like(hole)).image
+    np.testing.assert_array_equal(masked_out, alone)
+    steered = inpaint_view(img, hole, bank, p, guide=garbage).image
+    assert not np.array_equal(steered, alone)

@@ -550,10 +550,11 @@ def planar_parts(hole: np.ndarray, depth: np.ndarray, max_misfit: float, ring: i
 
 def fill_view(render: np.ndarray, hole: np.ndarray, backend: str, bank, params,
               prior: tuple[np.ndarray, np.ndarray] | None = None, depth: np.ndarray | None = None,
-              labels: np.ndarray | None = None, guide: np.ndarray | None = None):
+              labels: np.ndarray | None = None, guide: tuple[np.ndarray, np.ndarray] | None = None):
     """Complete one view's hole: first the ``prior`` pixels (colours, mask) carried from a reference
     view, then the rest with ``backend`` ("sbm": :func:`~sgpor_pipeline.removal.sbm.inpaint_view`
-    with ``bank``, ``params``, the view's completed ``depth`` and structure ``labels``; "opencv": xphoto FSR).
+    with ``bank``, ``params``, the view's completed ``depth``, structure ``labels`` and initial content
+    ``guide`` (colours, mask); "opencv": xphoto FSR).
 
     Returns (image float32 HxWx3, filled_from uint8 HxW: 0 none, 1 projected, 2 inpainted,
     SBMResult or None).
@@ -574,7 +575,9 @@ def fill_view(render: np.ndarray, hole: np.ndarray, backend: str, bank, params,
     result = None
     if todo.any():
         if backend == "sbm":
-            result = inpaint_view(img, hole, bank, params, known=known, depth=depth, labels=labels, guide=guide)
+            result = inpaint_view(img, hole, bank, params, known=known, depth=depth, labels=labels,
+                                  guide=None if guide is None else guide[0],
+                                  guide_mask=None if guide is None else guide[1])
             img = result.image
         elif backend == "opencv":
             img = fsr_inpaint(img, todo)

@@ -897,7 +897,8 @@ def _label_agreement(target: np.ndarray, bank: SourceBank, pos: np.ndarray, bloc
 
 def inpaint_view(image: np.ndarray, hole: np.ndarray, bank: SourceBank, params: SBMParams,
                  known: np.ndarray | None = None, depth: np.ndarray | None = None,
-                 labels: np.ndarray | None = None, guide: np.ndarray | None = None) -> SBMResult:
+                 labels: np.ndarray | None = None, guide: np.ndarray | None = None,
+                 guide_mask: np.ndarray | None = None) -> SBMResult:
     """Complete the ``hole`` pixels of ``image`` (float RGB) from the bank's source blocks.
 
     ``known``: hole pixels already filled (e.g. projected from a reference view); they are kept and
@@ -906,7 +907,9 @@ def inpaint_view(image: np.ndarray, hole: np.ndarray, bank: SourceBank, params: 
     (:func:`~sgpor_pipeline.removal.structure.cell_labels`, with a bank built with labels): a target
     block takes sources of the cell at its centre, and a pixel mainly the pasted pixels whose source
     lies in its own cell (others weigh ``1e-3``), so straight borders continue through the hole. With
-    ``params.levels`` > 1 the hole starts from :func:`coarse_guide`.
+    ``params.levels`` > 1 the hole starts from :func:`coarse_guide`; ``guide`` (HxWx3), when given,
+    is that initial content instead, in its ``guide_mask`` pixels (default: all; e.g. the parts of the
+    hole a translation filled, :func:`~sgpor_pipeline.removal.lattice.lattice_fill`).
     Returns an :class:`SBMResult`.
     """
     t0 = time.perf_counter()
@@ -916,6 +919,7 @@ def inpaint_view(image: np.ndarray, hole: np.ndarray, bank: SourceBank, params: 
     todo = hole.copy() if known is None else hole & ~np.asarray(known, bool)
     h, w = todo.shape
     coarse = coarse_guide(img, todo, bank, params) if guide is None else to_float32(guide)
+    guided = todo if coarse is None or guide_mask is None else todo & np.asarray(guide_mask, bool)
     s = params.block_size
     t = params.target_stride
     k = params.top_k
@@ -932,10 +936,13 @@ def inpaint_view(image: np.ndarray, hole: np.ndarray, bank: SourceBank, params: 
     sim = np.full((nt, k), np.nan, np.float32)
     layer_of = np.full(nt, -1, np.int64)
     cur = img.copy()
-    cur[todo] = 0.0 if coarse is None else coarse[todo]
+    cur[todo] = 0.0
+    if coarse is not None:
+        cur[guided] = coarse[guided]
     known_now = ~todo
     # what describes and re-ranks a block: known and filled pixels (1), the coarse guide (guide_weight)
-    weight_now = None if coarse is None else np.where(known_now, 1.0, params.guide_weight).astype(np.float32)
+    weight_now = (None if coarse is None else
+                  np.where(known_now, 1.0, np.where(guided, params.guide_weight, 0.0)).astype(np.float32))
     acc = np.zeros((h, w, 3), np.float32)
     wsum = np.zeros((h, w), np.float32)
     seams = SeamComposite((h, w), targets, s) if params.overlap == "seam" else None

@@ -834,8 +834,9 @@ class InpaintStage(Stage):
                     guide = None
                     if uses_sbm and p.plane_lattice:  # a regular pattern: SBM starts from its translation
                         lat = lattice_fill(tex.image, tex.hole, tex.seen, p.lattice())
-                        info["lattice"] = {"used": False} if lat is None else dict(lat.info, used=True)
-                        guide = None if lat is None else (lat.image, lat.filled)
+                        used = lat is not None and bool(lat.filled.any())
+                        info["lattice"] = dict({} if lat is None else lat.info, used=used)
+                        guide = (lat.image, lat.filled) if used else None
                     img = fill_view(tex.image, tex.hole, "sbm" if uses_sbm else backend, tb if uses_sbm else None,
                                     tsbm, labels=labels, guide=guide)[0]
                 write_png(folder / "texture.png", tex.image)

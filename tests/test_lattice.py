@@ -101,14 +101,17 @@ def test_a_texture_without_a_period_gets_no_translation(kind):
         img = np.where((x + 0.3 * y < 70)[..., None], [0.6, 0.4, 0.3], [0.5, 0.6, 0.6]) + rng.normal(0, 0.03, (h, w, 3))
     img = img.astype(np.float32)
     hole = blob(h, w, 50, 60, 14)
-    assert lattice_fill(img, hole, ~hole, LatticeParams()) is None
+    res = lattice_fill(img, hole, ~hole, LatticeParams())
+    assert res is not None and not res.filled.any() and not res.offsets
+    np.testing.assert_array_equal(res.image, img)
+    assert len(res.info["parts"]) == 1 and res.info["parts"][0]["offsets_used"] == []
 
 
 def test_nothing_to_do_and_too_little_to_learn_from():
     img = discs(60, 60)
     assert lattice_fill(img, np.zeros((60, 60), bool), np.ones((60, 60), bool), LatticeParams()) is None
     hole = blob(60, 60, 30, 30, 8)
-    assert lattice_fill(img, hole, np.zeros((60, 60), bool), LatticeParams()) is None  # nothing known
+    assert not lattice_fill(img, hole, np.zeros((60, 60), bool), LatticeParams()).filled.any()  # nothing known
     assert dominant_offsets(img, np.zeros((60, 60), bool), LatticeParams()) == []
 
 
@@ -131,7 +134,7 @@ def test_sbm_guided_by_the_translation_keeps_the_pattern():
     p = SBMParams()
     bank = build_source_bank(["t"], [img], [hole], [hole], p)
     lat = lattice_fill(img, hole, ~hole, LatticeParams())
-    assert lat is not None
+    assert lat is not None and lat.filled[hole].all()
     alone = inpaint_view(img, hole, bank, p).image
     guided = inpaint_view(img, hole, bank, p, guide=lat.image).image
     assert guided.shape == truth.shape and guided.dtype == np.float32

@@ -160,8 +160,9 @@ def _rim_score(img: np.ndarray, known: np.ndarray, band: np.ndarray, o: Offset, 
 
 
 def lattice_fill(image: np.ndarray, hole: np.ndarray, known: np.ndarray, params: LatticeParams) -> LatticeFill | None:
-    """The ``hole`` of ``image`` filled by translation along the texture's period (module doc), or None
-    when no part of it has an offset that repeats the texture and predicts the part's known rim.
+    """The ``hole`` of ``image`` filled by translation along the texture's period (module doc); None
+    for an empty hole. Where no part has an offset that repeats the texture and predicts the part's
+    known rim, nothing is ``filled`` (its info lists each part's offsets and their scores).
 
     ``known``: the pixels that may be copied (seen, outside the hole). Each connected part of the hole
     is scored on its own rim (a part beside the pattern and a part on the plain floor around it need
@@ -224,8 +225,9 @@ def lattice_fill(image: np.ndarray, hole: np.ndarray, known: np.ndarray, params:
         rec["left"] = int(todo.sum())
         if rec["texels"] > lead_size:
             lead, lead_size = [Offset(o.dy, o.dx, o.correlation, sc) for o, sc in use], rec["texels"]
-    if not filled.any():
-        return None
+    if not filled.any():  # (the parts' offsets stay in the info: why nothing was translated)
+        return LatticeFill(img.copy(), filled, [], {"parts": info_parts, "offsets_used": [], "passes": 0,
+                                                     "left": int(hole.sum())})
     info: dict[str, Any] = {"parts": info_parts, "offsets_used": [[o.dy, o.dx] for o in lead], "passes": passes,
                             "left": int((hole & ~filled).sum())}
     return LatticeFill(out, filled, lead, info)

@@ -98,3 +98,29 @@ def run_cli(args: list[str], env: dict[str, str] | None = None, **kw) -> subproc
     kw.setdefault("cwd", TESTS.parent.parent)
     return subprocess.run([sys.executable, "-m", "sgpor_pipeline.cli.main", *args], capture_output=True, text=True,
                           env=env or cli_env(), **kw)
+
+
+def inpaint_plane_on_off(tmp_path: Path, scene, param: str
+                         ) -> tuple[dict[bool, float], dict[bool, dict], dict[bool, Path]]:
+    """The inpaint stage on ``scene`` (its whole masks as holes) with the boolean InpaintParams field
+    ``param`` off and on: the mask PSNR of the views' fills against the truth, the plane texture's
+    plane.json and the stage's output folder, each by the value."""
+    import json
+
+    from sgpor_pipeline.dag import StageContext
+    from sgpor_pipeline.imageio import read_image
+    from sgpor_pipeline.removal.multiview import write_remove_fixture
+    from sgpor_pipeline.stages.inpaint import InpaintParams, InpaintStage
+
+    remove = write_remove_fixture(scene, tmp_path / "remove", holes="mask")
+    score, plane, out = {}, {}, {}
+    for on in (False, True):
+        ctx = StageContext.standalone(tmp_path / str(on), "inpaint", InpaintParams(**{param: on}), {"remove": remove})
+        InpaintStage().run(ctx)
+        plane[on] = json.loads((ctx.out_dir / "plane" / "plane.json").read_text())
+        sq = [((read_image(ctx.out_dir / "images" / f"{c.name}.png") - scene.images_gt[i]) ** 2)[scene.masks[i]]
+              for i, c in enumerate(scene.cameras)]
+        score[on] = float(-10 * np.log10(np.concatenate(sq).mean()))
+        out[on] = ctx.out_dir
+    return score, plane, out
+

@@ -27,6 +27,18 @@ def blob(h: int, w: int, cy: int, cx: int, r: int) -> np.ndarray:
     return (y - cy) ** 2 + (x - cx) ** 2 <= r * r
 
 
+def disc_hole_bank():
+    """A grid of discs with a round hole, and SBM's parameters and source bank for it."""
+    from sgpor_pipeline.removal.sbm import SBMParams, build_source_bank
+
+    truth = discs(96, 128, period=(14.0, 19.0), angle=0.3)
+    hole = blob(96, 128, 48, 64, 15)
+    img = truth.copy()
+    img[hole] = 0.0
+    p = SBMParams()
+    return truth, hole, img, p, build_source_bank(["t"], [img], [hole], [hole], p)
+
+
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
     return float(-10 * np.log10(max(float(((a - b) ** 2).mean()), 1e-12)))
 
@@ -125,14 +137,9 @@ def test_lattice_params_are_checked():
 def test_sbm_guided_by_the_translation_keeps_the_pattern():
     """The plane texture's use: SBM with the translation as the hole's initial content (inpaint_view's
     ``guide``) lands closer to the truth than SBM alone on a grid of discs."""
-    from sgpor_pipeline.removal.sbm import SBMParams, build_source_bank, inpaint_view
+    from sgpor_pipeline.removal.sbm import inpaint_view
 
-    truth = discs(96, 128, period=(14.0, 19.0), angle=0.3)
-    hole = blob(96, 128, 48, 64, 15)
-    img = truth.copy()
-    img[hole] = 0.0
-    p = SBMParams()
-    bank = build_source_bank(["t"], [img], [hole], [hole], p)
+    truth, hole, img, p, bank = disc_hole_bank()
     lat = lattice_fill(img, hole, ~hole, LatticeParams())
     assert lat is not None and lat.filled[hole].all()
     alone = inpaint_view(img, hole, bank, p).image
@@ -145,46 +152,31 @@ def test_inpaint_stage_keeps_the_coins_grid_under_the_box(tmp_path):
     """inpaint.plane_lattice on a box standing on a rug of coins in a grid (SceneParams.rug_texture):
     the plane texture finds the grid's period and its fill keeps the coins in phase, so the views' fills
     come closer to the truth in the masks; off, no period is looked for."""
-    import json
+    from conftest import inpaint_plane_on_off
 
     from sgpor_pipeline.dag import StageContext
-    from sgpor_pipeline.imageio import read_image
-    from sgpor_pipeline.removal.multiview import write_remove_fixture
     from sgpor_pipeline.stages.inpaint import InpaintParams, InpaintStage
     from sgpor_pipeline.synthetic import SceneParams, generate_scene
 
     sc = generate_scene(SceneParams(seed=0, object_kind="box", rug_texture="coins", n_views=8, width=256,
                                     height=192))
-    remove = write_remove_fixture(sc, tmp_path / "remove", holes="mask")
-    score, plane = {}, {}
-    for on in (False, True):
-        ctx = StageContext.standalone(tmp_path / str(on), "inpaint", InpaintParams(plane_lattice=on),
-                                      {"remove": remove})
-        InpaintStage().run(ctx)
-        plane[on] = json.loads((ctx.out_dir / "plane" / "plane.json").read_text())
-        sq = [((read_image(ctx.out_dir / "images" / f"{c.name}.png") - sc.images_gt[i]) ** 2)[sc.masks[i]]
-              for i, c in enumerate(sc.cameras)]
-        score[on] = -10 * np.log10(np.concatenate(sq).mean())
+    score, plane, _ = inpaint_plane_on_off(tmp_path, sc, "plane_lattice")
     assert "lattice" not in plane[False]
     lat = plane[True]["lattice"]
     assert lat["used"] and lat["left"] < 0.05 * plane[True]["hole_texels"], lat  # (a sliver beside the rug: SBM's)
     assert score[True] > score[False] + 0.5, score
     with pytest.raises(PipelineError, match="min_correlation"):
         InpaintStage().run(StageContext.standalone(tmp_path / "bad", "inpaint",
-                                                   InpaintParams(plane_lattice_correlation=3.0), {"remove": remove}))
+                                                   InpaintParams(plane_lattice_correlation=3.0),
+                                                   {"remove": tmp_path / "remove"}))
 
 
 def test_the_guide_counts_only_where_its_mask_says():
     """A guide for part of the hole (the parts a translation filled): the rest starts empty, as
     without a guide, so garbage there does not steer the blocks."""
-    from sgpor_pipeline.removal.sbm import SBMParams, build_source_bank, inpaint_view
+    from sgpor_pipeline.removal.sbm import inpaint_view
 
-    truth = discs(96, 128, period=(14.0, 19.0), angle=0.3)
-    hole = blob(96, 128, 48, 64, 15)
-    img = truth.copy()
-    img[hole] = 0.0
-    p = SBMParams()
-    bank = build_source_bank(["t"], [img], [hole], [hole], p)
+    truth, hole, img, p, bank = disc_hole_bank()
     alone = inpaint_view(img, hole, bank, p).image
     garbage = np.ones_like(img)  # white: nothing like the pattern
     masked_out = inpaint_view(img, hole, bank, p, guide=garbage, guide_mask=np.zeros_like(hole)).image

@@ -179,7 +179,6 @@ def lattice_fill(image: np.ndarray, hole: np.ndarray, known: np.ndarray, params:
     k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * params.rim + 1, 2 * params.rim + 1))
     n_parts, parts = cv2.connectedComponents(hole.astype(np.uint8), connectivity=8)
     h, w = hole.shape
-    found: list[list[int]] = []
     out = img.copy()
     have = known.copy()
     filled = np.zeros_like(hole)
@@ -199,12 +198,14 @@ def lattice_fill(image: np.ndarray, hole: np.ndarray, known: np.ndarray, params:
             x0, x1 = max(0, xs.min() - reach), min(w, xs.max() + reach + 1)
             near = cv2.distanceTransform((~part[y0:y1, x0:x1]).astype(np.uint8), cv2.DIST_L2, 5) <= reach
             offsets = dominant_offsets(img[y0:y1, x0:x1], known[y0:y1, x0:x1] & near, params)
-            found.append([[o.dy, o.dx, round(o.correlation, 4)] for o in offsets])
         scored = [(o, _rim_score(img, known, band, o, params)) for o in offsets]
         # the offsets that repeat the texture and predict this part's rim, best first
         use = sorted(((o, sc) for o, sc in scored
                       if sc >= params.min_score and o.correlation >= params.min_correlation), key=lambda t: -t[1])
-        rec: dict[str, Any] = {"texels": int(part.sum()), "offsets": found[-1] if offsets else [],
+        # each period found: dy, dx, correlation, rim score (None: too little of the rim has a source)
+        rec: dict[str, Any] = {"texels": int(part.sum()),
+                               "offsets": [[o.dy, o.dx, round(o.correlation, 4),
+                                            round(sc, 4) if np.isfinite(sc) else None] for o, sc in scored],
                                "offsets_used": [[o.dy, o.dx, round(sc, 4)] for o, sc in use]}
         info_parts.append(rec)
         if not use:

@@ -127,6 +127,15 @@ def test_nothing_to_do_and_too_little_to_learn_from():
     assert dominant_offsets(img, np.zeros((60, 60), bool), LatticeParams()) == []
 
 
+def test_shift_moves_by_the_offset_and_pads():
+    from sgpor_pipeline.removal.lattice import _shift
+
+    a = np.arange(12.0).reshape(3, 4)
+    np.testing.assert_array_equal(_shift(a, 1, 2), [[6, 7, 0, 0], [10, 11, 0, 0], [0, 0, 0, 0]])
+    np.testing.assert_array_equal(_shift(a, -1, -1, fill=-1), [[-1, -1, -1, -1], [-1, 0, 1, 2], [-1, 4, 5, 6]])
+    assert (_shift(a, 3, 0) == 0).all() and (_shift(a, 0, -9) == 0).all()
+
+
 def test_lattice_params_are_checked():
     for bad in (dict(min_score=1.5), dict(max_offsets=0), dict(min_shift=0), dict(rim=0), dict(min_overlap=0.0),
                 dict(min_correlation=2.0)):

@@ -143,6 +143,8 @@ def _shift(a: np.ndarray, dy: int, dx: int, fill: float = 0) -> np.ndarray:
     """out[p] = a[p + (dy, dx)] (``fill`` where that lies off the image)."""
     h, w = a.shape[:2]
     out = np.full_like(a, fill)
+    if abs(dy) >= h or abs(dx) >= w:  # (nothing of the image lands on it)
+        return out
     ys, yd = (slice(dy, h), slice(0, h - dy)) if dy >= 0 else (slice(0, h + dy), slice(-dy, h))
     xs, xd = (slice(dx, w), slice(0, w - dx)) if dx >= 0 else (slice(0, w + dx), slice(-dx, w))
     out[yd, xd] = a[ys, xs]

@@ -34,7 +34,7 @@ from sgpor_pipeline.errors import PipelineError
 
 @dataclass
 class LatticeParams:
-    min_score: float = 0.6  # the best offset's rim score needed to fill by translation
+    min_score: float = 0.6  # the rim score an offset needs to fill a part by translation
     max_offsets: int = 8  # autocorrelation peaks tried
     min_shift: int = 4  # px: shorter offsets are the texture's smoothness, not its period
     min_overlap: float = 0.25  # share of the known pixels an offset must overlap with themselves
@@ -95,7 +95,8 @@ def _correlate(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def dominant_offsets(image: np.ndarray, known: np.ndarray, params: LatticeParams) -> list[Offset]:
     """The peaks of the masked, normalised autocorrelation of ``image`` (HxWx3) over the ``known``
-    pixels, strongest first (at most ``max_offsets``; of a pair o, -o both are listed)."""
+    pixels (at most ``max_offsets``; of a pair o, -o both are listed): those within 0.1 of the strongest
+    first, shortest first, then the others by strength."""
     known = np.asarray(known, bool)
     n = int(known.sum())
     if n < 4 * params.min_shift ** 2:

@@ -658,7 +658,7 @@ def _build_layout(p: SceneParams, rng: np.random.Generator):
         rug_rot = _rot_z(rng.uniform(0, np.pi))
         corners = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]]) * rug_half @ rug_rot.T + rug_c
         rug_tex = pick(BACKGROUND_TEXTURES)
-        rug_img = _texture(rug_tex, rng, size)
+        rug_img = _texture(rug_tex, rng, size)  # (made even when replaced: its draws keep the rest of the scene)
         if p.rug_texture:
             if p.rug_texture not in BACKGROUND_TEXTURES:
                 raise ValueError(f"rug_texture must be one of {', '.join(BACKGROUND_TEXTURES)}, got {p.rug_texture!r}")

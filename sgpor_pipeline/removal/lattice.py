@@ -103,7 +103,8 @@ def dominant_offsets(image: np.ndarray, known: np.ndarray, params: LatticeParams
         return []
     h, w = known.shape
     k = known.astype(np.float64)
-    centred = (np.asarray(image, np.float64) - np.asarray(image, np.float64)[known].mean(axis=0)) * k[..., None]
+    img = np.asarray(image, np.float64)
+    centred = (img - img[known].mean(axis=0)) * k[..., None]
     num = np.zeros((2 * h, 2 * w))
     e_a = np.zeros((2 * h, 2 * w))
     e_b = np.zeros((2 * h, 2 * w))
@@ -129,9 +130,9 @@ def dominant_offsets(image: np.ndarray, known: np.ndarray, params: LatticeParams
     near = val >= (val.max() - 0.1 if len(val) else 0.0)
     length = np.hypot(ys - h, xs - w)
     out = []
+    t = np.linspace(0.0, 1.0, 33)[1:-1]  # where the valley between the zero offset and a peak is looked for
     for i in np.lexsort((length, np.where(near, 0.0, -val), ~near)):
         y, x = int(ys[i]), int(xs[i])
-        t = np.linspace(0.0, 1.0, 33)[1:-1]  # the valley between the zero offset and the peak
         valley = float(ncc[np.round(h + t * (y - h)).astype(int), np.round(w + t * (x - w)).astype(int)].min())
         if ncc[y, x] - valley >= params.min_prominence:
             out.append(Offset(y - h, x - w, float(ncc[y, x])))
@@ -152,14 +153,19 @@ def _shift(a: np.ndarray, dy: int, dx: int, fill: float = 0) -> np.ndarray:
     return out
 
 
-def _rim_score(img: np.ndarray, known: np.ndarray, band: np.ndarray, o: Offset, params: LatticeParams) -> float:
-    """1 - MSE / (2 var) of the ``band`` predicted by the texture at offset ``o`` (module doc); NaN when
-    under ``min_rim_cover`` of the band has a known source there (a few pixels can match by chance)."""
-    ok = band & _shift(known, o.dy, o.dx, False)
-    var2 = 2.0 * float(img[band].var(axis=0).sum())
-    if ok.sum() < max(params.min_rim_pixels, params.min_rim_cover * band.sum()) or var2 <= 0:
-        return float("nan")
-    return 1.0 - float(((img[ok] - _shift(img, o.dy, o.dx)[ok]) ** 2).sum(axis=1).mean()) / var2
+def _rim_scores(img: np.ndarray, known: np.ndarray, band: np.ndarray, offsets: list[Offset],
+                params: LatticeParams) -> list[float]:
+    """For each offset, 1 - MSE / (2 var) of the ``band`` predicted by the texture at that offset
+    (module doc); NaN where under ``min_rim_cover`` of the band has a known source there (a few pixels
+    can match by chance)."""
+    var2 = 2.0 * float(img[band].var(axis=0).sum()) if band.any() else 0.0
+    need = max(params.min_rim_pixels, params.min_rim_cover * band.sum())
+    scores = []
+    for o in offsets:
+        ok = band & _shift(known, o.dy, o.dx, False)
+        scores.append(float("nan") if ok.sum() < need or var2 <= 0 else
+                      1.0 - float(((img[ok] - _shift(img, o.dy, o.dx)[ok]) ** 2).sum(axis=1).mean()) / var2)
+    return scores
 
 
 def lattice_fill(image: np.ndarray, hole: np.ndarray, known: np.ndarray, params: LatticeParams) -> LatticeFill | None:
@@ -201,7 +207,7 @@ def lattice_fill(image: np.ndarray, hole: np.ndarray, known: np.ndarray, params:
             x0, x1 = max(0, xs.min() - reach), min(w, xs.max() + reach + 1)
             near = cv2.distanceTransform((~part[y0:y1, x0:x1]).astype(np.uint8), cv2.DIST_L2, 5) <= reach
             offsets = dominant_offsets(img[y0:y1, x0:x1], known[y0:y1, x0:x1] & near, params)
-        scored = [(o, _rim_score(img, known, band, o, params)) for o in offsets]
+        scored = list(zip(offsets, _rim_scores(img, known, band, offsets, params)))
         # the offsets that repeat the texture and predict this part's rim, best first
         use = sorted(((o, sc) for o, sc in scored
                       if sc >= params.min_score and o.correlation >= params.min_correlation), key=lambda t: -t[1])
@@ -225,13 +231,12 @@ def lattice_fill(image: np.ndarray, hole: np.ndarray, known: np.ndarray, params:
             passes += 1
             if int(todo.sum()) == before:
                 break
-        filled |= part & ~todo
+        got = part & ~todo
+        filled |= got
         rec["left"] = int(todo.sum())
-        if rec["texels"] > lead_size:
+        if got.any() and rec["texels"] > lead_size:
             lead, lead_size = [Offset(o.dy, o.dx, o.correlation, sc) for o, sc in use], rec["texels"]
-    if not filled.any():  # (the parts' offsets stay in the info: why nothing was translated)
-        return LatticeFill(img.copy(), filled, [], {"parts": info_parts, "offsets_used": [], "passes": 0,
-                                                     "left": int(hole.sum())})
+    # (where nothing was translated the parts' offsets stay in the info: why not)
     info: dict[str, Any] = {"parts": info_parts, "offsets_used": [[o.dy, o.dx] for o in lead], "passes": passes,
                             "left": int((hole & ~filled).sum())}
     return LatticeFill(out, filled, lead, info)

@@ -7,6 +7,7 @@ import shutil
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -100,11 +101,11 @@ def run_cli(args: list[str], env: dict[str, str] | None = None, **kw) -> subproc
                           env=env or cli_env(), **kw)
 
 
-def inpaint_plane_on_off(tmp_path: Path, scene, param: str
-                         ) -> tuple[dict[bool, float], dict[bool, dict], dict[bool, Path]]:
-    """The inpaint stage on ``scene`` (its whole masks as holes) with the boolean InpaintParams field
-    ``param`` off and on: the mask PSNR of the views' fills against the truth, the plane texture's
-    plane.json and the stage's output folder, each by the value."""
+def inpaint_plane_on_off(tmp_path: Path, scene, param: str, values: tuple = (False, True)
+                         ) -> tuple[dict[Any, float], dict[Any, dict], dict[Any, Path]]:
+    """The inpaint stage on ``scene`` (its whole masks as holes) with the InpaintParams field ``param``
+    at each of ``values`` (default off and on): the mask PSNR of the views' fills against the truth,
+    the plane texture's plane.json and the stage's output folder, each by the value."""
     import json
 
     from sgpor_pipeline.dag import StageContext
@@ -114,7 +115,7 @@ def inpaint_plane_on_off(tmp_path: Path, scene, param: str
 
     remove = write_remove_fixture(scene, tmp_path / "remove", holes="mask")
     score, plane, out = {}, {}, {}
-    for on in (False, True):
+    for on in values:
         ctx = StageContext.standalone(tmp_path / str(on), "inpaint", InpaintParams(**{param: on}), {"remove": remove})
         InpaintStage().run(ctx)
         plane[on] = json.loads((ctx.out_dir / "plane" / "plane.json").read_text())

@@ -1187,3 +1187,93 @@ def test_inpaint_stage_plane_blend_gives_each_view_the_plane_fill_in_its_own_ton
         edge = filled & ~cv2.erode(holes[lit].astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
         offsets[blend] = float(img[edge].mean() - img[ring].mean())
     assert offsets[False] < -0.06 and abs(offsets[True]) < 0.5 * abs(offsets[False]), offsets
+
+
+def test_membrane_fill_is_the_harmonic_completion_of_the_seen_rim():
+    """membrane_fill: a linear ramp is harmonic, so its hole comes back exactly; other pixels are
+    untouched; unseen neighbours are no boundary (Neumann), and a part with no seen rim takes the seen
+    pixels' mean colour."""
+    from sgpor_pipeline.removal.sbm import membrane_fill
+
+    h, w = 40, 60
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    ramp = np.stack([xx / w, yy / h, 0.5 + 0 * xx], axis=2).astype(np.float32)
+    hole = np.zeros((h, w), bool)
+    hole[10:30, 15:45] = True
+    img = np.where(hole[..., None], 0.0, ramp).astype(np.float32)
+    out = membrane_fill(img, hole, ~hole)
+    assert out.dtype == np.float32 and out.shape == img.shape
+    np.testing.assert_allclose(out[hole], ramp[hole], atol=1e-4)
+    np.testing.assert_array_equal(out[~hole], img[~hole])
+    # an unseen strip (garbage, no view saw it) beside the hole does not pin it
+    unseen = np.zeros((h, w), bool)
+    unseen[10:30, 45:50] = True
+    garbage = np.where(unseen[..., None], 1.0, img).astype(np.float32)
+    kept = membrane_fill(garbage, hole, ~hole & ~unseen)
+    assert np.abs(kept[hole] - ramp[hole]).max() < np.abs(membrane_fill(garbage, hole, ~hole)[hole]
+                                                           - ramp[hole]).max()
+    # no seen rim at all: the seen mean
+    lonely = membrane_fill(img, hole, ~hole & (xx > 50))
+    np.testing.assert_allclose(lonely[hole], np.broadcast_to(img[~hole & (xx > 50)].mean(axis=0),
+                                                             lonely[hole].shape), atol=1e-3)
+
+
+def test_membrane_fill_keeps_structure_cells_apart():
+    """With structure labels each cell is completed from its own rim: a straight border through the
+    hole stays sharp instead of blending the two regions' colours."""
+    from sgpor_pipeline.removal.sbm import membrane_fill
+
+    h, w = 40, 60
+    labels = np.zeros((h, w), np.int32)
+    labels[:, 30:] = 1
+    truth = np.where(labels[..., None] == 0, np.float32([0.1, 0.2, 0.3]), np.float32([0.9, 0.7, 0.2]))
+    truth = truth.astype(np.float32)
+    hole = np.zeros((h, w), bool)
+    hole[12:28, 18:42] = True
+    img = np.where(hole[..., None], 0.0, truth).astype(np.float32)
+    by_cell = membrane_fill(img, hole, ~hole, labels)
+    np.testing.assert_allclose(by_cell[hole], truth[hole], atol=1e-4)
+    blended = membrane_fill(img, hole, ~hole)
+    assert np.abs(blended[hole] - truth[hole]).max() > 0.2
+
+
+def test_a_float_guide_mask_weighs_each_pixel():
+    """inpaint_view's guide_mask as weights: 0 everywhere is no guide; guide_weight everywhere is the
+    bool mask; the weight changes the fill."""
+    img = _gravel(2, 80)
+    yy, xx = np.mgrid[0:80, 0:80]
+    hole = (yy - 40) ** 2 + (xx - 40) ** 2 < 14 ** 2
+    p = SBMParams()
+    bank = build_source_bank(["v"], [img], [hole], [hole], p)
+    guide = np.where(hole[..., None], 0.5, img).astype(np.float32)
+    alone = inpaint_view(img, hole, bank, p).image
+    zero = inpaint_view(img, hole, bank, p, guide=guide, guide_mask=np.zeros(hole.shape, np.float32)).image
+    np.testing.assert_array_equal(zero, alone)
+    as_bool = inpaint_view(img, hole, bank, p, guide=guide, guide_mask=hole).image
+    as_float = inpaint_view(img, hole, bank, p, guide=guide,
+                            guide_mask=np.where(hole, p.guide_weight, 0.0).astype(np.float32)).image
+    np.testing.assert_array_equal(as_float, as_bool)
+    assert not np.array_equal(as_float, alone)
+
+
+def test_inpaint_stage_starts_the_plane_texture_from_its_smooth_completion(tmp_path):
+    """inpaint.plane_smooth_guide: the plane texture's hole is described from the harmonic completion of
+    its rim at that weight (plane.json says how many texels); the views' fills change only inside their
+    holes, and a weight outside [0, 1] is refused before any work."""
+    from conftest import inpaint_plane_on_off
+
+    from sgpor_pipeline.stages.inpaint import InpaintParams, InpaintStage
+    from sgpor_pipeline.synthetic import SceneParams, generate_scene
+
+    sc = generate_scene(SceneParams(seed=0, object_kind="box", n_views=8, width=256, height=192))
+    score, plane, out = inpaint_plane_on_off(tmp_path, sc, "plane_smooth_guide", (0.0, 0.25))
+    assert "smooth_guide" not in plane[0.0]
+    assert plane[0.25]["smooth_guide"] == {"weight": 0.25, "texels": plane[0.25]["hole_texels"]}
+    off, on = (read_image(out[w] / "plane" / "filled.png") for w in (0.0, 0.25))
+    hole = read_mask(out[0.25] / "plane" / "hole.png")
+    assert not np.array_equal(off, on)
+    np.testing.assert_array_equal(off[~hole], on[~hole])
+    assert np.isfinite(list(score.values())).all()
+    with pytest.raises(PipelineError, match="plane_smooth_guide"):
+        InpaintStage().run(StageContext.standalone(tmp_path / "bad", "inpaint", InpaintParams(plane_smooth_guide=2.0),
+                                                   {"remove": tmp_path / "remove"}))

@@ -47,7 +47,7 @@ from sgpor_pipeline.imageio import to_float32
 
 from . import linsolve
 from .features import BlockFeatures, CellLayout, Descriptors, make_backend
-from .structure import other_cells
+from .structure import FREE, other_cells
 
 BLEND_MODES = ("poisson", "feather")
 OVERLAPS = ("mean", "seam")
@@ -564,6 +564,36 @@ def poisson_blend(image: np.ndarray, guide: np.ndarray | None, region: np.ndarra
     return np.clip(out, 0.0, 1.0)
 
 
+def membrane_fill(image: np.ndarray, hole: np.ndarray, seen: np.ndarray,
+                  labels: np.ndarray | None = None) -> np.ndarray:
+    """The ``hole`` pixels of ``image`` (float RGB) completed as smoothly as their ``seen`` rim allows:
+    the harmonic interpolation (lap f = 0) with f = image on the seen pixels beside the hole and
+    Neumann borders elsewhere (unseen neighbours, the image's border). With structure ``labels``
+    (:func:`~sgpor_pipeline.removal.structure.cell_labels`) each cell is completed from its own rim
+    only, so no colour crosses a border the structure continues through the hole (a ``FREE`` part of
+    the hole takes every seen neighbour). A part with no seen rim takes its seen pixels' mean colour.
+    Float32 HxWx3; the other pixels unchanged."""
+    out = to_float32(image).copy()
+    hole = np.asarray(hole, bool)
+    seen = np.asarray(seen, bool) & ~hole
+    if not hole.any():
+        return out
+    if labels is None:
+        groups = [(hole, seen)]
+    else:
+        labels = np.asarray(labels)
+        groups = [(hole & (labels == c), seen if c == FREE else seen & (labels == c))
+                  for c in np.unique(labels[hole])]
+    overall = out[seen].mean(axis=0) if seen.any() else out[hole].mean(axis=0)
+    for part, rim in groups:
+        mean = out[rim].mean(axis=0) if rim.any() else overall
+        flat = np.broadcast_to(mean.astype(np.float32), out.shape)
+        # (the anchor, far weaker than a neighbour's 1, only pins a part with no seen rim)
+        filled = poisson_blend(out, flat, part, boundary=rim, anchor=1e-6)
+        out[part] = filled[part]
+    return out
+
+
 class SeamComposite:
     """Overlapping pasted blocks joined at seams (``SBMParams.overlap="seam"``), as in exemplar-based
     completion: a pixel filled by an earlier onion layer keeps its value (the later blocks were matched
@@ -909,7 +939,9 @@ def inpaint_view(image: np.ndarray, hole: np.ndarray, bank: SourceBank, params: 
     lies in its own cell (others weigh ``1e-3``), so straight borders continue through the hole. With
     ``params.levels`` > 1 the hole starts from :func:`coarse_guide`; ``guide`` (HxWx3), when given,
     is that initial content instead, in its ``guide_mask`` pixels (default: all; e.g. the parts of the
-    hole a translation filled, :func:`~sgpor_pipeline.removal.lattice.lattice_fill`).
+    hole a translation filled, :func:`~sgpor_pipeline.removal.lattice.lattice_fill`). A bool
+    ``guide_mask`` gives its pixels the weight ``params.guide_weight``; a float one (in [0, 1]) is
+    each pixel's weight itself (0: not guided).
     Returns an :class:`SBMResult`.
     """
     t0 = time.perf_counter()
@@ -919,7 +951,14 @@ def inpaint_view(image: np.ndarray, hole: np.ndarray, bank: SourceBank, params: 
     todo = hole.copy() if known is None else hole & ~np.asarray(known, bool)
     h, w = todo.shape
     coarse = coarse_guide(img, todo, bank, params) if guide is None else to_float32(guide)
-    guided = todo if coarse is None or guide_mask is None else todo & np.asarray(guide_mask, bool)
+    guide_weight: np.ndarray | float = params.guide_weight
+    if coarse is None or guide_mask is None:
+        guided = todo
+    elif np.asarray(guide_mask).dtype == bool:
+        guided = todo & np.asarray(guide_mask, bool)
+    else:
+        guide_weight = np.clip(np.asarray(guide_mask, np.float32), 0.0, 1.0)
+        guided = todo & (guide_weight > 0)
     s = params.block_size
     t = params.target_stride
     k = params.top_k
@@ -942,7 +981,7 @@ def inpaint_view(image: np.ndarray, hole: np.ndarray, bank: SourceBank, params: 
     known_now = ~todo
     # what describes and re-ranks a block: known and filled pixels (1), the coarse guide (guide_weight)
     weight_now = (None if coarse is None else
-                  np.where(known_now, 1.0, np.where(guided, params.guide_weight, 0.0)).astype(np.float32))
+                  np.where(known_now, 1.0, np.where(guided, guide_weight, 0.0)).astype(np.float32))
     acc = np.zeros((h, w, 3), np.float32)
     wsum = np.zeros((h, w), np.float32)
     seams = SeamComposite((h, w), targets, s) if params.overlap == "seam" else None

@@ -101,11 +101,12 @@ def run_cli(args: list[str], env: dict[str, str] | None = None, **kw) -> subproc
                           env=env or cli_env(), **kw)
 
 
-def inpaint_plane_on_off(tmp_path: Path, scene, param: str, values: tuple = (False, True)
+def inpaint_plane_on_off(tmp_path: Path, scene, param: str, values: tuple = (False, True), **fixed: Any
                          ) -> tuple[dict[Any, float], dict[Any, dict], dict[Any, Path]]:
     """The inpaint stage on ``scene`` (its whole masks as holes) with the InpaintParams field ``param``
-    at each of ``values`` (default off and on): the mask PSNR of the views' fills against the truth,
-    the plane texture's plane.json and the stage's output folder, each by the value."""
+    at each of ``values`` (default off and on), the ``fixed`` fields set alike: the mask PSNR of the
+    views' fills against the truth, the plane texture's plane.json and the stage's output folder, each
+    by the value."""
     import json
 
     from sgpor_pipeline.dag import StageContext
@@ -116,7 +117,8 @@ def inpaint_plane_on_off(tmp_path: Path, scene, param: str, values: tuple = (Fal
     remove = write_remove_fixture(scene, tmp_path / "remove", holes="mask")
     score, plane, out = {}, {}, {}
     for on in values:
-        ctx = StageContext.standalone(tmp_path / str(on), "inpaint", InpaintParams(**{param: on}), {"remove": remove})
+        ctx = StageContext.standalone(tmp_path / str(on), "inpaint", InpaintParams(**fixed, **{param: on}),
+                                      {"remove": remove})
         InpaintStage().run(ctx)
         plane[on] = json.loads((ctx.out_dir / "plane" / "plane.json").read_text())
         sq = [((read_image(ctx.out_dir / "images" / f"{c.name}.png") - scene.images_gt[i]) ** 2)[scene.masks[i]]

@@ -169,7 +169,8 @@ def test_inpaint_stage_keeps_the_coins_grid_under_the_box(tmp_path):
 
     sc = generate_scene(SceneParams(seed=0, object_kind="box", rug_texture="coins", n_views=8, width=256,
                                     height=192))
-    score, plane, _ = inpaint_plane_on_off(tmp_path, sc, "plane_lattice")
+    # (the translation alone: the smooth start of the rest of the hole is another option's work)
+    score, plane, _ = inpaint_plane_on_off(tmp_path, sc, "plane_lattice", plane_smooth_guide=0.0)
     assert "lattice" not in plane[False]
     lat = plane[True]["lattice"]
     assert lat["used"] and lat["left"] < 0.05 * plane[True]["hole_texels"], lat  # (a sliver beside the rug: SBM's)

@@ -1277,3 +1277,15 @@ def test_inpaint_stage_starts_the_plane_texture_from_its_smooth_completion(tmp_p
     with pytest.raises(PipelineError, match="plane_smooth_guide"):
         InpaintStage().run(StageContext.standalone(tmp_path / "bad", "inpaint", InpaintParams(plane_smooth_guide=2.0),
                                                    {"remove": tmp_path / "remove"}))
+
+
+def test_high_pass_is_the_texture_without_its_colour():
+    from sgpor_pipeline.removal.sbm import high_pass
+
+    flat = np.full((30, 40, 3), 0.4, np.float32)
+    np.testing.assert_allclose(high_pass(flat, 15), 0.0, atol=1e-6)
+    img = _gravel(3, 60)
+    hp = high_pass(img, 15)
+    assert hp.dtype == np.float32 and hp.shape == img.shape
+    np.testing.assert_allclose(hp + cv2.GaussianBlur(img, (0, 0), 3.0), img, atol=1e-6)
+    assert abs(float(hp.mean())) < 0.01 < float(hp.std())

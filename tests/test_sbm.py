@@ -1257,9 +1257,10 @@ def test_a_float_guide_mask_weighs_each_pixel():
 
 
 def test_inpaint_stage_starts_the_plane_texture_from_its_smooth_completion(tmp_path):
-    """inpaint.plane_smooth_guide: the plane texture's hole is described from the harmonic completion of
-    its rim at that weight (plane.json says how many texels); the views' fills change only inside their
-    holes, and a weight outside [0, 1] is refused before any work."""
+    """inpaint.plane_smooth_guide: the plane texture's hole is filled a second time, described from the
+    harmonic completion of its rim (plus the first fill's texture) at that weight; plane.json says how
+    many texels; 0 fills once. The fill changes only inside the hole, and a weight outside [0, 1] is
+    refused before any work."""
     from conftest import inpaint_plane_on_off
 
     from sgpor_pipeline.stages.inpaint import InpaintParams, InpaintStage

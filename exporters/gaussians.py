@@ -24,6 +24,7 @@ import numpy as np
 from sgpor_pipeline.dag import Exporter, StageContext
 from sgpor_pipeline.orientation import ExportFrame, FrameSettings, compute_export_frame, transform_model
 from sgpor_pipeline.scene import Camera, load_cameras
+from sgpor_pipeline.views import VIEWS_FILE, load_views
 
 #: The stage whose cache folder holds the scene's Gaussians (``gaussians.ply``) that every exporter
 #: reads. ``finetune`` (the cleaned scene) replaces ``fit`` here once it exists.
@@ -36,6 +37,9 @@ CAMERAS_STAGE = "sfm"
 #: views' poses refined, ``fit.pose_refine``); the exporters read the run's cameras from there.
 POSES_STAGE = "fit"
 FRAME_FILE = "export_frame.json"
+#: The stage whose ``views.json`` holds the photos' GPS positions (the export frame's metric scale); an
+#: optional input of every exporter that writes in the export frame.
+GPS_STAGE = "ingest"
 
 log = logging.getLogger(__name__)
 
@@ -85,7 +89,8 @@ def export_frame(ctx: StageContext, model: Any, cameras: list[Camera], out_dir: 
     settings = FrameSettings.from_params(ctx.params)
     with torch.no_grad():
         opac = model.opacities_activated().numpy()
-    frame = compute_export_frame(registered(cameras) or cameras, settings, model.numpy()["means"], opac)
+    frame = compute_export_frame(registered(cameras) or cameras, settings, model.numpy()["means"], opac,
+                                 photo_gps(ctx))
     if out_dir is not None and not (out_dir / FRAME_FILE).exists():
         (out_dir / FRAME_FILE).write_text(json.dumps(frame.to_dict(), indent=1))
         ctx.log.info(frame.describe())
@@ -93,6 +98,16 @@ def export_frame(ctx: StageContext, model: Any, cameras: list[Camera], out_dir: 
             ctx.log.warning("export: no scale given, the exported scene is in arbitrary units (recorded as "
                             "sgpor:units = 'arbitrary' in the USD and in export_frame.json)")
     return frame
+
+
+def photo_gps(ctx: StageContext) -> dict[str, list] | None:
+    """The photos' EXIF GPS positions as the ingest stage read them (view name -> [latitude, longitude,
+    altitude]), or None when the run has no ingest stage (Gaussians from elsewhere) or no photo has one."""
+    folder = ctx.inputs.get(GPS_STAGE)
+    if folder is None or not (Path(folder) / VIEWS_FILE).is_file():
+        return None
+    gps = {v.name: v.gps for v in load_views(Path(folder)) if v.gps is not None}
+    return gps or None
 
 
 def scene_in_export_frame(ctx: StageContext, out_dir: Path) -> tuple[Any, ExportFrame, list[Camera]]:
@@ -111,6 +126,7 @@ class PlyExporter(Exporter):
     name = "ply"
     VERSION = 1
     needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE)
+    optional_needs = (GPS_STAGE,)
     description = "the Gaussians as scene.ply (INRIA 3DGS layout, export frame) and export_frame.json"
 
     def export(self, ctx: StageContext, out_dir: Path) -> None:
@@ -126,6 +142,7 @@ class SplatExporter(Exporter):
     name = "splat"
     VERSION = 1
     needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE)
+    optional_needs = (GPS_STAGE,)
     description = "the Gaussians as scene.splat (antimatter15 format, export frame, DC colour only)"
 
     def export(self, ctx: StageContext, out_dir: Path) -> None:
@@ -186,6 +203,7 @@ class ObjectExporter(Exporter):
     name = "object"
     VERSION = 2  # 2: object.glb's normals of unit length
     needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE, "remove")
+    optional_needs = (GPS_STAGE,)
     description = "the removed object as object/object.ply and object/object.glb (export frame)"
     OBJECT_FILE = "object.ply"
 

@@ -22,6 +22,7 @@ from sgpor_pipeline.scene import Camera
 
 from .gaussians import (
     CAMERAS_STAGE,
+    GPS_STAGE,
     POSES_STAGE,
     SCENE_STAGE,
     export_frame,
@@ -131,6 +132,7 @@ class MeshExporter(Exporter):
     VERSION = 3  # 2: unit normals everywhere (glTF requires them; a decimation fold left zeros); GLB buffer targets;
     # 3: decimated by fast-simplification (meshing.decimate)
     needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE)
+    optional_needs = (GPS_STAGE,)
     description = "a coloured mesh (TSDF of rendered depth) as mesh.glb (Y up), mesh.obj and mesh.ply (Z up)"
 
     def export(self, ctx: StageContext, out_dir: Path) -> None:

@@ -30,7 +30,16 @@ from sgpor_pipeline.meshing import MeshData
 from sgpor_pipeline.orientation import ExportFrame, quat_to_matrix, scene_center_radius
 from sgpor_pipeline.scene import Camera
 
-from .gaussians import CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE, export_frame, load_run_cameras, load_scene, registered
+from .gaussians import (
+    CAMERAS_STAGE,
+    GPS_STAGE,
+    POSES_STAGE,
+    SCENE_STAGE,
+    export_frame,
+    load_run_cameras,
+    load_scene,
+    registered,
+)
 
 #: OpenCV camera axes (x right, y down, z forward) -> USD camera axes (x right, y up, looks down -z)
 CV_TO_USD_CAMERA = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -216,6 +225,7 @@ class UsdExporter(Exporter):
     name = "usd"
     VERSION = 2  # 2: the mesh collider's normals of unit length
     needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE)
+    optional_needs = (GPS_STAGE,)
     description = "scene.usda/.usdc/.usdz: Gaussians (UsdVol splat), mesh collider, cameras; Z up, metres"
 
     def export(self, ctx: StageContext, out_dir: Path) -> None:

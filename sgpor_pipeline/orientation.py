@@ -24,8 +24,10 @@ Up (``FrameSettings.up``):
     A known axis of the SfM frame (e.g. ``"-y"`` for a frame that is already OpenCV-like).
 
 Scale: ``scale`` (metres per SfM unit) or ``known_distance`` (two camera or image names and the
-distance between their centres in metres). With neither, the unit is arbitrary (the SfM unit): the
-exporters say so in the log and in the files' metadata (USD ``customLayerData`` ``sgpor:units``).
+distance between their centres in metres). With neither, and ``scale_from_gps`` (default), the photos'
+EXIF GPS positions give it where the camera moved far enough for their error (:mod:`sgpor_pipeline.gps`:
+a walk along a street, not a room). Otherwise the unit is arbitrary (the SfM unit): the exporters say
+so in the log and in the files' metadata (USD ``customLayerData`` ``sgpor:units``).
 
 Origin (``FrameSettings.origin``): ``"floor"`` (default): horizontally the point the cameras look
 at, vertically a low percentile of the heights of the opaque Gaussians (the floor or the table the
@@ -35,7 +37,7 @@ Heading: the first registered camera (by name) looks along +Y (its viewing direc
 the horizontal plane), so the result does not depend on the SfM frame's arbitrary rotation.
 
 The export stage's parameters of the same names set them (``export.up``, ``export.scale``,
-``export.known_distance``, ``export.origin``; the CLI's ``--up`` and ``--scale``), read by
+``export.known_distance``, ``export.scale_from_gps``, ``export.origin``; the CLI's ``--up`` and ``--scale``), read by
 :meth:`FrameSettings.from_params`.
 """
 
@@ -43,7 +45,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, fields
 from typing import Any
 
@@ -66,6 +68,7 @@ class FrameSettings:
     up: str = "auto"
     scale: float | None = None  # metres per SfM unit
     known_distance: tuple[str, str, float] | None = None  # (camera a, camera b, metres between them)
+    scale_from_gps: bool = True  # without the two above: metres from the photos' GPS, where it is good enough
     origin: str = "floor"
     floor_percentile: float = 1.0  # percentile of the opaque Gaussians' heights taken as the floor
 
@@ -401,6 +404,7 @@ class ExportFrame:
     metric: bool  # True when the unit is the metre
     scale_source: str
     origin: str
+    gps: dict[str, Any] | None = None  # the photos' GPS: the scale it gave (GpsScale.to_dict), or why not
 
     @property
     def units(self) -> str:
@@ -410,20 +414,24 @@ class ExportFrame:
         return {"format": "sgpor-export-frame/1", "up_axis": "Z", "units": self.units,
                 "scale_source": self.scale_source, "up_method": self.up_method,
                 "up_in_sfm_frame": self.up_sfm.tolist(), "origin": self.origin,
-                "export_from_sfm": self.transform.to_dict()}
+                "export_from_sfm": self.transform.to_dict(), **({"gps": self.gps} if self.gps else {})}
 
     def describe(self) -> str:
+        gps = (f"; the photos' GPS was not used: {self.gps['reason']}"
+               if self.gps and not self.gps.get("used") else "")
         unit = ("metres (" + self.scale_source + ")") if self.metric else \
-            "ARBITRARY units (no scale given: set a scale or a known distance between two cameras)"
+            f"ARBITRARY units (no scale given: set a scale or a known distance between two cameras{gps})"
         return f"export frame: Z up ({self.up_method}), {unit}, origin {self.origin}"
 
 
 def compute_export_frame(cameras: Sequence[Camera], settings: FrameSettings | None = None,
-                         means: np.ndarray | None = None, opacities: np.ndarray | None = None) -> ExportFrame:
+                         means: np.ndarray | None = None, opacities: np.ndarray | None = None,
+                         gps: Mapping[str, Sequence[float | None] | None] | None = None) -> ExportFrame:
     """The export frame for a scene seen by ``cameras`` (registered ones; novel cameras are ignored).
 
     ``means`` (SfM frame) and ``opacities`` (activated, in [0,1]) of the Gaussians place the floor
-    for ``origin="floor"``; without them the origin is the look-at point.
+    for ``origin="floor"``; without them the origin is the look-at point. ``gps`` (image name ->
+    (latitude, longitude, altitude)): the photos' GPS positions, for the scale when none is given.
     """
     settings = settings or FrameSettings()
     cams = [c for c in cameras if c.image is not None] or list(cameras)
@@ -443,6 +451,18 @@ def compute_export_frame(cameras: Sequence[Camera], settings: FrameSettings | No
         s, source, metric = metres / d, f"{a} to {b} = {metres:g} m", True
     else:
         s, source, metric = 1.0, "none", False
+    gps_info: dict[str, Any] | None = None
+    if gps and settings.scale is None and settings.known_distance is None:
+        if settings.scale_from_gps:
+            from .gps import gps_scale
+
+            fitted, why = gps_scale(cams, gps, up)
+            gps_info = fitted.to_dict() if fitted is not None else {"used": False, "reason": why}
+            if fitted is not None:
+                s, source, metric = fitted.scale, fitted.describe(), True
+                gps_info["used"] = True
+        else:
+            gps_info = {"used": False, "reason": "export.scale_from_gps is off"}
 
     if settings.origin == "none" or not cams:
         c = np.zeros(3)
@@ -461,4 +481,4 @@ def compute_export_frame(cameras: Sequence[Camera], settings: FrameSettings | No
                 c = c + float(np.percentile(h, settings.floor_percentile)) * up
                 origin = "floor below the look-at point"
     t = -s * (R @ c)
-    return ExportFrame(Similarity(s, R, t), up, how, metric, source, origin)
+    return ExportFrame(Similarity(s, R, t), up, how, metric, source, origin, gps_info)

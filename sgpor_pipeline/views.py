@@ -23,6 +23,9 @@ class View:
     source: str  # the original file name
     source_width: int
     source_height: int
+    # where the photo was taken (EXIF GPS): [latitude, longitude, altitude in metres or None]; None when
+    # it carries none (or was ingested by a version that did not read it)
+    gps: list | None = None
 
 
 def save_views(folder: Path, views: list[View]) -> None:

@@ -24,6 +24,7 @@ class ExportParams:
     up: str = "auto"  # auto, cameras, ring, +x, -x, +y, -y, +z, -z
     scale: float | None = None  # metres per SfM unit; None (and no known_distance): arbitrary units
     known_distance: list | None = None  # [camera_a, camera_b, metres between their centres]
+    scale_from_gps: bool = True  # without scale / known_distance: metres from the photos' EXIF GPS (sgpor_pipeline.gps)
     origin: str = "floor"  # floor, center, none
     # The mesh (sgpor_pipeline.meshing.MeshSettings, fields prefixed "mesh_").
     mesh_target_faces: int = 200_000

@@ -1,7 +1,8 @@
 """ingest: normalise photos and masks, and import known cameras.
 
 Out: ``images/<view>.png`` (8-bit RGB, EXIF orientation applied, optionally downscaled),
-``masks/<view>.png`` (0/1) for the views that have a mask, ``views.json``, and ``cameras.json``
+``masks/<view>.png`` (0/1) for the views that have a mask, ``views.json`` (with each photo's EXIF GPS
+position, when it has one: the export's metric scale, :mod:`sgpor_pipeline.gps`), and ``cameras.json``
 when ``--cameras`` was given (cameras without an image are kept as novel views).
 Each photo is a cached item: adding a photo to the folder processes only that photo.
 """
@@ -19,6 +20,7 @@ import numpy as np
 
 from sgpor_pipeline.dag import Stage, StageContext
 from sgpor_pipeline.errors import PipelineError
+from sgpor_pipeline.gps import read_gps
 from sgpor_pipeline.imageio import (
     IMAGE_EXTENSIONS,
     UnreadableImageError,
@@ -184,8 +186,9 @@ class IngestStage(Stage):
                 _link_or_copy(item / "mask.png", ctx.out_dir / mask_rel)
                 if info["mask_pixels"] == 0:
                     empty_masks.append(stem)
+            gps = read_gps(path)  # (read here, not in the item: cheap, and items cached before it stay valid)
             views.append(View(stem, f"images/{stem}.png", mask_rel, info["width"], info["height"], path.name,
-                              info["source_width"], info["source_height"]))
+                              info["source_width"], info["source_height"], None if gps is None else list(gps)))
 
         if unreadable:
             ctx.log.warning(f"skipped {len(unreadable)} unreadable file(s): {', '.join(unreadable)} (fix: re-export "
@@ -214,5 +217,9 @@ class IngestStage(Stage):
             ctx.log.info(f"ingest: {len(downscaled)} of {len(views)} photos downscaled to at most "
                          f"{ctx.params.max_size} px (e.g. {v.source_width}x{v.source_height} -> {v.width}x{v.height}; "
                          f"--set ingest.max_size=0 keeps the original size)")
-        ctx.notes.update(images=len(views), masks=len(masked), unreadable=unreadable,
+        with_gps = sum(v.gps is not None for v in views)
+        if with_gps:
+            ctx.log.info(f"ingest: {with_gps} of {len(views)} photos carry a GPS position (the export's metric "
+                         "scale when they spread far enough: export.scale_from_gps)")
+        ctx.notes.update(images=len(views), masks=len(masked), unreadable=unreadable, gps=with_gps,
                          size=[int(sizes[:, 0].max()), int(sizes[:, 1].max())])

@@ -101,8 +101,9 @@ def surface_gaussians(scene, n: int, seed: int = 0, obj: bool = False) -> Gaussi
 
 
 def make_run(tmp_path: Path, model: GaussianModel, cameras: list[Camera], images: list[np.ndarray] | None = None,
-             masks: list[np.ndarray | None] | None = None) -> StageContext:
-    """Fake upstream stage folders (ingest, sfm, fit) and the export stage's context."""
+             masks: list[np.ndarray | None] | None = None, gps: dict[str, list] | None = None) -> StageContext:
+    """Fake upstream stage folders (ingest, sfm, fit) and the export stage's context; ``gps``: the
+    photos' GPS positions as ingest records them (view name -> [latitude, longitude, altitude])."""
     from sgpor_pipeline.stages.export import ExportParams
 
     fit, sfm, ingest = tmp_path / "fit", tmp_path / "sfm", tmp_path / "ingest"
@@ -125,7 +126,8 @@ def make_run(tmp_path: Path, model: GaussianModel, cameras: list[Camera], images
         if mask is not None:
             write_mask01(ingest / "masks" / f"{cam.image}.png", mask)
         views.append(View(cam.image, f"images/{cam.image}.png", None if mask is None else f"masks/{cam.image}.png",
-                          cam.width, cam.height, f"{cam.image}.png", cam.width, cam.height))
+                          cam.width, cam.height, f"{cam.image}.png", cam.width, cam.height,
+                          (gps or {}).get(cam.image)))
     save_views(ingest, views)
     out = tmp_path / "export"
     out.mkdir()
@@ -221,6 +223,36 @@ def test_up_axis_of_a_rotated_rig(rig):
         assert np.abs(T.apply(floor_pts)[:, 2]).max() < 0.05
     frame = compute_export_frame(scene.cameras)
     assert not frame.metric and frame.units == "arbitrary"
+
+
+def test_export_is_metric_from_the_photos_gps(tmp_path):
+    """Photos whose GPS positions are their camera centres x 20 m (a 120 m wide ring): the exported scene
+    is in metres, export_frame.json says where the scale came from, and scale_from_gps=false keeps the
+    SfM unit."""
+    from dataclasses import replace
+
+    from sgpor_pipeline.exporters.gaussians import PlyExporter
+    from sgpor_pipeline.gps import east_north
+
+    cams = small_cameras(8)
+    lat0, lon0 = 48.0, 11.0
+    k = east_north(np.array([lat0 + 1e-4, lat0]), np.array([lon0, lon0 + 1e-4]), lat0, lon0)
+    gps = {c.image: [lat0 + 20 * c.center[1] * 1e-4 / k[0, 1], lon0 + 20 * c.center[0] * 1e-4 / k[1, 0], None]
+           for c in cams}
+    m = random_model(100, 0, seed=2, spread=0.5)
+    ctx = make_run(tmp_path, m, cams, gps=gps)
+    PlyExporter().export(ctx, ctx.out_dir)
+    frame = json.loads((ctx.out_dir / "export_frame.json").read_text())
+    assert frame["units"] == "metres" and frame["scale_source"].startswith("GPS of 8 photos")
+    assert frame["export_from_sfm"]["scale"] == pytest.approx(20.0, rel=1e-3) and frame["gps"]["used"]
+    assert np.allclose(np.exp(read_ply(ctx.out_dir / "scene.ply").numpy()["scales"]),
+                       20.0 * np.exp(m.numpy()["scales"]), rtol=1e-3)
+
+    (ctx.out_dir / "export_frame.json").unlink()
+    off = replace(ctx, params=replace(ctx.params, scale_from_gps=False))
+    PlyExporter().export(off, off.out_dir)
+    frame = json.loads((off.out_dir / "export_frame.json").read_text())
+    assert frame["units"] == "arbitrary" and frame["gps"]["reason"] == "export.scale_from_gps is off"
 
 
 def test_frame_transform_keeps_the_images():

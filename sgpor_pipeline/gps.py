@@ -1,0 +1,171 @@
+"""Metric scale from the photos' GPS (EXIF): how many metres one SfM unit is.
+
+Phones and most cameras write where each photo was taken (EXIF GPS: latitude, longitude, altitude).
+Structure from motion knows the camera centres up to a similarity; their horizontal positions and the
+GPS positions (in a local east-north plane) differ by a 2D similarity whose factor is the scale. A
+phone's position is off by a few metres, so the scale is only trusted when the cameras moved much
+farther than that: a walk along a street (lund: 29 photos over about 180 m) gives it within a few per
+cent; a room or a table-top capture, whose camera moves by a few metres, does not, and stays in
+arbitrary units unless a scale or a known distance is given (:mod:`sgpor_pipeline.orientation`).
+
+Altitude is not used: a phone's GPS altitude is off by tens of metres, and the horizontal track alone
+fixes the scale. "Up" comes from the cameras (:func:`sgpor_pipeline.orientation.estimate_up`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .scene import Camera
+
+_GPS_IFD = 0x8825
+_LAT_REF, _LAT, _LON_REF, _LON, _ALT_REF, _ALT = 1, 2, 3, 4, 5, 6
+# WGS84
+_A = 6378137.0
+_E2 = 6.69437999014e-3
+
+
+def _degrees(dms: Any) -> float:
+    """An EXIF (degrees, minutes, seconds) triple of rationals, or one number, in degrees."""
+    if isinstance(dms, (tuple, list)):
+        parts = [float(x) for x in dms] + [0.0, 0.0]
+        return parts[0] + parts[1] / 60.0 + parts[2] / 3600.0
+    return float(dms)
+
+
+def read_gps(path: str | Path) -> tuple[float, float, float | None] | None:
+    """(latitude, longitude in degrees, altitude in metres or None) from a photo's EXIF, or None when
+    it has no usable GPS position (no EXIF, no GPS block, a zero or out-of-range position)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            gps = im.getexif().get_ifd(_GPS_IFD)
+    except Exception:  # (an unreadable file is reported by the image reader, not here)
+        return None
+    if not gps or _LAT not in gps or _LON not in gps:
+        return None
+    try:
+        lat, lon = _degrees(gps[_LAT]), _degrees(gps[_LON])
+        if str(gps.get(_LAT_REF, "N")).strip().upper().startswith("S"):
+            lat = -lat
+        if str(gps.get(_LON_REF, "E")).strip().upper().startswith("W"):
+            lon = -lon
+        alt = float(gps[_ALT]) if _ALT in gps else None
+        if alt is not None and gps.get(_ALT_REF) in (1, b"\x01"):
+            alt = -alt
+    except (TypeError, ValueError, ZeroDivisionError):
+        return None
+    if not (math.isfinite(lat) and math.isfinite(lon)) or abs(lat) > 90 or abs(lon) > 180 or (lat == 0 and lon == 0):
+        return None
+    return lat, lon, alt if alt is not None and math.isfinite(alt) else None
+
+
+def east_north(lat: np.ndarray, lon: np.ndarray, lat0: float, lon0: float) -> np.ndarray:
+    """[N,2] metres east and north of (``lat0``, ``lon0``) on the WGS84 ellipsoid, in the tangent plane
+    there (its radii of curvature; within 0.1 % up to a few km away)."""
+    phi = math.radians(lat0)
+    w = math.sqrt(1.0 - _E2 * math.sin(phi) ** 2)
+    north_radius = _A * (1.0 - _E2) / w ** 3  # meridian
+    east_radius = _A / w  # prime vertical
+    east = np.radians(np.asarray(lon, np.float64) - lon0) * east_radius * math.cos(phi)
+    north = np.radians(np.asarray(lat, np.float64) - lat0) * north_radius
+    return np.stack([east, north], axis=1)
+
+
+@dataclass
+class GpsScale:
+    """:func:`gps_scale`'s result: metres per SfM unit and how well the track determined it."""
+
+    scale: float  # metres per SfM unit
+    photos: int  # photos used (after the outliers were dropped)
+    track_m: float  # the track's extent: the largest distance between two of them, metres
+    spread_m: float  # RMS distance of the GPS positions from their mean, metres
+    residual_m: float  # RMS distance between the GPS positions and the mapped camera centres, metres
+    uncertainty: float  # relative standard error of the scale
+    dropped: list[str] = field(default_factory=list)  # photos whose GPS disagreed (outliers)
+
+    def describe(self) -> str:
+        return (f"GPS of {self.photos} photos ({self.track_m:.0f} m track, positions within "
+                f"{self.residual_m:.1f} m RMS, scale +-{100 * self.uncertainty:.1f} %)")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"scale": self.scale, "photos": self.photos, "track_m": self.track_m, "spread_m": self.spread_m,
+                "residual_m": self.residual_m, "uncertainty": self.uncertainty, "dropped": self.dropped}
+
+
+@dataclass
+class GpsParams:
+    min_photos: int = 5
+    min_spread_ratio: float = 4.0  # the track's RMS spread must be this many x the positions' RMS error
+    max_uncertainty: float = 0.05  # relative standard error of the scale
+    outlier_m: float = 3.0  # drop a photo farther than max(this x the median residual, min_outlier_m)
+    min_outlier_m: float = 10.0
+
+
+def _similarity_2d(src: np.ndarray, dst: np.ndarray) -> tuple[complex, complex]:
+    """Least-squares ``dst ~ a src + b`` of complex numbers (a 2D rotation and scale, never a
+    reflection): (a, b)."""
+    ms, md = src.mean(), dst.mean()
+    cs, cd = src - ms, dst - md
+    a = complex((np.conj(cs) * cd).sum() / max((np.abs(cs) ** 2).sum(), 1e-300))
+    return a, complex(md - a * ms)
+
+
+def gps_scale(cameras: Sequence[Camera], gps: Mapping[str, Sequence[float | None] | None], up: np.ndarray,
+              params: GpsParams | None = None) -> tuple[GpsScale | None, str]:
+    """Metres per SfM unit from the registered ``cameras``' centres and their photos' ``gps`` (image
+    name -> (latitude, longitude, altitude)): the camera centres, projected onto the plane normal to
+    ``up``, are mapped onto the GPS positions (east, north) by a least-squares 2D similarity; photos
+    whose residual is an outlier are dropped once and the fit repeated. Refused, with the reason, when
+    fewer than ``min_photos`` photos have GPS, when the track's spread is not ``min_spread_ratio`` x
+    the residual, or when the scale's standard error exceeds ``max_uncertainty``."""
+    p = params or GpsParams()
+    pairs = [(c, gps[c.image]) for c in cameras if c.image is not None and gps.get(c.image) is not None]
+    if len(pairs) < p.min_photos:
+        return None, f"{len(pairs)} registered photos carry GPS (at least {p.min_photos} are needed)"
+    names = [c.image for c, _ in pairs]
+    lat = np.array([g[0] for _, g in pairs], np.float64)
+    lon = np.array([g[1] for _, g in pairs], np.float64)
+    en = east_north(lat, lon, float(lat.mean()), float(lon.mean()))
+    up = np.asarray(up, np.float64) / np.linalg.norm(up)
+    e1 = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(up, e1)  # (e1, e2, up) right-handed, as (east, north, up)
+    centres = np.stack([c.center for c, _ in pairs])
+    src = centres @ e1 + 1j * (centres @ e2)
+    dst = en[:, 0] + 1j * en[:, 1]
+    keep = np.ones(len(src), bool)
+    for _ in range(2):
+        a, b = _similarity_2d(src[keep], dst[keep])
+        res = np.abs(a * src + b - dst)
+        limit = max(p.outlier_m * float(np.median(res[keep])), p.min_outlier_m)
+        new_keep = res <= limit
+        if new_keep.sum() < p.min_photos or (new_keep == keep).all():
+            break
+        keep = new_keep
+    a, b = _similarity_2d(src[keep], dst[keep])
+    res = np.abs(a * src[keep] + b - dst[keep])
+    n = int(keep.sum())
+    residual = float(np.sqrt(np.mean(res ** 2)))
+    spread = float(np.sqrt(np.mean(np.abs(dst[keep] - dst[keep].mean()) ** 2)))
+    track = float(np.max(np.abs(dst[keep][:, None] - dst[keep][None]))) if n > 1 else 0.0
+    # (the scale's standard error: the residual's per-axis spread over the track's spread and sqrt(n))
+    uncertainty = residual / max(spread * math.sqrt(2.0 * n), 1e-12)
+    scale = abs(a)
+    result = GpsScale(scale, n, track, spread, residual, uncertainty, [m for m, k in zip(names, keep) if not k])
+    if not (math.isfinite(scale) and scale > 0):
+        return None, "the camera centres do not spread horizontally"
+    if spread < p.min_spread_ratio * max(residual, 1.0):
+        return None, (f"the photos' GPS positions spread {spread:.1f} m, not far beyond their "
+                      f"{max(residual, 1.0):.1f} m error (a walk of tens of metres fixes the scale, a room does not)")
+    if uncertainty > p.max_uncertainty:
+        return None, (f"the scale from GPS is uncertain by {100 * uncertainty:.0f} % "
+                      f"(limit {100 * p.max_uncertainty:.0f} %)")
+    return result, ""

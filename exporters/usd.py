@@ -172,6 +172,11 @@ def build_stage(model: Any, mesh: MeshData | None, cameras: list[Camera], frame:
         "sgpor:origin": frame.origin,
         "sgpor:exportFromSfm": json.dumps(frame.transform.matrix.round(12).tolist()),
     }
+    if frame.gps and frame.gps.get("used"):  # placed on the map by the photos' GPS (to its few metres)
+        layer.customLayerData = dict(layer.customLayerData, **{
+            "sgpor:originLatitude": float(frame.gps["origin_latitude"]),
+            "sgpor:originLongitude": float(frame.gps["origin_longitude"]),
+            "sgpor:azimuthOfY": float(frame.gps["azimuth_of_y_deg"])})
 
     scene = UsdPhysics.Scene.Define(stage, "/World/PhysicsScene")
     scene.CreateGravityDirectionAttr(Gf.Vec3f(0.0, 0.0, -1.0))

@@ -90,6 +90,28 @@ class GpsScale:
     residual_m: float  # RMS distance between the GPS positions and the mapped camera centres, metres
     uncertainty: float  # relative standard error of the scale
     dropped: list[str] = field(default_factory=list)  # photos whose GPS disagreed (outliers)
+    # the fitted map, for geo-referencing: SfM point x -> (east + i north) = a ((x.e1) + i (x.e2)) + b
+    # metres from (lat0, lon0)
+    a: complex = 1.0
+    b: complex = 0.0
+    e1: np.ndarray = field(default_factory=lambda: np.array([1.0, 0.0, 0.0]))
+    e2: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))
+    lat0: float = 0.0
+    lon0: float = 0.0
+
+    def latitude_longitude(self, point: np.ndarray) -> tuple[float, float]:
+        """Where an SfM-frame point lies on the map (degrees; from the horizontal fit, to its accuracy)."""
+        p = np.asarray(point, np.float64)
+        z = self.a * complex(p @ self.e1, p @ self.e2) + self.b
+        k = east_north(np.array([self.lat0 + 1e-5, self.lat0]), np.array([self.lon0, self.lon0 + 1e-5]),
+                       self.lat0, self.lon0)  # metres per 1e-5 degree north, east
+        return self.lat0 + z.imag * 1e-5 / k[0, 1], self.lon0 + z.real * 1e-5 / k[1, 0]
+
+    def azimuth_deg(self, direction: np.ndarray) -> float:
+        """The compass bearing (degrees clockwise from north) of an SfM-frame direction's horizontal part."""
+        d = np.asarray(direction, np.float64)
+        z = self.a * complex(d @ self.e1, d @ self.e2)
+        return float(np.degrees(np.arctan2(z.real, z.imag)) % 360.0)
 
     def describe(self) -> str:
         return (f"GPS of {self.photos} photos ({self.track_m:.0f} m track, positions within "
@@ -159,7 +181,8 @@ def gps_scale(cameras: Sequence[Camera], gps: Mapping[str, Sequence[float | None
     # (the scale's standard error: the residual's per-axis spread over the track's spread and sqrt(n))
     uncertainty = residual / max(spread * math.sqrt(2.0 * n), 1e-12)
     scale = abs(a)
-    result = GpsScale(scale, n, track, spread, residual, uncertainty, [m for m, k in zip(names, keep) if not k])
+    result = GpsScale(scale, n, track, spread, residual, uncertainty, [m for m, k in zip(names, keep) if not k],
+                      a, b, e1, e2, float(lat.mean()), float(lon.mean()))
     if not (math.isfinite(scale) and scale > 0):
         return None, "the camera centres do not spread horizontally"
     if spread < p.min_spread_ratio * max(residual, 1.0):

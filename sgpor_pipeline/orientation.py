@@ -481,4 +481,8 @@ def compute_export_frame(cameras: Sequence[Camera], settings: FrameSettings | No
                 c = c + float(np.percentile(h, settings.floor_percentile)) * up
                 origin = "floor below the look-at point"
     t = -s * (R @ c)
+    if gps_info is not None and gps_info.get("used"):  # where the export frame sits on the map
+        lat, lon = fitted.latitude_longitude(c)
+        gps_info.update(origin_latitude=lat, origin_longitude=lon, azimuth_of_y_deg=fitted.azimuth_deg(R.T[:, 1]),
+                        azimuth_of_x_deg=fitted.azimuth_deg(R.T[:, 0]))
     return ExportFrame(Similarity(s, R, t), up, how, metric, source, origin, gps_info)

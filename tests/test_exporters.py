@@ -247,6 +247,22 @@ def test_export_is_metric_from_the_photos_gps(tmp_path):
     assert frame["export_from_sfm"]["scale"] == pytest.approx(20.0, rel=1e-3) and frame["gps"]["used"]
     assert np.allclose(np.exp(read_ply(ctx.out_dir / "scene.ply").numpy()["scales"]),
                        20.0 * np.exp(m.numpy()["scales"]), rtol=1e-3)
+    # the USD says so, and where on the map its origin lies (the cameras look at the ring's centre)
+    from pxr import Usd
+
+    from sgpor_pipeline.exporters.mesh import write_mesh
+    from sgpor_pipeline.exporters.usd import UsdExporter
+
+    v = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], float)
+    write_mesh(MeshData(v, np.array([[0, 1, 2], [0, 2, 3]]), np.full((4, 3), 0.5, np.float32)), ctx.out_dir,
+               "mesh", formats=("ply",))
+    UsdExporter().export(ctx, ctx.out_dir)
+    stage = Usd.Stage.Open(str(ctx.out_dir / "scene.usda"))
+    data = stage.GetRootLayer().customLayerData
+    assert data["sgpor:units"] == "metres" and data["sgpor:scaleSource"].startswith("GPS")
+    assert data["sgpor:originLatitude"] == pytest.approx(lat0, abs=2e-5)  # (2 m)
+    assert data["sgpor:originLongitude"] == pytest.approx(lon0, abs=3e-5)
+    assert 0.0 <= data["sgpor:azimuthOfY"] < 360.0
 
     (ctx.out_dir / "export_frame.json").unlink()
     off = replace(ctx, params=replace(ctx.params, scale_from_gps=False))

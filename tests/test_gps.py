@@ -172,6 +172,18 @@ def test_export_frame_takes_the_gps_scale_unless_one_is_given():
     assert np.linalg.norm(np.diff(centres, axis=0), axis=1).sum() == pytest.approx(
         np.linalg.norm(np.diff(metric, axis=0), axis=1).sum(), rel=0.03)
 
+    # on the map: the export origin where the walk's metric frame (x east, y north) puts it, +Y along the
+    # first camera's view
+    origin_metric = (frame.transform.inverse().apply(np.zeros((1, 3)))[0] - random_similarity(5, 0.1).t)
+    origin_metric = random_similarity(5, 0.1).R.T @ origin_metric / 0.1
+    lat, lon = lat_lon(origin_metric[None, :2])
+    assert east_north(np.array([frame.gps["origin_latitude"]]), np.array([frame.gps["origin_longitude"]]),
+                      float(lat[0]), float(lon[0]))[0] == pytest.approx([0.0, 0.0], abs=3.0)
+    first = sorted(cams, key=lambda c: c.name)[0]
+    fwd = random_similarity(5, 0.1).R.T @ first.cam_from_world[2, :3]  # metric frame
+    assert frame.gps["azimuth_of_y_deg"] == pytest.approx(np.degrees(np.arctan2(fwd[0], fwd[1])) % 360, abs=2.0)
+    assert (frame.gps["azimuth_of_x_deg"] - frame.gps["azimuth_of_y_deg"]) % 360 == pytest.approx(90.0, abs=1e-6)
+
     given = compute_export_frame(cams, FrameSettings(scale=2.0), gps=gps)  # a given scale wins
     assert given.transform.s == 2.0 and given.gps is None
     off = compute_export_frame(cams, FrameSettings(scale_from_gps=False), gps=gps)

@@ -26,8 +26,9 @@ Up (``FrameSettings.up``):
 Scale: ``scale`` (metres per SfM unit) or ``known_distance`` (two camera or image names and the
 distance between their centres in metres). With neither, and ``scale_from_gps`` (default), the photos'
 EXIF GPS positions give it where the camera moved far enough for their error (:mod:`sgpor_pipeline.gps`:
-a walk along a street, not a room). Otherwise the unit is arbitrary (the SfM unit): the exporters say
-so in the log and in the files' metadata (USD ``customLayerData`` ``sgpor:units``).
+a walk along a street, not a room), and with it where the frame's origin lies on the map and the
+compass bearing of +Y. Otherwise the unit is arbitrary (the SfM unit): the exporters say so in the log
+and in the files' metadata (USD ``customLayerData`` ``sgpor:units``).
 
 Origin (``FrameSettings.origin``): ``"floor"`` (default): horizontally the point the cameras look
 at, vertically a low percentile of the heights of the opaque Gaussians (the floor or the table the
@@ -452,6 +453,7 @@ def compute_export_frame(cameras: Sequence[Camera], settings: FrameSettings | No
     else:
         s, source, metric = 1.0, "none", False
     gps_info: dict[str, Any] | None = None
+    fitted = None
     if gps and settings.scale is None and settings.known_distance is None:
         if settings.scale_from_gps:
             from .gps import gps_scale
@@ -481,7 +483,7 @@ def compute_export_frame(cameras: Sequence[Camera], settings: FrameSettings | No
                 c = c + float(np.percentile(h, settings.floor_percentile)) * up
                 origin = "floor below the look-at point"
     t = -s * (R @ c)
-    if gps_info is not None and gps_info.get("used"):  # where the export frame sits on the map
+    if fitted is not None and gps_info.get("used"):  # where the export frame sits on the map
         lat, lon = fitted.latitude_longitude(c)
         gps_info.update(origin_latitude=lat, origin_longitude=lon, azimuth_of_y_deg=fitted.azimuth_deg(R.T[:, 1]),
                         azimuth_of_x_deg=fitted.azimuth_deg(R.T[:, 0]))

@@ -456,13 +456,23 @@ def compute_export_frame(cameras: Sequence[Camera], settings: FrameSettings | No
     fitted = None
     if gps and settings.scale is None and settings.known_distance is None:
         if settings.scale_from_gps:
-            from .gps import gps_scale
+            from .gps import gps_scale, level_by_altitude
 
             fitted, why = gps_scale(cams, gps, up)
+            level: dict[str, Any] | None = None
+            if fitted is not None and settings.up == "auto":  # the altitudes hold up along a walk
+                levelled, level = level_by_altitude(cams, gps, up, fitted)
+                refit = gps_scale(cams, gps, levelled)[0] if levelled is not None else None
+                if refit is not None:  # (the track projected on the levelled horizontal)
+                    up, fitted = levelled, refit
+                    how = f"{how}, levelled by the photos' GPS altitudes ({level['turn_deg']:.1f} degrees)"
+                    R = _rotation_to_z(up, heading)
             gps_info = fitted.to_dict() if fitted is not None else {"used": False, "reason": why}
             if fitted is not None:
                 s, source, metric = fitted.scale, fitted.describe(), True
                 gps_info["used"] = True
+                if level is not None:
+                    gps_info["levelling"] = level
         else:
             gps_info = {"used": False, "reason": "export.scale_from_gps is off"}
 

@@ -84,19 +84,23 @@ def walk(n: int, length: float, seed: int) -> np.ndarray:
     return np.c_[xy, np.full(n, 1.6)]
 
 
-def cameras_at(centres: np.ndarray, sim: Similarity) -> list[Camera]:
-    """Upright cameras (looking horizontally, rolled a little) at ``centres``, mapped into an SfM frame by
-    ``sim``."""
+def cameras_at(centres: np.ndarray, sim: Similarity, roll_per_yaw: float = 0.0, yaw_spread: float = 2 * np.pi
+               ) -> list[Camera]:
+    """Cameras at ``centres`` looking about horizontally (pitched a little; yaw uniform within
+    +-``yaw_spread`` / 2 of +x; rolled by ``roll_per_yaw`` x the yaw, as a phone turned with a slight tilt,
+    plus 0.5 degrees at random), mapped into an SfM frame by ``sim``."""
     rng = np.random.default_rng(1)
     K = np.array([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]])
     cams = []
     for i, c in enumerate(centres):
-        yaw = rng.uniform(0, 2 * np.pi)
+        yaw = rng.uniform(-0.5, 0.5) * yaw_spread
         fwd = np.array([np.cos(yaw), np.sin(yaw), rng.normal(0, 0.1)])
         fwd /= np.linalg.norm(fwd)
         right = np.cross(fwd, [0.0, 0.0, 1.0])
         right /= np.linalg.norm(right)
         down = np.cross(fwd, right)
+        r = roll_per_yaw * yaw + (np.radians(rng.normal(0.0, 0.5)) if roll_per_yaw else 0.0)  # (about the view)
+        right, down = np.cos(r) * right + np.sin(r) * down, -np.sin(r) * right + np.cos(r) * down
         R = np.stack([right, down, fwd])  # world -> camera (OpenCV axes)
         T = np.eye(4)
         T[:3, :3], T[:3, 3] = R, -R @ c
@@ -205,3 +209,39 @@ def test_ingest_records_each_photos_gps(tmp_path):
     assert views["v2"].gps is None
     assert views["v1"].gps[0] == pytest.approx(LAT0 + 1e-4, abs=1e-9)
     assert views["v1"].gps[1] == pytest.approx(LON0, abs=1e-9) and views["v1"].gps[2] == pytest.approx(31.0)
+
+
+@pytest.mark.parametrize("grade", [0.0, 0.05])
+def test_up_levelled_by_the_gps_altitudes(grade):
+    """A straight walk whose photos all face up the street (+-5 degrees), the phone rolled a tenth of its
+    turn: the camera x axes hold "up" only across the street, and it leans along it (lund: 5 degrees);
+    the GPS altitudes (2 m noise) level it to within a degree, on a flat street and on a 5 % grade (up is
+    gravity's, not the street's)."""
+    n = 30
+    along = np.linspace(0.0, 150.0, n)
+    metric = np.c_[along, np.zeros(n), 1.6 + grade * along]
+    sim = random_similarity(8, 0.05)
+    cams = cameras_at(metric, sim, roll_per_yaw=0.1, yaw_spread=np.radians(10.0))
+    true_up = sim.R @ np.array([0.0, 0.0, 1.0])
+    rng = np.random.default_rng(8)
+    en = metric[:, :2] + rng.normal(0.0, 2.0, (n, 2))
+    gps = gps_of([c.image for c in cams], en)
+    for i, name in enumerate(gps):
+        gps[name][2] = float(30.0 + grade * along[i] + rng.normal(0.0, 2.0))
+
+    def angle(u):
+        return np.degrees(np.arccos(np.clip(u @ true_up, -1.0, 1.0)))
+
+    horizon, _ = estimate_up(cams)
+    assert angle(horizon) > 3.0, angle(horizon)  # the horizon alone leans
+    frame = compute_export_frame(cams, FrameSettings(), gps=gps)
+    assert angle(frame.up_sfm) < 1.0, angle(frame.up_sfm)
+    assert "levelled by the photos' GPS altitudes" in frame.up_method
+    assert frame.gps["levelling"]["photos"] == n and frame.gps["levelling"]["altitude_residual_m"] < 4.0
+    assert frame.transform.s == pytest.approx(20.0, rel=0.03)
+    # an up given by the user is kept; altitudes far apart are not trusted
+    given = compute_export_frame(cams, FrameSettings(up="+z"), gps=gps)
+    assert np.allclose(given.up_sfm, [0, 0, 1]) and "levelling" not in given.gps
+    wild = {k: [v[0], v[1], float(rng.normal(30.0, 40.0))] for k, v in gps.items()}
+    frame = compute_export_frame(cams, FrameSettings(), gps=wild)
+    assert "levelled" not in frame.up_method and "disagree" in frame.gps["levelling"]["reason"]

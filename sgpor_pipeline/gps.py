@@ -8,8 +8,9 @@ farther than that: a walk along a street (lund: 29 photos over about 180 m) give
 cent; a room or a table-top capture, whose camera moves by a few metres, does not, and stays in
 arbitrary units unless a scale or a known distance is given (:mod:`sgpor_pipeline.orientation`).
 
-Altitude is not used: a phone's GPS altitude is off by tens of metres, and the horizontal track alone
-fixes the scale. "Up" comes from the cameras (:func:`sgpor_pipeline.orientation.estimate_up`).
+The scale uses the horizontal track alone: a phone's GPS altitude is off by metres. "Up" comes from the
+cameras (:func:`sgpor_pipeline.orientation.estimate_up`), and on a walk the altitudes level it along the
+track, where the cameras hold it weakly (:func:`level_by_altitude`).
 """
 
 from __future__ import annotations

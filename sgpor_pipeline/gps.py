@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from .orientation import _rotation_to_z
 from .scene import Camera
 
 _GPS_IFD = 0x8825
@@ -68,16 +69,36 @@ def read_gps(path: str | Path) -> tuple[float, float, float | None] | None:
     return lat, lon, alt if alt is not None and math.isfinite(alt) else None
 
 
+def _metres_per_radian(lat0: float) -> tuple[float, float]:
+    """(east, north) metres per radian of longitude and of latitude at ``lat0`` on the WGS84 ellipsoid
+    (the prime vertical's radius x cos(latitude), the meridian's radius)."""
+    phi = math.radians(lat0)
+    w = math.sqrt(1.0 - _E2 * math.sin(phi) ** 2)
+    return _A / w * math.cos(phi), _A * (1.0 - _E2) / w ** 3
+
+
 def east_north(lat: np.ndarray, lon: np.ndarray, lat0: float, lon0: float) -> np.ndarray:
     """[N,2] metres east and north of (``lat0``, ``lon0``) on the WGS84 ellipsoid, in the tangent plane
     there (its radii of curvature; within 0.1 % up to a few km away)."""
-    phi = math.radians(lat0)
-    w = math.sqrt(1.0 - _E2 * math.sin(phi) ** 2)
-    north_radius = _A * (1.0 - _E2) / w ** 3  # meridian
-    east_radius = _A / w  # prime vertical
-    east = np.radians(np.asarray(lon, np.float64) - lon0) * east_radius * math.cos(phi)
-    north = np.radians(np.asarray(lat, np.float64) - lat0) * north_radius
+    east_m, north_m = _metres_per_radian(lat0)
+    east = np.radians(np.asarray(lon, np.float64) - lon0) * east_m
+    north = np.radians(np.asarray(lat, np.float64) - lat0) * north_m
     return np.stack([east, north], axis=1)
+
+
+def latitude_longitude(en: np.ndarray, lat0: float, lon0: float) -> tuple[np.ndarray, np.ndarray]:
+    """The inverse of :func:`east_north`: (latitudes, longitudes) in degrees of [N,2] metres east and
+    north of (``lat0``, ``lon0``)."""
+    en = np.asarray(en, np.float64).reshape(-1, 2)
+    east_m, north_m = _metres_per_radian(lat0)
+    return lat0 + np.degrees(en[:, 1] / north_m), lon0 + np.degrees(en[:, 0] / east_m)
+
+
+def _horizontal_axes(up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit axes spanning the plane normal to ``up``, (e1, e2, up) right-handed as (east, north,
+    up): the export frame's x and y before its heading (:func:`~sgpor_pipeline.orientation._rotation_to_z`)."""
+    R = _rotation_to_z(up, None)
+    return R[0], R[1]
 
 
 @dataclass
@@ -104,9 +125,8 @@ class GpsScale:
         """Where an SfM-frame point lies on the map (degrees; from the horizontal fit, to its accuracy)."""
         p = np.asarray(point, np.float64)
         z = self.a * complex(p @ self.e1, p @ self.e2) + self.b
-        k = east_north(np.array([self.lat0 + 1e-5, self.lat0]), np.array([self.lon0, self.lon0 + 1e-5]),
-                       self.lat0, self.lon0)  # metres per 1e-5 degree north, east
-        return self.lat0 + z.imag * 1e-5 / k[0, 1], self.lon0 + z.real * 1e-5 / k[1, 0]
+        lat, lon = latitude_longitude(np.array([[z.real, z.imag]]), self.lat0, self.lon0)
+        return float(lat[0]), float(lon[0])
 
     def azimuth_deg(self, direction: np.ndarray) -> float:
         """The compass bearing (degrees clockwise from north) of an SfM-frame direction's horizontal part."""
@@ -157,10 +177,7 @@ def gps_scale(cameras: Sequence[Camera], gps: Mapping[str, Sequence[float | None
     lat = np.array([g[0] for _, g in pairs], np.float64)
     lon = np.array([g[1] for _, g in pairs], np.float64)
     en = east_north(lat, lon, float(lat.mean()), float(lon.mean()))
-    up = np.asarray(up, np.float64) / np.linalg.norm(up)
-    e1 = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(up, e1)  # (e1, e2, up) right-handed, as (east, north, up)
+    e1, e2 = _horizontal_axes(up)
     centres = np.stack([c.center for c, _ in pairs])
     src = centres @ e1 + 1j * (centres @ e2)
     dst = en[:, 0] + 1j * en[:, 1]
@@ -221,10 +238,7 @@ def level_by_altitude(cameras: Sequence[Camera], gps: Mapping[str, Sequence[floa
     roll = math.radians(roll_deg)
     sigma = 2.0
     for _ in range(4):  # Gauss-Newton on the tangent plane, the altitude weight re-estimated
-        t1 = np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])
-        t1 /= np.linalg.norm(t1)
-        t2 = np.cross(u, t1)
-        T = np.stack([t1, t2], 1)  # [3,2]
+        T = np.stack(_horizontal_axes(u), 1)  # [3,2]: the tangent plane at u
         rows = np.concatenate([xs / roll, d / sigma])  # residual r = rows @ u - target
         target = np.concatenate([np.zeros(len(xs)), alt / sigma])
         q, *_ = np.linalg.lstsq(rows @ T, target - rows @ u, rcond=None)

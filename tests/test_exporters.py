@@ -232,13 +232,12 @@ def test_export_is_metric_from_the_photos_gps(tmp_path):
     from dataclasses import replace
 
     from sgpor_pipeline.exporters.gaussians import PlyExporter
-    from sgpor_pipeline.gps import east_north
+    from sgpor_pipeline.gps import latitude_longitude
 
     cams = small_cameras(8)
     lat0, lon0 = 48.0, 11.0
-    k = east_north(np.array([lat0 + 1e-4, lat0]), np.array([lon0, lon0 + 1e-4]), lat0, lon0)
-    gps = {c.image: [lat0 + 20 * c.center[1] * 1e-4 / k[0, 1], lon0 + 20 * c.center[0] * 1e-4 / k[1, 0], None]
-           for c in cams}
+    lat, lon = latitude_longitude(20.0 * np.stack([c.center[:2] for c in cams]), lat0, lon0)
+    gps = {c.image: [float(a), float(b), None] for c, a, b in zip(cams, lat, lon)}
     m = random_model(100, 0, seed=2, spread=0.5)
     ctx = make_run(tmp_path, m, cams, gps=gps)
     PlyExporter().export(ctx, ctx.out_dir)

@@ -12,7 +12,7 @@ import pytest
 from PIL import Image
 
 from sgpor_pipeline.dag import RunInputs
-from sgpor_pipeline.gps import east_north, gps_scale, read_gps
+from sgpor_pipeline.gps import east_north, gps_scale, latitude_longitude, read_gps
 from sgpor_pipeline.orientation import FrameSettings, Similarity, compute_export_frame, estimate_up
 from sgpor_pipeline.runner import run_pipeline
 from sgpor_pipeline.scene import Camera
@@ -65,13 +65,9 @@ def test_east_north_metres():
     assert en[0] == pytest.approx([0.0, 30.92], abs=0.02)
     assert en[1] == pytest.approx([17.45, 0.0], abs=0.02)
     assert en[1, 0] / en[0, 1] == pytest.approx(math.cos(math.radians(LAT0)), rel=0.01)
-
-
-def lat_lon(en: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The inverse of :func:`east_north` about (LAT0, LON0), by its local scale (fine for a few 100 m)."""
-    d = 1e-4
-    k = east_north(np.array([LAT0 + d, LAT0]), np.array([LON0, LON0 + d]), LAT0, LON0)
-    return LAT0 + en[:, 1] * d / k[0, 1], LON0 + en[:, 0] * d / k[1, 0]
+    lat, lon = latitude_longitude(en, LAT0, LON0)  # its inverse
+    assert np.allclose(lat, [LAT0 + 1 / 3600, LAT0], atol=1e-12)
+    assert np.allclose(lon, [LON0, LON0 + 1 / 3600], atol=1e-12)
 
 
 def walk(n: int, length: float, seed: int) -> np.ndarray:
@@ -117,7 +113,7 @@ def random_similarity(seed: int, scale: float) -> Similarity:
 
 
 def gps_of(names, en, alt=None):
-    lat, lon = lat_lon(en)
+    lat, lon = latitude_longitude(en, LAT0, LON0)
     return {n: [float(a), float(b), alt] for n, a, b in zip(names, lat, lon)}
 
 
@@ -180,7 +176,7 @@ def test_export_frame_takes_the_gps_scale_unless_one_is_given():
     # first camera's view
     origin_metric = (frame.transform.inverse().apply(np.zeros((1, 3)))[0] - random_similarity(5, 0.1).t)
     origin_metric = random_similarity(5, 0.1).R.T @ origin_metric / 0.1
-    lat, lon = lat_lon(origin_metric[None, :2])
+    lat, lon = latitude_longitude(origin_metric[None, :2], LAT0, LON0)
     assert east_north(np.array([frame.gps["origin_latitude"]]), np.array([frame.gps["origin_longitude"]]),
                       float(lat[0]), float(lon[0]))[0] == pytest.approx([0.0, 0.0], abs=3.0)
     first = sorted(cams, key=lambda c: c.name)[0]

@@ -90,7 +90,7 @@ def export_frame(ctx: StageContext, model: Any, cameras: list[Camera], out_dir: 
     with torch.no_grad():
         opac = model.opacities_activated().numpy()
     frame = compute_export_frame(registered(cameras) or cameras, settings, model.numpy()["means"], opac,
-                                 photo_gps(ctx))
+                                 photo_gps(ctx), sfm_points(ctx))
     if out_dir is not None and not (out_dir / FRAME_FILE).exists():
         (out_dir / FRAME_FILE).write_text(json.dumps(frame.to_dict(), indent=1))
         ctx.log.info(frame.describe())
@@ -98,6 +98,20 @@ def export_frame(ctx: StageContext, model: Any, cameras: list[Camera], out_dir: 
             ctx.log.warning("export: no scale given, the exported scene is in arbitrary units (recorded as "
                             "sgpor:units = 'arbitrary' in the USD and in export_frame.json)")
     return frame
+
+
+def sfm_points(ctx: StageContext) -> np.ndarray | None:
+    """The SfM points (``points.npz`` of the :data:`CAMERAS_STAGE`), or None where the run has none."""
+    from sgpor_pipeline.sfm import POINTS_FILE
+
+    path = Path(ctx.inputs[CAMERAS_STAGE]) / POINTS_FILE
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path) as data:
+            return np.asarray(data["xyz"], np.float64)
+    except (OSError, ValueError, KeyError):
+        return None
 
 
 def photo_gps(ctx: StageContext) -> dict[str, list] | None:

@@ -71,7 +71,11 @@ class FrameSettings:
     known_distance: tuple[str, str, float] | None = None  # (camera a, camera b, metres between them)
     scale_from_gps: bool = True  # without the two above: metres from the photos' GPS, where it is good enough
     origin: str = "floor"
-    floor_percentile: float = 1.0  # percentile of the opaque Gaussians' heights taken as the floor
+    floor_percentile: float = 1.0  # without a ground plane: percentile of the opaque Gaussians' heights
+    ground_plane: bool = True  # find the plane the cameras stand over; it levels up and places the floor
+    ground_tolerance: float = 0.01  # inlier distance to the ground plane, in scene radii
+    ground_min_fraction: float = 0.1  # least share of the scene's points on the ground plane
+    ground_seed: int = 0  # of the plane search (RANSAC)
 
     def __post_init__(self) -> None:
         if self.up not in UP_METHODS:
@@ -372,6 +376,116 @@ def estimate_up(cameras: Sequence[Camera], method: str = "auto") -> tuple[np.nda
     return up, how
 
 
+@dataclass
+class GroundPlane:
+    """The plane the cameras stand over (the floor, a street, the table under an object), SfM frame."""
+
+    normal: np.ndarray  # unit, towards the cameras
+    point: np.ndarray  # a point on the plane
+    inliers: int
+    points: int  # of the points searched
+    camera_height: float  # the cameras' median height above the plane (SfM units)
+    source: str  # what the points were ("SfM points", "opaque Gaussians")
+
+    @property
+    def fraction(self) -> float:
+        return self.inliers / max(self.points, 1)
+
+    def height_below(self, p: np.ndarray, up: np.ndarray) -> float:
+        """How far below ``p``, along ``up``, the plane is (negative: above)."""
+        return float((np.asarray(p) - self.point) @ self.normal / (np.asarray(up) @ self.normal))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"normal_in_sfm_frame": self.normal.tolist(), "point_in_sfm_frame": self.point.tolist(),
+                "inliers": self.inliers, "points": self.points, "fraction": self.fraction,
+                "camera_height_sfm": self.camera_height, "source": self.source}
+
+
+def find_ground_plane(points: np.ndarray, cameras: Sequence[Camera], tolerance: float = 0.01,
+                      min_fraction: float = 0.1, seed: int = 0, iterations: int = 2000,
+                      max_points: int = 20000, source: str = "points") -> tuple[GroundPlane | None, str]:
+    """The ground: the plane through most of ``points`` (within ``tolerance`` scene radii) that the
+    cameras stand over, or (None, why not).
+
+    A RANSAC over planes that (1) are normal to every camera's x axis as well as the horizon allows
+    (photographers hold the camera level: the mean (x . n)^2 is at most 4x the horizon's own, or
+    sin^2 3 degrees), (2) face the cameras' tops (n . mean -y >= 0.3), (3) have at least 90 % of the
+    cameras above them, at a median height of at most 1.5 scene radii (a plane the cameras look down
+    on, not a ceiling, a far hillside or a wall beside them). The scene radius is the larger of the
+    cameras' median distance to their look-at point and the points' median distance to their nearest
+    camera. The best must hold ``min_fraction`` of
+    the points; it is refined by least squares on its inliers.
+    """
+    P = np.asarray(points, np.float64).reshape(-1, 3)
+    P = P[np.isfinite(P).all(1)]
+    cams = list(cameras)
+    if len(P) < 30 or len(cams) < 2:
+        return None, f"{len(P)} points and {len(cams)} cameras are too few to find a plane"
+    rng = np.random.default_rng(seed)
+    if len(P) > max_points:
+        P = P[rng.choice(len(P), max_points, replace=False)]
+    Rs = np.array([c.cam_from_world[:3, :3] for c in cams])
+    xs, u0 = Rs[:, 0, :], _unit(-Rs[:, 1, :].sum(0))
+    horizon = float(np.linalg.eigvalsh(xs.T @ xs / len(xs))[0])
+    max_roll2 = max(4.0 * horizon, math.sin(math.radians(3.0)) ** 2)
+    centers = np.array([c.center for c in cams])
+    # the scene's size: the cameras' distance to what they look at, or to the points they see where
+    # the viewing axes barely converge (a forward-facing capture: the look-at point is unreliable)
+    nearest = np.sqrt(np.min([((P - c) ** 2).sum(1) for c in centers], axis=0))
+    radius = max(scene_center_radius(cams)[1], float(np.median(nearest)))
+    tol = tolerance * radius
+
+    tri = P[rng.integers(0, len(P), (iterations, 3))]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    norm = np.linalg.norm(n, axis=1)
+    ok = norm > 1e-12 * radius ** 2
+    n = n[ok] / norm[ok, None]
+    n *= np.where(n @ u0 < 0, -1.0, 1.0)[:, None]
+    off = -np.einsum("ij,ij->i", n, tri[ok, 0])
+    heights = centers @ n.T + off  # [cameras, candidates]
+    ok = ((n @ u0 >= 0.3) & (np.mean((xs @ n.T) ** 2, 0) <= max_roll2)
+          & (np.mean(heights > 0, 0) >= 0.9) & (np.median(heights, 0) <= 1.5 * radius))
+    if not ok.any():
+        return None, "no plane below the cameras is level with their horizon"
+    n, off = n[ok], off[ok]
+    counts = np.concatenate([(np.abs(P @ n[i:i + 256].T + off[i:i + 256]) <= tol).sum(0)
+                             for i in range(0, len(n), 256)])
+    best = int(np.argmax(counts))
+    normal, offset = n[best], off[best]
+    for _ in range(2):  # least squares on the inliers
+        inl = P[np.abs(P @ normal + offset) <= tol]
+        if len(inl) < 3:
+            break
+        mid = inl.mean(0)
+        normal = np.linalg.svd(inl - mid, full_matrices=False)[2][2]
+        normal = normal if normal @ u0 >= 0 else -normal
+        offset = -float(normal @ mid)
+    count = int((np.abs(P @ normal + offset) <= tol).sum())
+    if count < min_fraction * len(P):
+        return None, (f"no level plane below the cameras holds {min_fraction:.0%} of the {source} "
+                      f"(the best holds {count / len(P):.0%})")
+    point = -offset * normal
+    return GroundPlane(normal, point, count, len(P), float(np.median(centers @ normal + offset)), source), ""
+
+
+def level_on_ground(cameras: Sequence[Camera], ground: GroundPlane, roll_deg: float = 2.0,
+                    ground_deg: float = 5.0) -> np.ndarray:
+    """"Up" from the horizon and the ground plane's normal together.
+
+    The horizon fixes up firmly only where the cameras' x axes spread (a wide arc); a short arc of
+    photos looking steeply down (a floor seen from a metre above) leaves it free along the viewing
+    direction, where the mean camera up is biased by the pitch (mip-NeRF 360 room: 50 degrees). The
+    minimiser over unit u of mean (x_i . u)^2 / sin^2(roll) + sin^2(u, n) / sin^2(ground) is the
+    smallest eigenvector of a 3x3 matrix: the ground decides where the horizon does not, and the
+    horizon where the ground may slope."""
+    xs = np.array([c.cam_from_world[0, :3] for c in cameras])
+    n = ground.normal
+    Q = (xs.T @ xs / len(xs) / math.sin(math.radians(roll_deg)) ** 2
+         + (np.eye(3) - np.outer(n, n)) / math.sin(math.radians(ground_deg)) ** 2)
+    u = np.linalg.eigh(Q)[1][:, 0]
+    return u if u @ n >= 0 else -u
+
+
 def _rotation_to_z(up: np.ndarray, heading: np.ndarray | None) -> np.ndarray:
     """R with R up = +z and R heading (projected on the horizontal plane) = +y."""
     z = _unit(np.asarray(up, np.float64))
@@ -406,6 +520,7 @@ class ExportFrame:
     scale_source: str
     origin: str
     gps: dict[str, Any] | None = None  # the photos' GPS: the scale it gave (GpsScale.to_dict), or why not
+    ground: dict[str, Any] | None = None  # the ground plane (GroundPlane.to_dict) or why none was used
 
     @property
     def units(self) -> str:
@@ -415,7 +530,8 @@ class ExportFrame:
         return {"format": "sgpor-export-frame/1", "up_axis": "Z", "units": self.units,
                 "scale_source": self.scale_source, "up_method": self.up_method,
                 "up_in_sfm_frame": self.up_sfm.tolist(), "origin": self.origin,
-                "export_from_sfm": self.transform.to_dict(), **({"gps": self.gps} if self.gps else {})}
+                "export_from_sfm": self.transform.to_dict(), **({"gps": self.gps} if self.gps else {}),
+                **({"ground": self.ground} if self.ground else {})}
 
     def describe(self) -> str:
         gps = (f"; the photos' GPS was not used: {self.gps['reason']}"
@@ -427,16 +543,40 @@ class ExportFrame:
 
 def compute_export_frame(cameras: Sequence[Camera], settings: FrameSettings | None = None,
                          means: np.ndarray | None = None, opacities: np.ndarray | None = None,
-                         gps: Mapping[str, Sequence[float | None] | None] | None = None) -> ExportFrame:
+                         gps: Mapping[str, Sequence[float | None] | None] | None = None,
+                         points: np.ndarray | None = None) -> ExportFrame:
     """The export frame for a scene seen by ``cameras`` (registered ones; novel cameras are ignored).
 
-    ``means`` (SfM frame) and ``opacities`` (activated, in [0,1]) of the Gaussians place the floor
-    for ``origin="floor"``; without them the origin is the look-at point. ``gps`` (image name ->
-    (latitude, longitude, altitude)): the photos' GPS positions, for the scale when none is given.
+    ``points`` (SfM frame: the SfM points, which lie on surfaces), or else the opaque ones of the
+    Gaussians' ``means`` (``opacities`` activated, in [0,1]), give the ground plane
+    (:func:`find_ground_plane`), which levels up (``up="auto"``) and places the floor for
+    ``origin="floor"``; without a ground plane a low percentile of the opaque Gaussians' heights does,
+    and without Gaussians the origin is the look-at point. ``gps`` (image name -> (latitude,
+    longitude, altitude)): the photos' GPS positions, for the scale when none is given.
     """
     settings = settings or FrameSettings()
     cams = [c for c in cameras if c.image is not None] or list(cameras)
     up, how = estimate_up(cams, settings.up)
+    opaque = None
+    if means is not None and len(means):
+        opaque = np.asarray(means, np.float64)
+        if opacities is not None:
+            opaque = opaque[np.asarray(opacities).reshape(-1) >= 0.5]
+    ground, ground_info = None, None
+    if settings.ground_plane and (settings.origin == "floor" or settings.up == "auto"):
+        pts, src = ((points, "SfM points") if points is not None and len(points) >= 30
+                    else (opaque, "opaque Gaussians"))
+        if pts is not None:
+            ground, why = find_ground_plane(pts, cams, settings.ground_tolerance, settings.ground_min_fraction,
+                                            settings.ground_seed, source=src)
+            ground_info = ground.to_dict() if ground is not None else {"reason": why}
+    if ground is not None and settings.up == "auto":
+        levelled = level_on_ground(cams, ground)
+        turn = math.degrees(math.acos(float(np.clip(levelled @ up, -1.0, 1.0))))
+        how = (f"horizon (camera x axes) and the ground plane ({ground.fraction:.0%} of the {ground.source}), "
+               f"{turn:.1f} degrees from {how}")
+        up = levelled
+        ground_info["levelled_deg"] = turn
     first = sorted(cams, key=lambda c: c.name)[0] if cams else None
     heading = first.cam_from_world[2, :3] if first is not None else None
     R = _rotation_to_z(up, heading)
@@ -482,19 +622,22 @@ def compute_export_frame(cameras: Sequence[Camera], settings: FrameSettings | No
     else:
         c = look_at_center(cams)
         origin = "look-at point"
-        if settings.origin == "floor" and means is not None and len(means):
-            m = np.asarray(means, np.float64)
-            keep = np.ones(len(m), bool) if opacities is None else np.asarray(opacities) >= 0.5
+        if settings.origin == "floor" and ground is not None and ground.normal @ up >= math.cos(math.radians(10)):
+            c = c - ground.height_below(c, up) * up
+            origin = "ground plane below the look-at point"
+            ground_info["origin"] = True
+        elif settings.origin == "floor" and opaque is not None:
             _, r = scene_center_radius(cams)
-            horiz = (m - c) - np.outer((m - c) @ up, up)
-            keep &= np.linalg.norm(horiz, axis=1) <= 3.0 * r
-            if keep.sum() >= 10:
-                h = (m[keep] - c) @ up
-                c = c + float(np.percentile(h, settings.floor_percentile)) * up
+            horiz = (opaque - c) - np.outer((opaque - c) @ up, up)
+            near = opaque[np.linalg.norm(horiz, axis=1) <= 3.0 * r]
+            if len(near) >= 10:
+                c = c + float(np.percentile((near - c) @ up, settings.floor_percentile)) * up
                 origin = "floor below the look-at point"
     t = -s * (R @ c)
     if fitted is not None and gps_info.get("used"):  # where the export frame sits on the map
         lat, lon = fitted.latitude_longitude(c)
         gps_info.update(origin_latitude=lat, origin_longitude=lon, azimuth_of_y_deg=fitted.azimuth_deg(R.T[:, 1]),
                         azimuth_of_x_deg=fitted.azimuth_deg(R.T[:, 0]))
-    return ExportFrame(Similarity(s, R, t), up, how, metric, source, origin, gps_info)
+    if ground_info is not None and ground is not None:
+        ground_info["camera_height"] = ground.camera_height * s  # export units
+    return ExportFrame(Similarity(s, R, t), up, how, metric, source, origin, gps_info, ground_info)

@@ -26,6 +26,7 @@ class ExportParams:
     known_distance: list | None = None  # [camera_a, camera_b, metres between their centres]
     scale_from_gps: bool = True  # without scale / known_distance: metres from the photos' EXIF GPS (sgpor_pipeline.gps)
     origin: str = "floor"  # floor, center, none
+    ground_plane: bool = True  # the plane the cameras stand over levels up (auto) and places the floor origin
     # The mesh (sgpor_pipeline.meshing.MeshSettings, fields prefixed "mesh_").
     mesh_target_faces: int = 200_000
     mesh_voxel_rel: float = 1.0 / 128.0  # TSDF voxel relative to the scene radius
@@ -60,7 +61,7 @@ def _needs_of_selected(params: ExportParams, attribute: str) -> tuple[str, ...]:
 
 class ExportStage(Stage):
     name = "export"
-    VERSION = 1
+    VERSION = 2  # 2: the export frame levelled on the ground plane, whose height is the floor origin
     Params = ExportParams
     materialize_to = "export"
     # mesh and USD bytes are not stable across these libraries' versions

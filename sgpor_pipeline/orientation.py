@@ -14,7 +14,11 @@ Up (``FrameSettings.up``):
     eigenvector of sum x x^T). When the x axes are nearly parallel (a forward-facing capture, where
     that is ambiguous between up and the viewing direction), the plane of the camera centres (a
     grid held in front of the scene contains "up") or else the mean of the cameras' -y axes decides.
-    The sign always agrees with the mean of the cameras' -y axes (OpenCV y points down).
+    The sign always agrees with the mean of the cameras' -y axes (OpenCV y points down). With
+    ``ground_plane`` (default) and a ground plane found (:func:`find_ground_plane`: the plane through
+    most SfM points that is level with the horizon and lies under the cameras), up is the horizon and
+    the plane's normal together (:func:`level_on_ground`): the plane decides where the horizon is weak
+    (a short arc of photos looking steeply down at a floor).
 ``"cameras"``
     The normalised mean of the cameras' -y axes (biased by the mean pitch of the cameras).
 ``"ring"``
@@ -31,8 +35,9 @@ compass bearing of +Y. Otherwise the unit is arbitrary (the SfM unit): the expor
 and in the files' metadata (USD ``customLayerData`` ``sgpor:units``).
 
 Origin (``FrameSettings.origin``): ``"floor"`` (default): horizontally the point the cameras look
-at, vertically a low percentile of the heights of the opaque Gaussians (the floor or the table the
-scene stands on); ``"center"``: the point the cameras look at; ``"none"``: the SfM origin.
+at, vertically the ground plane there (the floor, street or table the scene stands on), or without
+one a low percentile of the heights of the opaque Gaussians (which Gaussians fitted under a floor
+pull down); ``"center"``: the point the cameras look at; ``"none"``: the SfM origin.
 
 Heading: the first registered camera (by name) looks along +Y (its viewing direction projected on
 the horizontal plane), so the result does not depend on the SfM frame's arbitrary rotation.
@@ -477,10 +482,12 @@ def level_on_ground(cameras: Sequence[Camera], ground: GroundPlane, roll_deg: fl
     direction, where the mean camera up is biased by the pitch (mip-NeRF 360 room: 50 degrees). The
     minimiser over unit u of mean (x_i . u)^2 / sin^2(roll) + sin^2(u, n) / sin^2(ground) is the
     smallest eigenvector of a 3x3 matrix: the ground decides where the horizon does not, and the
-    horizon where the ground may slope."""
+    horizon where the ground may slope. ``roll`` is ``roll_deg`` or, when larger, the cameras' RMS roll
+    against the ground plane (a photographer who tilts the camera: room 6.8 degrees)."""
     xs = np.array([c.cam_from_world[0, :3] for c in cameras])
     n = ground.normal
-    Q = (xs.T @ xs / len(xs) / math.sin(math.radians(roll_deg)) ** 2
+    roll2 = max(math.sin(math.radians(roll_deg)) ** 2, float(np.mean((xs @ n) ** 2)))  # their roll on the ground
+    Q = (xs.T @ xs / len(xs) / roll2
          + (np.eye(3) - np.outer(n, n)) / math.sin(math.radians(ground_deg)) ** 2)
     u = np.linalg.eigh(Q)[1][:, 0]
     return u if u @ n >= 0 else -u

@@ -418,8 +418,8 @@ def find_ground_plane(points: np.ndarray, cameras: Sequence[Camera], tolerance: 
     cameras above them, at a median height of at most 1.5 scene radii (a plane the cameras look down
     on, not a ceiling, a far hillside or a wall beside them). The scene radius is the larger of the
     cameras' median distance to their look-at point and the points' median distance to their nearest
-    camera. The best must hold ``min_fraction`` of
-    the points; it is refined by least squares on its inliers.
+    camera. The best is refined by least squares on its inliers and must hold ``min_fraction`` of the
+    points.
     """
     P = np.asarray(points, np.float64).reshape(-1, 3)
     P = P[np.isfinite(P).all(1)]

@@ -43,7 +43,8 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--export", metavar="LIST", help="comma-separated export formats (default: all installed), "
                                                     "same as --set export.formats=[...]")
     p.add_argument("--up", metavar="AXIS", help="up axis of the export frame: auto (from the cameras), ring, "
-                                                "cameras, or an SfM axis such as -y (same as --set export.up=...)")
+                                                "cameras, nadir (they look down), or an SfM axis such as -y (same as "
+                                                "--set export.up=...)")
     p.add_argument("--scale", metavar="S", type=float,
                    help="metres per SfM unit for the export (otherwise the photos' GPS gives it where the camera "
                         "moved far enough, else units are arbitrary and the files say so)")

@@ -24,6 +24,10 @@ Up (``FrameSettings.up``):
 ``"ring"``
     The normal of the best-fit plane of the camera centres, oriented by the mean -y axis (a
     turntable or a walk around at constant height).
+``"nadir"``
+    The reverse of the cameras' mean viewing direction (a drone's survey looking straight down, or
+    photos of a table top from above: their image tops say nothing about up). ``"auto"`` reads such
+    a capture this way by itself where the photos carry GPS.
 ``"+x"``, ``"-x"``, ``"+y"``, ``"-y"``, ``"+z"``, ``"-z"``
     A known axis of the SfM frame (e.g. ``"-y"`` for a frame that is already OpenCV-like).
 
@@ -62,7 +66,7 @@ from .scene import Camera
 
 log = logging.getLogger(__name__)
 
-UP_METHODS = ("auto", "cameras", "ring", "+x", "-x", "+y", "-y", "+z", "-z")
+UP_METHODS = ("auto", "cameras", "ring", "nadir", "+x", "-x", "+y", "-y", "+z", "-z")
 ORIGINS = ("floor", "center", "none")
 _AXES = {"x": 0, "y": 1, "z": 2}
 
@@ -334,7 +338,7 @@ def scene_center_radius(cameras: Sequence[Camera]) -> tuple[np.ndarray, float]:
 
 def estimate_up(cameras: Sequence[Camera], method: str = "auto") -> tuple[np.ndarray, str]:
     """The up direction (unit, SfM frame) and the name of the method that decided it."""
-    if method in UP_METHODS[3:]:
+    if method in UP_METHODS[4:]:
         v = np.zeros(3)
         v[_AXES[method[1]]] = 1.0 if method[0] == "+" else -1.0
         return v, f"given {method}"
@@ -348,6 +352,8 @@ def estimate_up(cameras: Sequence[Camera], method: str = "auto") -> tuple[np.nda
         u0 = np.array([0.0, 0.0, 1.0])
     if method == "cameras":
         return u0, "mean camera up (-y)"
+    if method == "nadir":
+        return -_unit(Rs[:, 2, :].sum(0)), "the cameras look down (given: nadir)"
     centers = np.array([c.center for c in cameras])
     if method == "ring":
         if len(cameras) < 3:
@@ -408,13 +414,15 @@ class GroundPlane:
 
 def find_ground_plane(points: np.ndarray, cameras: Sequence[Camera], tolerance: float = 0.01,
                       min_fraction: float = 0.1, seed: int = 0, iterations: int = 2000,
-                      max_points: int = 20000, source: str = "points") -> tuple[GroundPlane | None, str]:
+                      max_points: int = 20000, source: str = "points",
+                      up_hint: np.ndarray | None = None) -> tuple[GroundPlane | None, str]:
     """The ground: the plane through most of ``points`` (within ``tolerance`` scene radii) that the
     cameras stand over, or (None, why not).
 
     A RANSAC over planes that (1) are normal to every camera's x axis as well as the horizon allows
     (photographers hold the camera level: the mean (x . n)^2 is at most 4x the horizon's own, or
-    sin^2 3 degrees), (2) face the cameras' tops (n . mean -y >= 0.3), (3) have at least 90 % of the
+    sin^2 3 degrees), (2) face ``up_hint`` (default: the cameras' mean -y; n . up_hint >= 0.3),
+    (3) have at least 90 % of the
     cameras above them, at a median height of at most 1.5 scene radii (a plane the cameras look down
     on, not a ceiling, a far hillside or a wall beside them). The scene radius is the larger of the
     cameras' median distance to their look-at point and the points' median distance to their nearest
@@ -430,7 +438,8 @@ def find_ground_plane(points: np.ndarray, cameras: Sequence[Camera], tolerance: 
     if len(P) > max_points:
         P = P[rng.choice(len(P), max_points, replace=False)]
     Rs = np.array([c.cam_from_world[:3, :3] for c in cams])
-    xs, u0 = Rs[:, 0, :], _unit(-Rs[:, 1, :].sum(0))
+    xs = Rs[:, 0, :]
+    u0 = _unit(np.asarray(up_hint, np.float64) if up_hint is not None else -Rs[:, 1, :].sum(0))
     horizon = float(np.linalg.eigvalsh(xs.T @ xs / len(xs))[0])
     max_roll2 = max(4.0 * horizon, math.sin(math.radians(3.0)) ** 2)
     centers = np.array([c.center for c in cams])
@@ -548,6 +557,32 @@ class ExportFrame:
         return f"export frame: Z up ({self.up_method}), {unit}, origin {self.origin}"
 
 
+def _nadir_by_gps(cameras: Sequence[Camera], gps: Mapping[str, Sequence[float | None] | None],
+                  up: np.ndarray, how: str) -> tuple[np.ndarray, str]:
+    """Up for cameras that all look one way: level (the horizon's up) or straight down (a drone's grid,
+    whose image "up" is just its heading: then up is the reverse of their viewing direction)? The
+    cameras alone cannot tell; the photos' GPS track can: projected on the true horizontal the camera
+    centres map onto it by a 2D similarity, on the wrong one the grid collapses to a line (or mirrors).
+    Returns (up, how), changed only when the downward reading fits the GPS at half the residual or
+    better (or where only it fits)."""
+    fwd = np.array([c.cam_from_world[2, :3] for c in cameras])
+    mean = fwd.mean(0) if len(fwd) else np.zeros(3)
+    if np.linalg.norm(mean) < 0.9:  # the cameras look different ways: the horizon is not in doubt
+        return up, how
+    nadir = -_unit(mean)
+    if nadir @ up > math.cos(math.radians(30.0)):
+        return up, how
+    from .gps import gps_scale
+
+    level, _ = gps_scale(cameras, gps, up)
+    down, _ = gps_scale(cameras, gps, nadir)
+    if down is None or (level is not None and down.residual_m >= 0.5 * level.residual_m):
+        return up, how
+    against = f"; {level.residual_m:.1f} m on the horizon's" if level is not None else ""
+    return nadir, (f"the cameras look down (nadir): their GPS track fits that horizontal within "
+                   f"{down.residual_m:.1f} m RMS{against}")
+
+
 def compute_export_frame(cameras: Sequence[Camera], settings: FrameSettings | None = None,
                          means: np.ndarray | None = None, opacities: np.ndarray | None = None,
                          gps: Mapping[str, Sequence[float | None] | None] | None = None,
@@ -569,13 +604,15 @@ def compute_export_frame(cameras: Sequence[Camera], settings: FrameSettings | No
         opaque = np.asarray(means, np.float64)
         if opacities is not None:
             opaque = opaque[np.asarray(opacities).reshape(-1) >= 0.5]
+    if gps and settings.up == "auto":
+        up, how = _nadir_by_gps(cams, gps, up, how)
     ground, ground_info = None, None
     if settings.ground_plane and (settings.origin == "floor" or settings.up == "auto"):
         pts, src = ((points, "SfM points") if points is not None and len(points) >= 30
                     else (opaque, "opaque Gaussians"))
         if pts is not None:
             ground, why = find_ground_plane(pts, cams, settings.ground_tolerance, settings.ground_min_fraction,
-                                            settings.ground_seed, source=src)
+                                            settings.ground_seed, source=src, up_hint=up)
             ground_info = ground.to_dict() if ground is not None else {"reason": why}
     if ground is not None and settings.up == "auto":
         levelled = level_on_ground(cams, ground)

@@ -21,7 +21,7 @@ from sgpor_pipeline.errors import PipelineError
 class ExportParams:
     formats: list[str] = field(default_factory=lambda: ["all"])  # exporter names, or "all"
     # The export frame (sgpor_pipeline.orientation): Z up, metres when a scale is known.
-    up: str = "auto"  # auto, cameras, ring, +x, -x, +y, -y, +z, -z
+    up: str = "auto"  # auto, cameras, ring, nadir, +x, -x, +y, -y, +z, -z
     scale: float | None = None  # metres per SfM unit; None (and no known_distance): arbitrary units
     known_distance: list | None = None  # [camera_a, camera_b, metres between their centres]
     scale_from_gps: bool = True  # without scale / known_distance: metres from the photos' EXIF GPS (sgpor_pipeline.gps)

@@ -241,3 +241,54 @@ def test_up_levelled_by_the_gps_altitudes(grade):
     wild = {k: [v[0], v[1], float(rng.normal(30.0, 40.0))] for k, v in gps.items()}
     frame = compute_export_frame(cams, FrameSettings(), gps=wild)
     assert "levelled" not in frame.up_method and "disagree" in frame.gps["levelling"]["reason"]
+
+
+def drone_grid(lawnmower: bool, seed: int, sim: Similarity) -> list[Camera]:
+    """A drone's survey: 5 x 4 photos 10 m apart at 40 m, the camera straight down (+-2 degrees), the
+    image's top along the flight line (turned about on every other line when ``lawnmower``)."""
+    rng = np.random.default_rng(seed)
+    K = np.array([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]])
+    cams = []
+    for i in range(20):
+        c = np.array([10.0 * (i % 5), 10.0 * (i // 5), 40.0])
+        fwd = np.array([*rng.normal(0.0, np.radians(2.0), 2), -1.0])
+        fwd /= np.linalg.norm(fwd)
+        top = np.array([1.0, 0.0, 0.0]) * (-1.0 if lawnmower and (i // 5) % 2 else 1.0)
+        down = -(top - fwd * (top @ fwd))
+        down /= np.linalg.norm(down)
+        R = np.stack([np.cross(down, fwd), down, fwd])
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, -R @ c
+        cams.append(sim.camera(Camera(f"d{i:02d}", 64, 48, K, T, f"d{i:02d}")))
+    return cams
+
+
+@pytest.mark.parametrize("lawnmower", [False, True])
+def test_a_drones_nadir_survey_is_levelled_by_its_gps(lawnmower):
+    """Cameras that all look straight down have no horizon: their image tops are the flight's heading, so
+    "up" from the cameras alone came out horizontal (90 degrees off, or at random). The GPS track fits the
+    camera centres only on the true horizontal: up is the reverse of the viewing direction, to within
+    the cameras' tilt, and the scale and the ground under them follow."""
+    alone = []
+    for seed in range(3):
+        sim = random_similarity(20 + seed, 0.1)
+        cams = drone_grid(lawnmower, seed, sim)
+        true_up = sim.R @ np.array([0.0, 0.0, 1.0])
+        rng = np.random.default_rng(seed)
+        metric = np.stack([np.array([10.0 * (i % 5), 10.0 * (i // 5)]) for i in range(20)])
+        gps = gps_of([c.image for c in cams], metric + rng.normal(0.0, 1.5, (20, 2)), 140.0)
+
+        def angle(u, true_up=true_up):
+            return np.degrees(np.arccos(np.clip(u @ true_up, -1.0, 1.0)))
+
+        ground = sim.apply(np.c_[rng.uniform(-10, 50, (400, 2)), rng.normal(0.0, 0.05, 400)])
+        alone.append(angle(compute_export_frame(cams, FrameSettings(), points=ground).up_sfm))  # without GPS
+        frame = compute_export_frame(cams, FrameSettings(), gps=gps, points=ground)
+        assert angle(frame.up_sfm) < 1.0, (frame.up_method, angle(frame.up_sfm))
+        assert "nadir" in frame.up_method or alone[-1] < 30.0
+        assert frame.transform.s * sim.s == pytest.approx(1.0, rel=0.03)
+        assert frame.origin == "ground plane below the look-at point"
+        assert np.abs(frame.transform.apply(ground)[:, 2]).max() < 0.5  # metres
+        given = compute_export_frame(cams, FrameSettings(up="nadir"), points=ground)  # without GPS, as told
+        assert angle(given.up_sfm) < 1.5 and given.origin == "ground plane below the look-at point"
+    assert max(alone) > 20.0, alone

@@ -197,6 +197,14 @@ class SummarySection:
         if isinstance(frame, dict):
             rows += [("export frame", f"Z up ({frame.get('up_method')}), origin: {frame.get('origin')}"),
                      ("units", frame.get("units")), ("scale", frame.get("scale_source"))]
+            ground = frame.get("ground")
+            if isinstance(ground, dict) and "fraction" in ground:
+                unit = "m" if frame.get("units") == "metres" else "units"
+                rows.append(("ground", f"a plane through {100 * ground['fraction']:.0f} % of the "
+                                       f"{ground.get('source')}, {ground.get('camera_height', 0.0):.3g} {unit} "
+                                       f"below the cameras (median)"))
+            elif isinstance(ground, dict):
+                rows.append(("ground", f"no plane found: {ground.get('reason')}"))
             if frame.get("units") == "arbitrary":
                 rows.append(("note", "no scale was given: distances are in the arbitrary unit of the "
                                      "reconstruction, not metres"))

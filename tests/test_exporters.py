@@ -600,6 +600,8 @@ def test_ply_splat_renders_and_report_exporters(tmp_path):
 
     page = (out / "report.html").read_text()
     assert '<&>' not in page and "&lt;&amp;&gt;" in page and "<b>escaped</b>" not in page
+    frame = json.loads((out / "export_frame.json").read_text())
+    assert ("<th>ground</th><td>a plane through" in page) == ("fraction" in frame["ground"])  # or why not
     assert "http:" not in page and "https:" not in page and "<script" not in page
     links = _Links()
     links.feed(page)

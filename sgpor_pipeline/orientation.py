@@ -39,9 +39,10 @@ compass bearing of +Y. Otherwise the unit is arbitrary (the SfM unit): the expor
 and in the files' metadata (USD ``customLayerData`` ``sgpor:units``).
 
 Origin (``FrameSettings.origin``): ``"floor"`` (default): horizontally the point the cameras look
-at, vertically the ground plane there (the floor, street or table the scene stands on), or without
-one a low percentile of the heights of the opaque Gaussians (which Gaussians fitted under a floor
-pull down); ``"center"``: the point the cameras look at; ``"none"``: the SfM origin.
+at (where their axes meet behind them, the median of the points they see), vertically the ground
+plane there (the floor, street or table the scene stands on), or without one a low percentile of
+the heights of the opaque Gaussians (which Gaussians fitted under a floor pull down); ``"center"``:
+that point itself; ``"none"``: the SfM origin.
 
 Heading: the first registered camera (by name) looks along +Y (its viewing direction projected on
 the horizontal plane), so the result does not depend on the SfM frame's arbitrary rotation.
@@ -557,6 +558,13 @@ class ExportFrame:
         return f"export frame: Z up ({self.up_method}), {unit}, origin {self.origin}"
 
 
+def _behind(cameras: Sequence[Camera], point: np.ndarray) -> bool:
+    """Whether ``point`` lies behind most of the cameras (their viewing axes meet behind them)."""
+    fwd = np.array([c.cam_from_world[2, :3] for c in cameras])
+    depth = np.einsum("ij,ij->i", fwd, np.asarray(point) - np.array([c.center for c in cameras]))
+    return bool(np.median(depth) <= 0.0)
+
+
 def _nadir_by_gps(cameras: Sequence[Camera], gps: Mapping[str, Sequence[float | None] | None],
                   up: np.ndarray, how: str) -> tuple[np.ndarray, str]:
     """Up for cameras that all look one way: level (the horizon's up) or straight down (a drone's grid,
@@ -666,9 +674,15 @@ def compute_export_frame(cameras: Sequence[Camera], settings: FrameSettings | No
     else:
         c = look_at_center(cams)
         origin = "look-at point"
+        seen = points if points is not None and len(points) >= 30 else opaque
+        if seen is not None and len(seen) and _behind(cams, c):
+            # the viewing axes meet behind the cameras (a forward-facing capture whose axes diverge a
+            # little, e.g. the SPIn-NeRF statue): the middle of what they see instead
+            c = np.median(np.asarray(seen, np.float64), axis=0)
+            origin = "middle of the scene"
         if settings.origin == "floor" and ground is not None and ground.normal @ up >= math.cos(math.radians(10)):
             c = c - ground.height_below(c, up) * up
-            origin = "ground plane below the look-at point"
+            origin = f"ground plane below the {origin}"
             ground_info["origin"] = True
         elif settings.origin == "floor" and opaque is not None:
             _, r = scene_center_radius(cams)
@@ -676,7 +690,7 @@ def compute_export_frame(cameras: Sequence[Camera], settings: FrameSettings | No
             near = opaque[np.linalg.norm(horiz, axis=1) <= 3.0 * r]
             if len(near) >= 10:
                 c = c + float(np.percentile((near - c) @ up, settings.floor_percentile)) * up
-                origin = "floor below the look-at point"
+                origin = f"floor below the {origin}"
     t = -s * (R @ c)
     if fitted is not None and gps_info.get("used"):  # where the export frame sits on the map
         lat, lon = fitted.latitude_longitude(c)

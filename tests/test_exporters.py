@@ -28,6 +28,7 @@ from sgpor_pipeline.orientation import (
     Similarity,
     compute_export_frame,
     estimate_up,
+    look_at_center,
     quat_from_matrix,
     quat_to_matrix,
     transform_model,
@@ -291,6 +292,27 @@ def test_ground_plane_is_not_a_wall_nor_a_scene_without_one():
     assert np.percentile(frame.transform.apply(ball)[:, 2], 1.0) == pytest.approx(0.0, abs=1e-9)
     off = compute_export_frame(cams, FrameSettings(ground_plane=False), points=ball, means=ball)
     assert off.ground is None and np.allclose(off.transform.matrix, frame.transform.matrix)
+
+
+def test_origin_in_front_of_a_forward_capture_whose_axes_diverge():
+    """Photos from a 2 m line, 1.5 m above the ground, all facing a scene 10 m ahead, their axes turned a
+    little outwards (as a person stepping sideways does): the axes meet behind the cameras, so the origin
+    goes under the middle of the scene they see, in front of them, not behind."""
+    K = np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
+    cams = []
+    for i, x in enumerate(np.linspace(-1.0, 1.0, 9)):
+        eye = np.array([x, 0.0, 1.5])
+        cams.append(Camera(f"view_{i:02d}", 64, 48, K, look_at(eye, eye + [0.05 * x, 1.0, -0.1]),
+                           image=f"view_{i:02d}"))
+    rng = np.random.default_rng(0)
+    ground = np.c_[rng.uniform(-6, 6, 300), rng.uniform(2, 14, 300), np.zeros(300)]
+    scene = np.c_[rng.uniform(-4, 4, 200), rng.uniform(9, 11, 200), rng.uniform(0, 3, 200)]
+    pts = np.concatenate([ground, scene])
+    assert np.median([c.cam_from_world[2, :3] @ (look_at_center(cams) - c.center) for c in cams]) < 0
+    frame = compute_export_frame(cams, FrameSettings(), points=pts)
+    assert frame.origin == "ground plane below the middle of the scene"
+    origin = frame.transform.inverse().apply(np.zeros((1, 3)))[0]
+    assert 6.0 < origin[1] < 11.0 and abs(origin[2]) < 0.02
 
 
 def test_exporters_take_the_ground_from_the_sfm_points(tmp_path):

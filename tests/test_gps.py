@@ -287,8 +287,8 @@ def test_a_drones_nadir_survey_is_levelled_by_its_gps(lawnmower):
         assert angle(frame.up_sfm) < 1.0, (frame.up_method, angle(frame.up_sfm))
         assert "nadir" in frame.up_method or alone[-1] < 30.0
         assert frame.transform.s * sim.s == pytest.approx(1.0, rel=0.03)
-        assert frame.origin == "ground plane below the look-at point"
+        assert frame.origin.startswith("ground plane below the")
         assert np.abs(frame.transform.apply(ground)[:, 2]).max() < 0.5  # metres
         given = compute_export_frame(cams, FrameSettings(up="nadir"), points=ground)  # without GPS, as told
-        assert angle(given.up_sfm) < 1.5 and given.origin == "ground plane below the look-at point"
+        assert angle(given.up_sfm) < 1.5 and given.origin.startswith("ground plane below the")
     assert max(alone) > 20.0, alone

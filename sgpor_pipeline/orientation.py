@@ -612,6 +612,10 @@ def compute_export_frame(cameras: Sequence[Camera], settings: FrameSettings | No
         opaque = np.asarray(means, np.float64)
         if opacities is not None:
             opaque = opaque[np.asarray(opacities).reshape(-1) >= 0.5]
+        opaque = opaque[np.isfinite(opaque).all(1)]
+    if points is not None:
+        points = np.asarray(points, np.float64).reshape(-1, 3)
+        points = points[np.isfinite(points).all(1)]
     if gps and settings.up == "auto":
         up, how = _nadir_by_gps(cams, gps, up, how)
     ground, ground_info = None, None

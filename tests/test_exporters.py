@@ -292,6 +292,15 @@ def test_ground_plane_is_not_a_wall_nor_a_scene_without_one():
     assert np.percentile(frame.transform.apply(ball)[:, 2], 1.0) == pytest.approx(0.0, abs=1e-9)
     off = compute_export_frame(cams, FrameSettings(ground_plane=False), points=ball, means=ball)
     assert off.ground is None and np.allclose(off.transform.matrix, frame.transform.matrix)
+    # hard cases: non-finite points are left out; a line of points, or one camera, finds no plane
+    bad = ball.copy()
+    bad[::7] = np.nan
+    bad[::11, 1] = np.inf
+    frame = compute_export_frame(cams, FrameSettings(), points=bad, means=bad)
+    assert np.isfinite(frame.transform.matrix).all() and frame.origin == "floor below the look-at point"
+    line = np.c_[np.linspace(-1, 1, 100), np.zeros((100, 2))]
+    assert compute_export_frame(cams, FrameSettings(), points=line).ground["reason"]
+    assert "too few" in compute_export_frame(cams[:1], FrameSettings(), points=floor).ground["reason"]
 
 
 def test_origin_in_front_of_a_forward_capture_whose_axes_diverge():

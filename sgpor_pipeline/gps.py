@@ -132,7 +132,12 @@ class GpsScale:
         """The compass bearing (degrees clockwise from north) of an SfM-frame direction's horizontal part."""
         d = np.asarray(direction, np.float64)
         z = self.a * complex(d @ self.e1, d @ self.e2)
-        return float(np.degrees(np.arctan2(z.real, z.imag)) % 360.0)
+        return float(np.degrees(np.arctan2(z.real, z.imag)) % 360.0) % 360.0  # (-1e-15 % 360 is 360.0)
+
+    def north(self) -> np.ndarray:
+        """The horizontal SfM-frame direction (unit) that the fit maps onto north."""
+        phi = math.pi / 2 - math.atan2(self.a.imag, self.a.real)  # a e^{i phi} points along +i (north)
+        return math.cos(phi) * self.e1 + math.sin(phi) * self.e2
 
     def describe(self) -> str:
         return (f"GPS of {self.photos} photos ({self.track_m:.0f} m track, positions within "

@@ -44,7 +44,8 @@ plane there (the floor, street or table the scene stands on), or without one a l
 the heights of the opaque Gaussians (which Gaussians fitted under a floor pull down); ``"center"``:
 that point itself; ``"none"``: the SfM origin.
 
-Heading: the first registered camera (by name) looks along +Y (its viewing direction projected on
+Heading: with the GPS scale (and ``gps_north``, default) +Y points north and +X east, as on a map;
+otherwise the first registered camera (by name) looks along +Y (its viewing direction projected on
 the horizontal plane), so the result does not depend on the SfM frame's arbitrary rotation.
 
 The export stage's parameters of the same names set them (``export.up``, ``export.scale``,
@@ -86,6 +87,7 @@ class FrameSettings:
     ground_tolerance: float = 0.01  # inlier distance to the ground plane, in scene radii
     ground_min_fraction: float = 0.1  # least share of the scene's points on the ground plane
     ground_seed: int = 0  # of the plane search (RANSAC)
+    gps_north: bool = True  # with the GPS scale: +Y north, +X east (else the first camera looks along +Y)
 
     def __post_init__(self) -> None:
         if self.up not in UP_METHODS:
@@ -669,6 +671,8 @@ def compute_export_frame(cameras: Sequence[Camera], settings: FrameSettings | No
                 gps_info["used"] = True
                 if level is not None:
                     gps_info["levelling"] = level
+                if settings.gps_north:  # east-north-up, as maps, GIS and ROS (REP 103) have it
+                    R = _rotation_to_z(up, fitted.north())
         else:
             gps_info = {"used": False, "reason": "export.scale_from_gps is off"}
 

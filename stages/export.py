@@ -25,6 +25,7 @@ class ExportParams:
     scale: float | None = None  # metres per SfM unit; None (and no known_distance): arbitrary units
     known_distance: list | None = None  # [camera_a, camera_b, metres between their centres]
     scale_from_gps: bool = True  # without scale / known_distance: metres from the photos' EXIF GPS (sgpor_pipeline.gps)
+    gps_north: bool = True  # with that GPS scale: +Y north, +X east (else the first photo looks along +Y)
     origin: str = "floor"  # floor, center, none
     ground_plane: bool = True  # the plane the cameras stand over levels up (auto) and places the floor origin
     # The mesh (sgpor_pipeline.meshing.MeshSettings, fields prefixed "mesh_").

@@ -179,10 +179,18 @@ def test_export_frame_takes_the_gps_scale_unless_one_is_given():
     lat, lon = latitude_longitude(origin_metric[None, :2], LAT0, LON0)
     assert east_north(np.array([frame.gps["origin_latitude"]]), np.array([frame.gps["origin_longitude"]]),
                       float(lat[0]), float(lon[0]))[0] == pytest.approx([0.0, 0.0], abs=3.0)
+    # east-north-up: the walk's east (its metric x) is +X of the export, its north +Y
+    assert frame.gps["azimuth_of_y_deg"] == pytest.approx(0.0, abs=1e-6)
+    assert frame.gps["azimuth_of_x_deg"] == pytest.approx(90.0, abs=1e-6)
+    east, north = (frame.transform.R @ random_similarity(5, 0.1).R @ np.eye(3)[:, k] for k in (0, 1))
+    assert east == pytest.approx([1.0, 0.0, 0.0], abs=0.03) and north == pytest.approx([0.0, 1.0, 0.0], abs=0.03)
+    # or, with gps_north off, +Y along the first camera's view, its bearing recorded
+    camera = compute_export_frame(cams, FrameSettings(gps_north=False), gps=gps)
     first = sorted(cams, key=lambda c: c.name)[0]
     fwd = random_similarity(5, 0.1).R.T @ first.cam_from_world[2, :3]  # metric frame
-    assert frame.gps["azimuth_of_y_deg"] == pytest.approx(np.degrees(np.arctan2(fwd[0], fwd[1])) % 360, abs=2.0)
-    assert (frame.gps["azimuth_of_x_deg"] - frame.gps["azimuth_of_y_deg"]) % 360 == pytest.approx(90.0, abs=1e-6)
+    assert camera.gps["azimuth_of_y_deg"] == pytest.approx(np.degrees(np.arctan2(fwd[0], fwd[1])) % 360, abs=2.0)
+    assert (camera.gps["azimuth_of_x_deg"] - camera.gps["azimuth_of_y_deg"]) % 360 == pytest.approx(90.0, abs=1e-6)
+    assert camera.transform.s == frame.transform.s
 
     given = compute_export_frame(cams, FrameSettings(scale=2.0), gps=gps)  # a given scale wins
     assert given.transform.s == 2.0 and given.gps is None

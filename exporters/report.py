@@ -201,7 +201,7 @@ class SummarySection:
             if isinstance(ground, dict) and "fraction" in ground:
                 unit = "m" if frame.get("units") == "metres" else "units"
                 rows.append(("ground", f"a plane through {100 * ground['fraction']:.0f} % of the "
-                                       f"{ground.get('source')}, {ground.get('camera_height', 0.0):.3g} {unit} "
+                                       f"{ground.get('source')}, {ground.get('camera_height', 0.0):.2f} {unit} "
                                        f"below the cameras (median)"))
             elif isinstance(ground, dict):
                 rows.append(("ground", f"no plane found: {ground.get('reason')}"))

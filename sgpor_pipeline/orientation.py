@@ -557,7 +557,9 @@ class ExportFrame:
                if self.gps and not self.gps.get("used") else "")
         unit = ("metres (" + self.scale_source + ")") if self.metric else \
             f"ARBITRARY units (no scale given: set a scale or a known distance between two cameras{gps})"
-        return f"export frame: Z up ({self.up_method}), {unit}, origin {self.origin}"
+        ground = (f" (no ground plane: {self.ground['reason']})"
+                  if self.ground and "reason" in self.ground else "")
+        return f"export frame: Z up ({self.up_method}), {unit}, origin {self.origin}{ground}"
 
 
 def _behind(cameras: Sequence[Camera], point: np.ndarray) -> bool:

@@ -289,6 +289,7 @@ def test_ground_plane_is_not_a_wall_nor_a_scene_without_one():
     ball = rng.normal(size=(500, 3)) * 0.5
     frame = compute_export_frame(cams, FrameSettings(), points=ball, means=ball)
     assert frame.origin == "floor below the look-at point" and "level plane" in frame.ground["reason"]
+    assert "(no ground plane: no level plane below the cameras" in frame.describe()
     assert np.percentile(frame.transform.apply(ball)[:, 2], 1.0) == pytest.approx(0.0, abs=1e-9)
     off = compute_export_frame(cams, FrameSettings(ground_plane=False), points=ball, means=ball)
     assert off.ground is None and np.allclose(off.transform.matrix, frame.transform.matrix)

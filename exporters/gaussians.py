@@ -83,15 +83,18 @@ def scene_background(ctx: StageContext) -> list[float] | None:
 
 
 def export_frame(ctx: StageContext, model: Any, cameras: list[Camera], out_dir: Path | None = None) -> ExportFrame:
-    """The export frame of this run; written to ``export_frame.json`` (and logged) the first time."""
+    """The export frame of this run: found, written to ``export_frame.json`` and logged by the first
+    exporter that asks; the others read it back (the ground plane's search and the GPS fit run once)."""
     import torch
 
+    if out_dir is not None and (out_dir / FRAME_FILE).is_file():
+        return ExportFrame.from_dict(json.loads((out_dir / FRAME_FILE).read_text()))
     settings = FrameSettings.from_params(ctx.params)
     with torch.no_grad():
         opac = model.opacities_activated().numpy()
     frame = compute_export_frame(registered(cameras) or cameras, settings, model.numpy()["means"], opac,
                                  photo_gps(ctx), sfm_points(ctx))
-    if out_dir is not None and not (out_dir / FRAME_FILE).exists():
+    if out_dir is not None:
         (out_dir / FRAME_FILE).write_text(json.dumps(frame.to_dict(), indent=1))
         ctx.log.info(frame.describe())
         if not frame.metric:

@@ -552,6 +552,14 @@ class ExportFrame:
                 "export_from_sfm": self.transform.to_dict(), **({"gps": self.gps} if self.gps else {}),
                 **({"ground": self.ground} if self.ground else {})}
 
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> ExportFrame:
+        """The frame :meth:`to_dict` wrote (``export_frame.json``)."""
+        sim = data["export_from_sfm"]
+        return cls(Similarity(sim["scale"], sim["rotation"], sim["translation"]),
+                   np.asarray(data["up_in_sfm_frame"], np.float64), data["up_method"], data["units"] == "metres",
+                   data["scale_source"], data["origin"], data.get("gps"), data.get("ground"))
+
     def describe(self) -> str:
         gps = (f"; the photos' GPS was not used: {self.gps['reason']}"
                if self.gps and not self.gps.get("used") else "")

@@ -341,6 +341,16 @@ def test_exporters_take_the_ground_from_the_sfm_points(tmp_path):
     assert frame["ground"]["source"] == "SfM points" and frame["ground"]["fraction"] == 1.0
     assert frame["ground"]["camera_height"] == pytest.approx(1.25)
     assert frame["export_from_sfm"]["translation"][2] == pytest.approx(0.25)  # the floor at z = 0
+    # the next exporter reads the frame back (the points are gone: found again, it would differ)
+    from sgpor_pipeline.exporters.gaussians import export_frame
+    from sgpor_pipeline.orientation import ExportFrame
+
+    (tmp_path / "sfm" / "points.npz").unlink()
+    again = export_frame(ctx, read_ply(tmp_path / "fit" / "gaussians.ply"), cams, ctx.out_dir)
+    assert again.to_dict() == frame and np.array_equal(again.transform.matrix,
+                                                       ExportFrame.from_dict(frame).transform.matrix)
+    fresh = export_frame(ctx, read_ply(tmp_path / "fit" / "gaussians.ply"), cams)  # (no folder: found anew)
+    assert fresh.ground["source"] == "opaque Gaussians" and not np.allclose(fresh.transform.t, again.transform.t)
 
 
 def test_export_is_metric_from_the_photos_gps(tmp_path):

@@ -630,12 +630,13 @@ def compute_export_frame(cameras: Sequence[Camera], settings: FrameSettings | No
         points = points[np.isfinite(points).all(1)]
     if gps and settings.up == "auto":
         up, how = _nadir_by_gps(cams, gps, up, how)
+    # what the scene's surfaces are known by: the SfM points, or else the opaque Gaussians
+    seen, src = ((points, "SfM points") if points is not None and len(points) >= 30
+                 else (opaque, "opaque Gaussians"))
     ground, ground_info = None, None
     if settings.ground_plane and (settings.origin == "floor" or settings.up == "auto"):
-        pts, src = ((points, "SfM points") if points is not None and len(points) >= 30
-                    else (opaque, "opaque Gaussians"))
-        if pts is not None:
-            ground, why = find_ground_plane(pts, cams, settings.ground_tolerance, settings.ground_min_fraction,
+        if seen is not None:
+            ground, why = find_ground_plane(seen, cams, settings.ground_tolerance, settings.ground_min_fraction,
                                             settings.ground_seed, source=src, up_hint=up)
             ground_info = ground.to_dict() if ground is not None else {"reason": why}
     if ground is not None and settings.up == "auto":
@@ -692,7 +693,6 @@ def compute_export_frame(cameras: Sequence[Camera], settings: FrameSettings | No
     else:
         c = look_at_center(cams)
         origin = "look-at point"
-        seen = points if points is not None and len(points) >= 30 else opaque
         if seen is not None and len(seen) and _behind(cams, c):
             # the viewing axes meet behind the cameras (a forward-facing capture whose axes diverge a
             # little, e.g. the SPIn-NeRF statue): the middle of what they see instead

@@ -280,7 +280,30 @@ class TSDF:
         col = m.vertex.colors.numpy().astype(np.float32) if "colors" in m.vertex else np.full((len(v), 3), 0.5,
                                                                                              np.float32)
         nrm = m.vertex.normals.numpy().astype(np.float64) if "normals" in m.vertex else None
-        return MeshData(v, f, np.clip(col, 0.0, 1.0), nrm)
+        return canonical_order(MeshData(v, f, np.clip(col, 0.0, 1.0), nrm))
+
+
+def canonical_order(mesh: MeshData) -> MeshData:
+    """The same mesh with its vertices sorted by position (then colour) and its faces sorted, each
+    face starting at its smallest index (orientation kept).
+
+    Open3D's block hash map fills in parallel, so the extracted mesh lists the same vertices and faces
+    in another order on every run; the decimation depends on that order, and so did the exported mesh
+    (the demo's mesh.ply had 199997 or 199998 faces from the same Gaussians). Sorted, it is the same
+    bytes on every run."""
+    v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    if len(v) == 0:
+        return mesh
+    keys = [np.asarray(mesh.colors)[:, i] for i in (2, 1, 0)] + [v[:, i] for i in (2, 1, 0)]
+    order = np.lexsort(keys)
+    new_index = np.empty(len(order), np.int64)
+    new_index[order] = np.arange(len(order))
+    f = new_index[f]
+    first = f.argmin(axis=1)
+    f = np.stack([f[np.arange(len(f)), (first + i) % 3] for i in range(3)], axis=1)
+    f = f[np.lexsort(f.T[::-1])] if len(f) else f.reshape(0, 3)
+    normals = None if mesh.normals is None else np.asarray(mesh.normals)[order]
+    return MeshData(v[order], f, np.asarray(mesh.colors)[order], normals)
 
 
 def fuse_depth_maps(frames: Iterable[tuple[Camera, np.ndarray, np.ndarray]], voxel_size: float,

@@ -744,6 +744,38 @@ def test_decimation_keeps_the_surface_and_its_colours():
     assert np.einsum("ij,ij->i", cleaned.normals, cleaned.vertices).min() > 0.9  # outward
 
 
+def test_the_fused_mesh_does_not_depend_on_the_order_open3d_lists_it_in():
+    """Open3D's TSDF block map fills in parallel, so extraction lists the same mesh in another order on
+    every run, and the decimation followed that order (the demo's mesh.ply had 199997 or 199998 faces
+    from the same Gaussians). canonical_order gives one order for any listing: a sphere's vertices and
+    faces shuffled, each face rotated, give the same arrays and the same decimated mesh; the faces keep
+    their orientation (outward normals)."""
+    import trimesh
+
+    from sgpor_pipeline.meshing import canonical_order, clean_mesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=5)
+    v = np.asarray(sphere.vertices, np.float64)
+    f = np.asarray(sphere.faces, np.int64)
+    mesh = MeshData(v, f, ((v + 1) / 2).astype(np.float32), v.copy())
+    rng = np.random.default_rng(0)
+    perm = rng.permutation(len(v))
+    inverse = np.empty_like(perm)
+    inverse[perm] = np.arange(len(perm))
+    shuffled_f = inverse[f][rng.permutation(len(f))]
+    shuffled_f = np.stack([np.roll(row, int(k)) for row, k in zip(shuffled_f, rng.integers(0, 3, len(f)))])
+    shuffled = MeshData(v[perm], shuffled_f, mesh.colors[perm], v[perm].copy())
+    assert not np.array_equal(shuffled.vertices, mesh.vertices)
+    a, b = canonical_order(mesh), canonical_order(shuffled)
+    for x, y in ((a.vertices, b.vertices), (a.faces, b.faces), (a.colors, b.colors), (a.normals, b.normals)):
+        assert np.array_equal(x, y)
+    tri = a.vertices[a.faces]
+    outward = np.einsum("ij,ij->i", np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), tri.mean(1))
+    assert outward.min() > 0
+    da, db = clean_mesh(a, target_faces=3000), clean_mesh(b, target_faces=3000)
+    assert np.array_equal(da.vertices, db.vertices) and np.array_equal(da.faces, db.faces)
+
+
 def test_glb_normals_are_unit_length(tmp_path):
     """glTF requires unit normals (the Khronos validator's ACCESSOR_VECTOR3_NON_UNIT error): a mesh
     with a zero normal, and one written without normals, both store unit normals."""

@@ -117,6 +117,20 @@ def sfm_points(ctx: StageContext) -> np.ndarray | None:
         return None
 
 
+def scene_radius(ctx: StageContext, model: Any, cameras: list[Camera]) -> float:
+    """The scene's size for meshing: the registered cameras' median distance to the middle of the scene,
+    found with the SfM points, else the model's opaque Gaussians
+    (:func:`sgpor_pipeline.orientation.scene_center_radius`)."""
+    import torch
+
+    from sgpor_pipeline.orientation import scene_center_radius, surface_points
+
+    with torch.no_grad():
+        opacities = model.opacities_activated().numpy()
+    points, _ = surface_points(sfm_points(ctx), model.numpy()["means"], opacities)
+    return scene_center_radius(registered(cameras) or cameras, points)[1]
+
+
 def photo_gps(ctx: StageContext) -> dict[str, list] | None:
     """The photos' EXIF GPS positions as the ingest stage read them (view name -> [latitude, longitude,
     altitude]), or None when the run has no ingest stage (Gaussians from elsewhere) or no photo has one."""
@@ -178,7 +192,7 @@ class SplatExporter(Exporter):
 
 def write_object_assets(folder: Path, object_model: Any, cameras: list[Camera], frame: ExportFrame,
                         mesh_settings: Any = None, background: list[float] | None = None,
-                        mesh: bool = True) -> list[Path]:
+                        mesh: bool = True, scene_radius: float | None = None) -> list[Path]:
     """Write the removed object's Gaussians and mesh as ``folder/object/object.ply`` and ``object.glb``.
 
     ``object_model``: a GaussianModel of the object alone, in the SfM frame (the frame of
@@ -186,7 +200,8 @@ def write_object_assets(folder: Path, object_model: Any, cameras: list[Camera], 
     it stood in the exported scene. The mesh is fused from renders of the object alone at the
     registered ``cameras`` (see :func:`sgpor_pipeline.meshing.mesh_from_gaussians`); its components
     are not filtered (the object may be small) and its faces are limited to a quarter of the scene
-    mesh's. Returns the files written.
+    mesh's; its voxel follows ``scene_radius`` (the scene mesh's: :func:`scene_radius`; default: the
+    cameras' distance to their look-at point). Returns the files written.
     """
     from dataclasses import replace
 
@@ -203,7 +218,7 @@ def write_object_assets(folder: Path, object_model: Any, cameras: list[Camera], 
         s = mesh_settings or MeshSettings()
         s = replace(s, min_component_rel=0.0, target_faces=max(1000, s.target_faces // 4))
         cams = registered(cameras) or cameras
-        _, radius = scene_center_radius(cams)
+        radius = scene_radius if scene_radius is not None else scene_center_radius(cams)[1]
         m = mesh_from_gaussians(object_model, cams, s, scene_radius=radius, background=background)
         if len(m):
             written += write_mesh(m.transformed(frame.transform), out, "object", formats=("glb",))
@@ -218,7 +233,7 @@ class ObjectExporter(Exporter):
     """
 
     name = "object"
-    VERSION = 2  # 2: object.glb's normals of unit length
+    VERSION = 3  # 2: object.glb's normals of unit length; 3: the scene mesh's radius (SfM points)
     needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE, "remove")
     optional_needs = (GPS_STAGE,)
     description = "the removed object as object/object.ply and object/object.glb (export frame)"
@@ -239,7 +254,7 @@ class ObjectExporter(Exporter):
         frame = export_frame(ctx, scene, cameras, out_dir)
         obj = read_ply(ctx.inputs["remove"] / self.OBJECT_FILE)
         files = write_object_assets(out_dir, obj, cameras, frame, MeshSettings.from_params(ctx.params),
-                                    scene_background(ctx))
+                                    scene_background(ctx), scene_radius=scene_radius(ctx, scene, cameras))
         ctx.log.info(f"object: {len(obj)} Gaussians -> {', '.join(p.name for p in files)} in "
                      f"{time.perf_counter() - t0:.1f} s")
 

@@ -17,7 +17,7 @@ import numpy as np
 
 from sgpor_pipeline.dag import Exporter, StageContext
 from sgpor_pipeline.meshing import MeshData, MeshSettings, mesh_from_gaussians, unit_normals
-from sgpor_pipeline.orientation import ExportFrame, scene_center_radius
+from sgpor_pipeline.orientation import ExportFrame
 from sgpor_pipeline.scene import Camera
 
 from .gaussians import (
@@ -30,6 +30,7 @@ from .gaussians import (
     load_scene,
     registered,
     scene_background,
+    scene_radius,
 )
 
 #: glTF is Y up: (x, y, z) in the Z-up export frame -> (x, z, -y)
@@ -122,15 +123,15 @@ def scene_mesh(ctx: StageContext, out_dir: Path, model: Any = None, cameras: lis
 
 def _make_mesh(ctx: StageContext, model, cameras) -> MeshData:
     cams = registered(cameras) or cameras
-    _, radius = scene_center_radius(cams)
-    return mesh_from_gaussians(model, cams, MeshSettings.from_params(ctx.params), scene_radius=radius,
-                               background=scene_background(ctx))
+    return mesh_from_gaussians(model, cams, MeshSettings.from_params(ctx.params),
+                               scene_radius=scene_radius(ctx, model, cams), background=scene_background(ctx))
 
 
 class MeshExporter(Exporter):
     name = "mesh"
-    VERSION = 3  # 2: unit normals everywhere (glTF requires them; a decimation fold left zeros); GLB buffer targets;
-    # 3: decimated by fast-simplification (meshing.decimate)
+    VERSION = 4  # 2: unit normals everywhere (glTF requires them; a decimation fold left zeros); GLB buffer targets;
+    # 3: decimated by fast-simplification (meshing.decimate); 4: the scene radius from the SfM points where the
+    # viewing axes mislead (forward-facing captures: statue's mesh had lost all beyond 45 units), one canonical order
     needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE)
     optional_needs = (GPS_STAGE,)
     description = "a coloured mesh (TSDF of rendered depth) as mesh.glb (Y up), mesh.obj and mesh.ply (Z up)"

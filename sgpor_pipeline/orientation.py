@@ -329,9 +329,56 @@ def look_at_center(cameras: Sequence[Camera]) -> np.ndarray:
     return viewing_axes_center(list(cameras))
 
 
-def scene_center_radius(cameras: Sequence[Camera]) -> tuple[np.ndarray, float]:
-    """The point the cameras look at and the median camera distance to it (a scene size)."""
+def surface_points(points: np.ndarray | None, means: np.ndarray | None = None,
+                   opacities: np.ndarray | None = None, min_points: int = 30) -> tuple[np.ndarray | None, str]:
+    """What the scene's surfaces are known by, and its name: the SfM ``points`` where there are at least
+    ``min_points``, else the opaque Gaussians (``means`` with activated ``opacities`` >= 0.5), else None.
+    Non-finite points are left out."""
+    if points is not None:
+        points = np.asarray(points, np.float64).reshape(-1, 3)
+        points = points[np.isfinite(points).all(1)]
+        if len(points) >= min_points:
+            return points, "SfM points"
+    if means is None or not len(means):
+        return None, "none"
+    opaque = np.asarray(means, np.float64).reshape(-1, 3)
+    if opacities is not None:
+        opaque = opaque[np.asarray(opacities).reshape(-1) >= 0.5]
+    opaque = opaque[np.isfinite(opaque).all(1)]
+    return (opaque, "opaque Gaussians") if len(opaque) else (None, "none")
+
+
+def scene_center(cameras: Sequence[Camera], points: np.ndarray | None = None) -> tuple[np.ndarray, str]:
+    """The middle of the scene the cameras see, and how it was found.
+
+    The look-at point (:func:`look_at_center`), unless ``points`` on the scene's surfaces (SfM points)
+    say it is wrong: it lies behind the cameras, or its median depth in them is not within 4x of the
+    points' median depth. Both happen to forward-facing captures, whose nearly parallel viewing axes
+    meet anywhere (the SPIn-NeRF statue's meet 4.7 units behind the cameras, while the statue stands
+    30-40 in front); the median of the points in front of the cameras is taken there.
+    """
     c = look_at_center(cameras)
+    if points is None or len(points) < 10 or not len(cameras):
+        return c, "look-at point"
+    P = np.asarray(points, np.float64)
+    fwd = np.array([cam.cam_from_world[2, :3] for cam in cameras])
+    centers = np.array([cam.center for cam in cameras])
+    depth_c = float(np.median(np.einsum("ij,ij->i", fwd, c - centers)))
+    depths = [(P - o) @ f for o, f in zip(centers, fwd)]
+    in_front = [d[d > 0] for d in depths]
+    if not all(len(d) for d in in_front):
+        return c, "look-at point"
+    depth_p = float(np.median([np.median(d) for d in in_front]))
+    if depth_c > 0 and depth_p / 4.0 <= depth_c <= 4.0 * depth_p:
+        return c, "look-at point"
+    front = np.median(np.stack(depths), axis=0) > 0
+    return np.median(P[front] if front.any() else P, axis=0), "middle of the scene"
+
+
+def scene_center_radius(cameras: Sequence[Camera], points: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    """The middle of the scene (:func:`scene_center`; ``points``: SfM points or opaque Gaussians, optional)
+    and the median camera distance to it (a scene size: the mesh's voxel and depth range follow it)."""
+    c, _ = scene_center(cameras, points)
     centers = np.array([cam.center for cam in cameras])
     r = float(np.median(np.linalg.norm(centers - c, axis=1))) if len(cameras) else 1.0
     if not r > 0:
@@ -570,13 +617,6 @@ class ExportFrame:
         return f"export frame: Z up ({self.up_method}), {unit}, origin {self.origin}{ground}"
 
 
-def _behind(cameras: Sequence[Camera], point: np.ndarray) -> bool:
-    """Whether ``point`` lies behind most of the cameras (their viewing axes meet behind them)."""
-    fwd = np.array([c.cam_from_world[2, :3] for c in cameras])
-    depth = np.einsum("ij,ij->i", fwd, np.asarray(point) - np.array([c.center for c in cameras]))
-    return bool(np.median(depth) <= 0.0)
-
-
 def _nadir_by_gps(cameras: Sequence[Camera], gps: Mapping[str, Sequence[float | None] | None],
                   up: np.ndarray, how: str) -> tuple[np.ndarray, str]:
     """Up for cameras that all look one way: level (the horizon's up) or straight down (a drone's grid,
@@ -625,20 +665,17 @@ def compute_export_frame(cameras: Sequence[Camera], settings: FrameSettings | No
         if opacities is not None:
             opaque = opaque[np.asarray(opacities).reshape(-1) >= 0.5]
         opaque = opaque[np.isfinite(opaque).all(1)]
-    if points is not None:
-        points = np.asarray(points, np.float64).reshape(-1, 3)
-        points = points[np.isfinite(points).all(1)]
     if gps and settings.up == "auto":
         up, how = _nadir_by_gps(cams, gps, up, how)
-    # what the scene's surfaces are known by: the SfM points, or else the opaque Gaussians
-    seen, src = ((points, "SfM points") if points is not None and len(points) >= 30
-                 else (opaque, "opaque Gaussians"))
+    seen, src = surface_points(points, means, opacities)
     ground, ground_info = None, None
     if settings.ground_plane and (settings.origin == "floor" or settings.up == "auto"):
         if seen is not None:
             ground, why = find_ground_plane(seen, cams, settings.ground_tolerance, settings.ground_min_fraction,
                                             settings.ground_seed, source=src, up_hint=up)
             ground_info = ground.to_dict() if ground is not None else {"reason": why}
+        else:
+            ground_info = {"reason": "no SfM points and no opaque Gaussians to find it in"}
     if ground is not None and settings.up == "auto":
         levelled = level_on_ground(cams, ground)
         turn = math.degrees(math.acos(float(np.clip(levelled @ up, -1.0, 1.0))))
@@ -691,19 +728,13 @@ def compute_export_frame(cameras: Sequence[Camera], settings: FrameSettings | No
         c = np.zeros(3)
         origin = "SfM origin"
     else:
-        c = look_at_center(cams)
-        origin = "look-at point"
-        if seen is not None and len(seen) and _behind(cams, c):
-            # the viewing axes meet behind the cameras (a forward-facing capture whose axes diverge a
-            # little, e.g. the SPIn-NeRF statue): the middle of what they see instead
-            c = np.median(np.asarray(seen, np.float64), axis=0)
-            origin = "middle of the scene"
+        c, origin = scene_center(cams, seen)
         if settings.origin == "floor" and ground is not None and ground.normal @ up >= math.cos(math.radians(10)):
             c = c - ground.height_below(c, up) * up
             origin = f"ground plane below the {origin}"
             ground_info["origin"] = True
         elif settings.origin == "floor" and opaque is not None:
-            _, r = scene_center_radius(cams)
+            _, r = scene_center_radius(cams, seen)
             horiz = (opaque - c) - np.outer((opaque - c) @ up, up)
             near = opaque[np.linalg.norm(horiz, axis=1) <= 3.0 * r]
             if len(near) >= 10:

@@ -325,6 +325,41 @@ def test_origin_in_front_of_a_forward_capture_whose_axes_diverge():
     assert 6.0 < origin[1] < 11.0 and abs(origin[2]) < 0.02
 
 
+def test_the_scene_radius_of_a_forward_capture_comes_from_its_points():
+    """The mesh's voxel and depth range follow the scene radius. Photos from a 2 m line facing a scene
+    ahead: where their axes diverge a little they meet behind the cameras (the look-at point 5-9 m
+    behind), and where they are parallel the look-at point is a guess 2 m ahead (the line's spread), so
+    a scene 10 or 100 m ahead got a radius of 2-9 m from it (the statue's mesh lost everything beyond
+    8 radii, 45 units, where its hedge and house stand 50-300 away). The points put the middle of the
+    scene among them; an inward ring keeps its look-at point."""
+    from sgpor_pipeline.orientation import scene_center, scene_center_radius
+
+    K = np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
+    rng = np.random.default_rng(0)
+    box = np.c_[rng.uniform(-4, 4, 300), rng.uniform(-1, 1, 300), rng.uniform(0, 3, 300)]
+    for turn, ahead in ((0.05, 10.0), (0.02, 10.0), (0.0, 100.0)):
+        cams = []
+        for i, x in enumerate(np.linspace(-1.0, 1.0, 9)):
+            eye = np.array([x, 0.0, 1.5])
+            cams.append(Camera(f"view_{i:02d}", 64, 48, K, look_at(eye, eye + [turn * x, 1.0, 0.0]),
+                               image=f"view_{i:02d}"))
+        scene = box + [0.0, ahead, 0.0]
+        axes_centre, r_axes = scene_center_radius(cams)
+        assert axes_centre[1] < 2.5 and r_axes < 10.0
+        centre, how = scene_center(cams, scene)
+        _, r = scene_center_radius(cams, scene)
+        assert how == "middle of the scene" and ahead - 1 < centre[1] < ahead + 1
+        assert 0.85 * ahead < r < 1.15 * ahead
+    ring = small_cameras(8)
+    ball = np.random.default_rng(1).normal(0.0, 0.3, (500, 3))
+    centre, how = scene_center(ring, ball)
+    assert how == "look-at point" and np.allclose(centre, scene_center(ring)[0])
+    assert scene_center_radius(ring, ball)[1] == scene_center_radius(ring)[1]
+    # too few points, or none in front of the cameras: the look-at point
+    assert scene_center(cams, scene[:5])[1] == "look-at point"
+    assert scene_center(cams, scene * [1.0, -1.0, 1.0])[1] == "look-at point"
+
+
 def test_exporters_take_the_ground_from_the_sfm_points(tmp_path):
     """The SfM points (sfm/points.npz) give the ground plane, recorded in export_frame.json; the Gaussians
     (a blob off the floor here) are only the fallback."""

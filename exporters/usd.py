@@ -214,8 +214,38 @@ def write_usd(stage: Any, out_dir: Path, stem: str = "scene") -> list[Path]:
     usdz = out_dir / f"{stem}.usdz"
     if not UsdUtils.CreateNewUsdzPackage(Sdf.AssetPath(str(paths[1])), str(usdz)):
         raise OSError(f"{usdz}: USDZ packaging failed")
+    zero_zip_times(usdz)
     paths.append(usdz)
     return paths
+
+
+def zero_zip_times(path: Path) -> None:
+    """Set every entry's modification time in a zip (a USDZ package) to 1980-01-01 00:00, in place.
+
+    USD's zip writer stamps the time of writing, so the same stage gave another ``scene.usdz`` on every
+    export. Only the 4-byte time/date fields of the local and central headers change (the sizes, the
+    64-byte alignment USDZ requires and the CRCs stay), so the package is the same bytes for the same
+    scene."""
+    import struct
+
+    data = bytearray(Path(path).read_bytes())
+    end = data.rfind(b"PK\x05\x06")
+    if end < 0:
+        raise OSError(f"{path}: not a zip file (no end of central directory)")
+    count, _, cd_offset = struct.unpack_from("<HII", data, end + 10)
+    pos = cd_offset
+    dos_1980 = struct.pack("<HH", 0, (0 << 9) | (1 << 5) | 1)  # time 00:00:00, date 1980-01-01
+    for _ in range(count):
+        if data[pos:pos + 4] != b"PK\x01\x02":
+            raise OSError(f"{path}: unexpected central directory entry at byte {pos}")
+        data[pos + 12:pos + 16] = dos_1980
+        name_len, extra_len, comment_len = struct.unpack_from("<HHH", data, pos + 28)
+        (local,) = struct.unpack_from("<I", data, pos + 42)
+        if data[local:local + 4] != b"PK\x03\x04":
+            raise OSError(f"{path}: unexpected local header at byte {local}")
+        data[local + 10:local + 14] = dos_1980
+        pos += 46 + name_len + extra_len + comment_len
+    Path(path).write_bytes(bytes(data))
 
 
 def validate_stage(stage: Any) -> list[str]:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import struct
 from html.parser import HTMLParser
 from pathlib import Path
 from urllib.parse import unquote
@@ -558,6 +559,20 @@ def test_usd_stage_valid_and_matching_the_gaussians(tmp_path):
     UsdExporter().export(ctx, ctx.out_dir)
     for ext in ("usda", "usdc", "usdz"):
         assert (ctx.out_dir / f"scene.{ext}").is_file()
+    # the package: one uncompressed, 64-byte aligned entry (USDZ), no time of writing in it, so a second
+    # export of the same scene is the same bytes
+    import zipfile
+
+    first = (ctx.out_dir / "scene.usdz").read_bytes()
+    with zipfile.ZipFile(ctx.out_dir / "scene.usdz") as z:
+        assert z.testzip() is None
+        for info in z.infolist():
+            assert info.date_time == (1980, 1, 1, 0, 0, 0) and info.compress_type == zipfile.ZIP_STORED
+            name_len, extra_len = struct.unpack_from("<HH", first, info.header_offset + 26)
+            assert (info.header_offset + 30 + name_len + extra_len) % 64 == 0
+    (ctx.out_dir / "export_frame.json").unlink()
+    UsdExporter().export(ctx, ctx.out_dir)
+    assert (ctx.out_dir / "scene.usdz").read_bytes() == first
     frame = export_frame(ctx, m, cams)
     mx = transform_model(m, frame.transform).numpy()
 

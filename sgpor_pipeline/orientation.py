@@ -348,6 +348,9 @@ def surface_points(points: np.ndarray | None, means: np.ndarray | None = None,
     return (opaque, "opaque Gaussians") if len(opaque) else (None, "none")
 
 
+MAX_CENTER_POINTS = 20_000  # scene_center measures depths of at most about this many points
+
+
 def scene_center(cameras: Sequence[Camera], points: np.ndarray | None = None) -> tuple[np.ndarray, str]:
     """The middle of the scene the cameras see, and how it was found.
 
@@ -360,7 +363,8 @@ def scene_center(cameras: Sequence[Camera], points: np.ndarray | None = None) ->
     c = look_at_center(cameras)
     if points is None or len(points) < 10 or not len(cameras):
         return c, "look-at point"
-    P = np.asarray(points, np.float64)
+    P = np.asarray(points, np.float64).reshape(-1, 3)
+    P = P[:: max(1, len(P) // MAX_CENTER_POINTS)]  # a regular subsample: [cameras x points] depths below
     fwd = np.array([cam.cam_from_world[2, :3] for cam in cameras])
     centers = np.array([cam.center for cam in cameras])
     depth_c = float(np.median(np.einsum("ij,ij->i", fwd, c - centers)))
@@ -659,12 +663,7 @@ def compute_export_frame(cameras: Sequence[Camera], settings: FrameSettings | No
     settings = settings or FrameSettings()
     cams = [c for c in cameras if c.image is not None] or list(cameras)
     up, how = estimate_up(cams, settings.up)
-    opaque = None
-    if means is not None and len(means):
-        opaque = np.asarray(means, np.float64)
-        if opacities is not None:
-            opaque = opaque[np.asarray(opacities).reshape(-1) >= 0.5]
-        opaque = opaque[np.isfinite(opaque).all(1)]
+    opaque, _ = surface_points(None, means, opacities)
     if gps and settings.up == "auto":
         up, how = _nadir_by_gps(cams, gps, up, how)
     seen, src = surface_points(points, means, opacities)

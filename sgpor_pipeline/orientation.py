@@ -355,10 +355,11 @@ def scene_center(cameras: Sequence[Camera], points: np.ndarray | None = None) ->
     """The middle of the scene the cameras see, and how it was found.
 
     The look-at point (:func:`look_at_center`), unless ``points`` on the scene's surfaces (SfM points)
-    say it is wrong: it lies behind the cameras, or its median depth in them is not within 4x of the
-    points' median depth. Both happen to forward-facing captures, whose nearly parallel viewing axes
-    meet anywhere (the SPIn-NeRF statue's meet 4.7 units behind the cameras, while the statue stands
-    30-40 in front); the median of the points in front of the cameras is taken there.
+    say it is wrong: its median depth in the cameras is not within 2x of the points' median depth
+    (inward captures: 0.97-1.27). That happens to forward-facing captures, whose nearly parallel viewing
+    axes meet anywhere: the SPIn-NeRF statue's meet behind the cameras, and the look-at point falls back
+    to 11 units ahead of them, while the statue stands 30-40 in front. The median of the points in front
+    of the cameras is taken there.
     """
     c = look_at_center(cameras)
     if points is None or len(points) < 10 or not len(cameras):
@@ -373,7 +374,7 @@ def scene_center(cameras: Sequence[Camera], points: np.ndarray | None = None) ->
     if not all(len(d) for d in in_front):
         return c, "look-at point"
     depth_p = float(np.median([np.median(d) for d in in_front]))
-    if depth_c > 0 and depth_p / 4.0 <= depth_c <= 4.0 * depth_p:
+    if depth_c > 0 and depth_p / 2.0 <= depth_c <= 2.0 * depth_p:
         return c, "look-at point"
     front = np.median(np.stack(depths), axis=0) > 0
     return np.median(P[front] if front.any() else P, axis=0), "middle of the scene"

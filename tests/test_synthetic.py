@@ -217,6 +217,12 @@ def _ring_cameras(n=6, W=64, H=48):
 def test_viewing_axes_center():
     cams = _ring_cameras()
     assert np.allclose(viewing_axes_center(cams), 0.0, atol=1e-2)
+    # a line of cameras whose axes diverge (they would meet 5-9 units behind them): the point is in front
+    line = [Camera(f"l{i}", 64, 48, np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]]),
+                   look_at(np.array([x, 0.0, 1.0]), np.array([1.05 * x, 1.0, 1.0])), image=f"l{i}")
+            for i, x in enumerate(np.linspace(-1.0, 1.0, 9))]
+    point = viewing_axes_center(line)
+    assert 1.0 < point[1] < 2.5 and abs(point[0]) < 1e-6
 
 
 @pytest.mark.parametrize("dtype", [np.float32, np.uint8])

@@ -189,6 +189,12 @@ class Stage:
         """Whether an optional stage runs by default with these inputs."""
         return not cls.optional
 
+    @classmethod
+    def check_inputs(cls, params: Any, run_inputs: RunInputs) -> None:
+        """Raise a PipelineError when the run's inputs cannot serve this stage. The runner asks every
+        stage it is about to run before the first one starts, so a missing input is reported at once,
+        not after the stages before it (a fit of minutes) have run."""
+
     def run(self, ctx: StageContext) -> None:  # pragma: no cover - the contract
         raise NotImplementedError
 

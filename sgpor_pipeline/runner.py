@@ -173,6 +173,8 @@ def run_pipeline(
         raise PipelineError("image folder not found", path=run_inputs.images,
                             fix="pass the folder that holds your photos")
     selected = select_stages(stages, order, config, run_inputs, until)
+    for name in selected:
+        stages[name].check_inputs(config[name], run_inputs)
     forced: set[str] = set()
     for f in force:
         forced |= descendants(stages, config, f, run_inputs)

@@ -62,7 +62,7 @@ import cv2
 import numpy as np
 
 from sgpor_pipeline.config import added_param
-from sgpor_pipeline.dag import Stage, StageContext
+from sgpor_pipeline.dag import RunInputs, Stage, StageContext
 from sgpor_pipeline.errors import PipelineError
 from sgpor_pipeline.gaussians.model import GaussianModel
 from sgpor_pipeline.gaussians.ply import read_ply
@@ -157,6 +157,19 @@ class MasksStage(Stage):
     VERSION = 12  # 12: the given masks' lifted surface (lift); the photo's margin (photo_margin); GrabCut seeded
     Params = MasksParams
     inputs = ("sfm", "fit")
+
+    @classmethod
+    def check_inputs(cls, params: MasksParams, run_inputs: RunInputs) -> None:
+        """The object to remove is the one painted in the given masks: without a mask folder there is
+        nothing to select, and the run stops before SfM and the fit rather than after them."""
+        if run_inputs.masks is not None:
+            return
+        images = Path(run_inputs.images)
+        beside = [d for d in (images.parent / "masks", images / "masks") if d.is_dir()]
+        found = f" ({beside[0]} looks like one)" if beside else ""
+        raise PipelineError("no object masks given: the pipeline removes the object painted in them", path=images,
+                            fix=f"pass --masks DIR{found}: masks named like the photos, non-zero = the object, "
+                                "for one photo or more; or --until fit to reconstruct the scene only")
 
     def run(self, ctx: StageContext) -> None:
         p = ctx.params

@@ -47,6 +47,14 @@ def test_errors_are_one_line_with_the_file_and_fix(tmp_path):
     r = run_cli(["run", str(images), "--out", str(tmp_path / "out"), "--set", "nosuchstage.x=1"])
     assert r.returncode == 1 and "valid stages:" in r.stderr and "ingest" in r.stderr
 
+    # no --masks: stopped before the first stage (not after SfM and a fit of minutes), naming the folder
+    # of masks that lies beside the photos; --until fit (reconstruction only) needs none
+    (tmp_path / "masks").mkdir()
+    r = run_cli(["run", str(images), "--out", str(tmp_path / "nomasks")])
+    assert r.returncode == 1 and len(r.stderr.strip().splitlines()) == 1
+    assert "no object masks given" in r.stderr and f"{tmp_path / 'masks'} looks like one" in r.stderr
+    assert not (tmp_path / "nomasks").exists()
+
     r = run_cli(["--debug", "run", str(tmp_path / "nope"), "--out", str(tmp_path / "out")])
     assert r.returncode == 1 and "Traceback" in r.stderr
 

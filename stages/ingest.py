@@ -35,6 +35,7 @@ from sgpor_pipeline.scene import Camera, save_cameras
 from sgpor_pipeline.views import View, save_views
 
 MIN_IMAGES = 3
+FULL_MASK_SHARE = 0.99  # every mask at least this full: the photos given as masks, not a scene to rebuild
 
 
 @dataclass
@@ -169,6 +170,7 @@ class IngestStage(Stage):
         views: list[View] = []
         unreadable: list[str] = []
         empty_masks: list[str] = []
+        mask_share: dict[str, float] = {}
         for stem, path in ctx.progress(sorted(images.items()), total=len(images), desc="ingest"):
             mask_path = masks.get(stem)
             key = {"image": ctx.file_digest(path), "mask": None if mask_path is None else ctx.file_digest(mask_path)}
@@ -186,6 +188,7 @@ class IngestStage(Stage):
                 _link_or_copy(item / "mask.png", ctx.out_dir / mask_rel)
                 if info["mask_pixels"] == 0:
                     empty_masks.append(stem)
+                mask_share[stem] = info["mask_pixels"] / max(info["width"] * info["height"], 1)
             gps = read_gps(path)  # (read here, not in the item: cheap, and items cached before it stay valid)
             views.append(View(stem, f"images/{stem}.png", mask_rel, info["width"], info["height"], path.name,
                               info["source_width"], info["source_height"], None if gps is None else list(gps)))
@@ -201,6 +204,12 @@ class IngestStage(Stage):
         if masks and masked and len(empty_masks) == len(masked):
             raise PipelineError("every mask is empty (no non-zero pixel): there is no object to remove",
                                 path=mask_dir, fix="paint the object non-zero (white) in at least one mask")
+        full = [v for v in masked if mask_share[v.name] >= FULL_MASK_SHARE]
+        if masks and masked and len(full) == len(masked):
+            raise PipelineError(f"every mask covers {FULL_MASK_SHARE:.0%} or more of its photo: nothing of the scene "
+                                "is left to rebuild the background from", path=mask_dir,
+                                fix="pass the folder of masks, not of photos: the object non-zero (white), the rest "
+                                    "zero (black)")
         if empty_masks:
             ctx.log.warning(f"{len(empty_masks)} mask(s) are empty; the object is taken as not visible there: "
                             f"{', '.join(empty_masks)}")

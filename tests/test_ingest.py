@@ -170,6 +170,12 @@ def test_mask_errors(tmp_path, caplog):
     assert sum(v.mask is not None for v in load_views(out)) == 2
     with pytest.raises(PipelineError, match="--masks path not found"):
         ingest(tmp_path, images, tmp_path / "nomasks")
+    # the photos passed as their own masks (non-zero nearly everywhere): stopped, not a run without a scene
+    with pytest.raises(PipelineError, match="every mask covers 99% or more of its photo"):
+        ingest(tmp_path, images, images)
+    # one mask that full among others is a user's choice (a view filled by the object)
+    write_png(masks / "view_00.png", np.ones((30, 40), bool))
+    assert sum(v.mask is not None for v in load_views(ingest(tmp_path, images, masks))) == 2
 
 
 def test_duplicate_base_names(tmp_path):

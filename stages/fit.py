@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 
 from sgpor_pipeline.config import added_param
-from sgpor_pipeline.dag import Stage, StageContext
+from sgpor_pipeline.dag import RunInputs, Stage, StageContext
 from sgpor_pipeline.errors import PipelineError
 
 if TYPE_CHECKING:
@@ -750,6 +750,15 @@ class FitStage(Stage):
     Params = FitParams
     inputs = ("sfm",)
     libraries = ("torch",)
+
+    @classmethod
+    def check_inputs(cls, params: FitParams, run_inputs: RunInputs) -> None:
+        """``object_masks=ignore`` without any mask folder is known wrong before SfM runs."""
+        if params.object_masks == "ignore" and run_inputs.masks is None:
+            raise PipelineError("fit.object_masks=ignore needs an object mask for every view, and no --masks was "
+                                "given", path=run_inputs.images,
+                                fix="pass --masks with a mask for every photo (an empty one where the object is not "
+                                    "seen), or use fit.object_masks=fit or auto")
 
     def run(self, ctx: StageContext) -> None:
         res = fit_scene(ctx.inputs["sfm"], ctx.out_dir, ctx.params, ctx.checkpoint_dir, ctx.log, ctx.progress)

@@ -54,6 +54,10 @@ def test_errors_are_one_line_with_the_file_and_fix(tmp_path):
     assert r.returncode == 1 and len(r.stderr.strip().splitlines()) == 1
     assert "no object masks given" in r.stderr and f"{tmp_path / 'masks'} looks like one" in r.stderr
     assert not (tmp_path / "nomasks").exists()
+    r = run_cli(["run", str(images), "--out", str(tmp_path / "nomasks"), "--until", "fit",
+                 "--set", 'fit.object_masks="ignore"'])
+    assert r.returncode == 1 and "fit.object_masks=ignore needs an object mask" in r.stderr
+    assert not (tmp_path / "nomasks").exists()
 
     r = run_cli(["--debug", "run", str(tmp_path / "nope"), "--out", str(tmp_path / "out")])
     assert r.returncode == 1 and "Traceback" in r.stderr

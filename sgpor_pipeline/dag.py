@@ -9,6 +9,10 @@ A stage is a small class (DESIGN.md section 3)::
         inputs = ("sfm",)           # upstream stages, read only through ctx.inputs[...]
         def run(self, ctx: StageContext) -> None: ...   # writes files into ctx.out_dir
 
+Optional class methods: ``wanted`` (an optional stage runs by default with these inputs),
+``check_inputs`` (raise a PipelineError when the run's inputs cannot serve the stage: asked of every
+stage before the first one runs), ``key_extra``, ``upstream``, ``optional_inputs``.
+
 Stages and exporters are found through the entry-point groups ``sgpor_pipeline.stages`` and
 ``sgpor_pipeline.exporters``; the built-in ones register the same way as a third party's.
 """

@@ -862,3 +862,33 @@ def test_evaluation_scores_a_weighted_view_where_it_was_trained(monkeypatch):
     assert masked["psnr"] == pytest.approx(expected, abs=1e-4) and masked["psnr"] > plain["psnr"] + 5
     assert masked["ssim"] > plain["ssim"]
     assert math.isnan(train.evaluate(None, [train.TrainView("v", image, cam, torch.zeros(40, 48))])["psnr"])
+
+
+def test_mask_band_weights_the_background_around_the_object(tmp_path):
+    """fit.mask_band_gain: with the masks left out, the photo's pixels within mask_band_rel x sqrt(mask
+    area) of the (dilated) mask weigh the gain, those inside 0, the rest 1; a view without a mask pixel,
+    and gain 1, keep the plain weights. Bad values are refused before the fit."""
+    from sgpor_pipeline.imageio import write_mask01, write_png
+    from sgpor_pipeline.scene import Camera, save_cameras
+    from sgpor_pipeline.stages.fit import load_sfm_views
+
+    K = np.array([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]])
+    cams = [Camera(f"v{i}", 64, 48, K, np.eye(4), image=f"v{i}") for i in range(2)]
+    save_cameras(tmp_path / "cameras.json", cams)
+    (tmp_path / "images").mkdir()
+    (tmp_path / "masks").mkdir()
+    mask = np.zeros((48, 64), bool)
+    mask[20:30, 28:38] = True  # 100 px: the band is 0.5 x 10 = 5 px wide
+    for i, m in enumerate((mask, np.zeros_like(mask))):
+        write_png(tmp_path / "images" / f"v{i}.png", np.full((48, 64, 3), 128, np.uint8))
+        write_mask01(tmp_path / "masks" / f"v{i}.png", m)
+    plain, _ = load_sfm_views(tmp_path, 0, mask_dilate=0)
+    views, _ = load_sfm_views(tmp_path, 0, mask_dilate=0, band_gain=3.0, band_rel=0.5)
+    w, w0 = views[0].weight.numpy(), plain[0].weight.numpy()
+    assert np.all(w[mask] == 0) and np.array_equal(w0, (~mask).astype(np.float32))
+    assert w[25, 40] == 3.0 and w[25, 42] == 3.0 and w[25, 45] == 1.0 and w[14, 33] == 1.0
+    band = (w == 3.0)
+    assert band.sum() > 0 and not (band & mask).any()
+    assert np.array_equal(views[1].weight.numpy(), np.ones((48, 64), np.float32))
+    with pytest.raises(PipelineError, match="mask_band_gain must be >= 0"):
+        fit_scene(tmp_path, tmp_path / "out", FitParams(mask_band_gain=-1.0), None, logging.getLogger("test"))

@@ -667,7 +667,9 @@ def compute_export_frame(cameras: Sequence[Camera], settings: FrameSettings | No
     opaque, _ = surface_points(None, means, opacities)
     if gps and settings.up == "auto":
         up, how = _nadir_by_gps(cams, gps, up, how)
-    seen, src = surface_points(points, means, opacities)
+    seen, src = surface_points(points)  # the SfM points, else the opaque Gaussians (filtered once, above)
+    if seen is None and opaque is not None:
+        seen, src = opaque, "opaque Gaussians"
     ground, ground_info = None, None
     if settings.ground_plane and (settings.origin == "floor" or settings.up == "auto"):
         if seen is not None:

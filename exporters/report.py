@@ -40,6 +40,7 @@ from urllib.parse import quote
 
 import numpy as np
 
+from sgpor_pipeline.cache import read_manifest
 from sgpor_pipeline.dag import Exporter, StageContext
 from sgpor_pipeline.imageio import read_image, read_mask, resize_mask_nearest, write_png
 from sgpor_pipeline.scene import Camera
@@ -567,6 +568,16 @@ figcaption{font-size:.8em;color:#666}.meta{color:#666;font-size:.9em}
 """
 
 
+def results_stamp(inputs: dict[str, Path]) -> str:
+    """When the newest of the report's inputs was computed (UTC, from their cache manifests), not when the
+    page was written: a re-export of the same results gives the same bytes."""
+    created = [float((read_manifest(folder) or {}).get("created", 0.0)) for folder in inputs.values()]
+    newest = max(created, default=0.0)
+    if newest <= 0.0:
+        return "results of unknown date"
+    return "results of " + time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime(newest))
+
+
 def build_html(rc: ReportContext, sections: Sequence[Any], title: str = "sgpor-pipeline report") -> str:
     """The report page: every section that has something to show, in order."""
     body = []
@@ -582,11 +593,11 @@ def build_html(rc: ReportContext, sections: Sequence[Any], title: str = "sgpor-p
             anchor = f"s{i}"
             toc.append(f"<a href='#{anchor}'>{esc(sec.title)}</a>")
             body.append(f"<h2 id='{anchor}'>{esc(sec.title)}</h2>\n{frag}")
-    stamp = time.strftime("%Y-%m-%d %H:%M:%S")
+    stamp = results_stamp(rc.inputs)
     return ("<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
             f"<meta name='viewport' content='width=device-width, initial-scale=1'><title>{esc(title)}</title>"
             f"<style>{_CSS}</style></head><body><h1>{esc(title)}</h1>"
-            f"<p class='meta'>written {esc(stamp)} &middot; " + " &middot; ".join(toc) + "</p>\n"
+            f"<p class='meta'>{esc(stamp)} &middot; " + " &middot; ".join(toc) + "</p>\n"
             + "\n".join(body) + "\n</body></html>\n")
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import time
 
 import numpy as np
 import pytest
@@ -270,3 +271,8 @@ def test_report_shows_the_evaluation_and_depends_on_it(tiny_run):
     for stage, seconds in metrics["seconds"].items():
         assert f"<tr><th>{stage}</th><td>{seconds:.1f}</td></tr>" in page
     assert "per view (8)" in page
+    # the page dates the results it shows (the newest input's cache manifest), not its own writing, so a
+    # re-export of the same results is the same bytes
+    newest = max(json.loads((result.path(stage) / "manifest.json").read_text())["created"]
+                 for stage in export_manifest["inputs"])
+    assert time.strftime("results of %Y-%m-%d %H:%M:%S UTC", time.gmtime(newest)) in page

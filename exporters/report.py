@@ -617,8 +617,9 @@ REPORT_STAGES = ("fit", "masks", "remove", "inpaint", "refine") if SCENE_STAGE =
 
 class ReportExporter(Exporter):
     name = "report"
-    VERSION = 5  # 2: evaluate's metrics as tables (and metrics.json beside the report); 3: the plane texture;
-    # 4: its contact shadow (inpaint.lift_shadow); 5: its straight edges (inpaint.plane_structure)
+    VERSION = 6  # 2: evaluate's metrics as tables (and metrics.json beside the report); 3: the plane texture;
+    # 4: its contact shadow (inpaint.lift_shadow); 5: its straight edges (inpaint.plane_structure); 6: dated by
+    # its results, not its writing
     needs = ("ingest", CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE, *REPORT_STAGES)
     optional_needs = ("evaluate",)  # when the run has ground truth; its key then enters export's key
     description = ("report.html (+ report/ PNGs): inputs, masks, renders, training curve, metrics (with ground "

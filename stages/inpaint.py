@@ -535,8 +535,9 @@ class InpaintStage(Stage):
     # structure corner_reach of the hole; 18: the thin parts' plane texture used without a shadow too
     # (plane_thin); 19: the plane texture's regular patterns translated by their period first
     # (plane_lattice; the version marks the results of its development versions stale); 20: the plane
-    # texture's hole filled again from its smooth completion (plane_smooth_guide)
-    VERSION = 20
+    # texture's hole filled again from its smooth completion (plane_smooth_guide); 21: structure lines from
+    # colour edges too, and borders that graze the hole (StructureParams colour, graze)
+    VERSION = 21
     Params = InpaintParams
     inputs = ("remove",)
     libraries = ("torch",)

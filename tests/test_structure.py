@@ -241,6 +241,45 @@ def test_an_edge_that_ends_at_the_hole_is_not_continued():
     assert normals == [(0.0, 1.0), (1.0, 0.3)], [ln.to_dict() for ln in lines]  # the box's top and side
 
 
+def rug_beside_wood(seed: int, border: float = 107.0):
+    """mip360 room's case: a light rug and tan wood of about one brightness (grey 0.68 and 0.62; they
+    differ in blue), their border x = ``border`` + 0.05 (y - 80) passing 2 px beside a round hole in the
+    rug: (image, wood, hole)."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:N, 0:N]
+    wood = xx > border + 0.05 * (yy - 80)
+    g = grain(rng)
+    img = np.where(wood[..., None], np.stack([0.77 + g, 0.60 + g, 0.30 + g], -1),
+                   np.stack([0.68 + g, 0.69 + g, 0.62 + g], -1)).astype(np.float32)
+    hole = (yy - 80) ** 2 + (xx - 80) ** 2 < 25 ** 2
+    return img, wood, hole
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_border_beside_the_hole_keeps_the_hole_to_its_side(seed):
+    """A colour border that the grey image barely shows, passing the hole a few px off its rim: found on
+    CIELAB's colour channels and kept as a line, so the whole hole is the rug's cell (mip360 room: SBM
+    pasted the wood beside the hole into the rug). Without the colour channels, or without taking lines
+    that graze the hole, there is no line."""
+    img, wood, hole = rug_beside_wood(seed)
+    lines = hole_lines(img, ~hole, hole, 15)
+    assert len(lines) == 1, [ln.to_dict() for ln in lines]
+    ln = lines[0]
+    assert abs(abs(float(ln.normal[0])) - 1) < 2e-3 and abs(float(np.array([107.0, 80.0]) @ ln.normal) - ln.rho) < 1.5
+    assert (ln.side(N, N) == wood).mean() > 0.99 or (ln.side(N, N) == ~wood).mean() > 0.99
+    assert hole_lines(img, ~hole, hole, 15, StructureParams(colour=False)) == []
+    assert hole_lines(img, ~hole, hole, 15, StructureParams(graze=0.0)) == []
+    labels = cell_labels(hole.shape, lines, ~hole, hole, 15)
+    assert len(np.unique(labels[hole])) == 1 and labels[hole][0] == labels[~wood & ~hole][0]
+    p = SBMParams(rerank_margin=0)
+    bank = build_source_bank(["t"], [img], [hole], [hole], p, labels=[labels])
+    out = inpaint_view(img, hole, bank, p, labels=labels).image
+    assert float((out[..., 2] < 0.45)[hole].mean()) < 0.005  # no wood in the rug's hole
+    # a border farther off than ``graze`` is no line: the hole's rim is in view along it
+    far, _, _ = rug_beside_wood(seed, border=112.0)
+    assert hole_lines(far, ~hole, hole, 15) == []
+
+
 def test_an_edge_that_comes_out_a_few_px_off_is_still_continued():
     """The edge leaves the hole 4 px off the line fitted on its other side (a slightly bent mat border,
     or the angle of a short segment, as on mip360 kitchen's orange mat): the line is turned through both

@@ -51,11 +51,18 @@ class StructureParams:
     blur: float = 1.0  # Gaussian sigma (px) before the detector (woven or grainy texture)
     min_cell_pixels: int = 0  # known pixels a cell needs near the hole to constrain it; 0 = block^2
     near: float = 0.0  # "near the hole": within this many px; 0 = 3 x block
+    # A border that passes the hole within this many px, or cuts at most this deep into it, is a line
+    # too when its edge is seen on both sides of where it passes: the hole is filled from its own side
+    # (mip360 room: the hole grazed the rug's border on tan wood, and SBM pasted wood into the rug). The
+    # detector cannot see an edge this close to the rim (segments start 2 px in, after a 1 px blur). 0 = off
+    graze: float = 3.0
+    colour: bool = True  # also the edges of CIELAB's colour channels that the grey image lacks
 
     def validate(self) -> None:
         if self.max_lines < 1 or self.max_lines > 16:
             raise PipelineError(f"max_lines must be in 1..16 (got {self.max_lines})", fix="use e.g. 8")
-        lengths = (self.min_length, self.reach, self.corner_reach, self.min_contrast, self.blur, self.near)
+        lengths = (self.min_length, self.reach, self.corner_reach, self.min_contrast, self.blur, self.near,
+                   self.graze)
         if min(lengths) < 0 or self.min_cell_pixels < 0:
             raise PipelineError("structure lengths, contrast and blur must be >= 0", fix="use the defaults")
 
@@ -119,19 +126,15 @@ def _reach(line: Line, border: Line, side: float, open_end: np.ndarray) -> float
     return float("inf") if open_end[y, x] else float((far @ border.normal - border.rho) * side) + CORNER_MARGIN
 
 
-def _segments(image: np.ndarray, valid: np.ndarray, blur: float) -> np.ndarray:
-    """LSD segments [M,4] (x0, y0, x1, y1) lying on ``valid`` pixels (2 px in), on a grey image whose
-    invalid pixels are filled smoothly (so the rim of the hole makes no edge)."""
-    u8 = np.clip(np.asarray(image, np.float32) * 255 + 0.5, 0, 255).astype(np.uint8)
-    grey = cv2.cvtColor(u8, cv2.COLOR_RGB2GRAY)
+def _channel_segments(channel: np.ndarray, valid: np.ndarray, inner: np.ndarray, blur: float) -> list[tuple]:
+    """LSD segments of one uint8 channel, cut to their runs on ``inner`` pixels."""
     if (~valid).any():
-        grey = cv2.inpaint(grey, (~valid).astype(np.uint8), 3, cv2.INPAINT_TELEA)
+        channel = cv2.inpaint(channel, (~valid).astype(np.uint8), 3, cv2.INPAINT_TELEA)
     if blur > 0:
-        grey = cv2.GaussianBlur(grey, (0, 0), blur)
-    lines = cv2.createLineSegmentDetector().detect(grey)[0]
+        channel = cv2.GaussianBlur(channel, (0, 0), blur)
+    lines = cv2.createLineSegmentDetector().detect(channel)[0]
     if lines is None:
-        return np.zeros((0, 4), np.float32)
-    inner = cv2.erode(valid.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+        return []
     h, w = valid.shape
     out = []
     for x0, y0, x1, y1 in lines.reshape(-1, 4).astype(np.float64):
@@ -144,6 +147,45 @@ def _segments(image: np.ndarray, valid: np.ndarray, blur: float) -> np.ndarray:
         for a, b in zip(edges[::2], edges[1::2]):
             if b - a >= 4:
                 out.append((px[a], py[a], px[b - 1], py[b - 1]))
+    return out
+
+
+def _covered(segment: tuple, found: np.ndarray, angle_deg: float, dist: float) -> bool:
+    """Whether ``found`` [M,4] already has ``segment``: one of about its angle whose line passes within
+    ``dist`` px of both its ends and that spans at least half of it."""
+    if not len(found):
+        return False
+    s = np.asarray(segment, np.float64)
+    d = found[:, 2:] - found[:, :2]
+    length = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9)
+    u = d / length[:, None]
+    n = np.stack([-u[:, 1], u[:, 0]], 1)
+    sd = s[2:] - s[:2]
+    s_len = max(float(np.hypot(*sd)), 1e-9)
+    parallel = np.abs(u @ (sd / s_len)) >= np.cos(np.deg2rad(angle_deg))
+    near = ((np.abs(np.sum((s[:2] - found[:, :2]) * n, 1)) <= dist)
+            & (np.abs(np.sum((s[2:] - found[:, :2]) * n, 1)) <= dist))
+    a, b = np.sum((s[:2] - found[:, :2]) * u, 1), np.sum((s[2:] - found[:, :2]) * u, 1)
+    overlap = np.minimum(np.maximum(a, b), length) - np.maximum(np.minimum(a, b), 0.0)
+    return bool((parallel & near & (overlap >= 0.5 * s_len)).any())
+
+
+def _segments(image: np.ndarray, valid: np.ndarray, blur: float, colour: bool = True,
+              angle_deg: float = 2.0, dist: float = 1.5) -> np.ndarray:
+    """LSD segments [M,4] (x0, y0, x1, y1) lying on ``valid`` pixels (2 px in), on a grey image whose
+    invalid pixels are filled smoothly (so the rim of the hole makes no edge); with ``colour``, also
+    those of the two colour channels of CIELAB that the grey image lacks (a border between two colours
+    of about one brightness: mip360 room's light rug on tan wood is 0.06 apart in grey, 0.3 in blue)."""
+    u8 = np.clip(np.asarray(image, np.float32) * 255 + 0.5, 0, 255).astype(np.uint8)
+    valid = np.asarray(valid, bool)
+    inner = cv2.erode(valid.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+    out = _channel_segments(cv2.cvtColor(u8, cv2.COLOR_RGB2GRAY), valid, inner, blur)
+    if colour:
+        lab = cv2.cvtColor(u8, cv2.COLOR_RGB2LAB)
+        for c in (1, 2):
+            found = np.array(out, np.float64).reshape(-1, 4)
+            out += [sg for sg in _channel_segments(np.ascontiguousarray(lab[:, :, c]), valid, inner, blur)
+                    if not _covered(sg, found, angle_deg, dist)]
     return np.array(out, np.float32).reshape(-1, 4)
 
 
@@ -326,19 +368,31 @@ def hole_lines(image: np.ndarray, known: np.ndarray, hole: np.ndarray, block: in
     min_len = p.min_length or 2.0 * block
     reach = p.reach or float(block)
     corner_reach = p.corner_reach or block / 2.0
-    seg = _segments(img, known, p.blur)
+    seg = _segments(img, known, p.blur, p.colour, p.merge_angle, p.merge_distance)
     if not len(seg):
         return []
     to_hole = cv2.distanceTransform((~hole).astype(np.uint8), cv2.DIST_L2, 5)
     hy, hx = np.nonzero(hole)
     h, w = hole.shape
+    grown: list[np.ndarray] = []
+
+    def grown_hole() -> np.ndarray:  # the hole grown by ``graze`` px (a grazing line's entries)
+        if not grown:
+            r = int(np.ceil(p.graze))
+            grown.append(cv2.dilate(hole.astype(np.uint8), cv2.getStructuringElement(
+                cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))) > 0)
+        return grown[0]
+
     through: list[Line] = []
     one_sided: list[tuple[Line, tuple]] = []
     for ln in _merge(seg, p.merge_angle, p.merge_distance):
         if ln.length < min_len:
             continue
-        if np.abs(hx * ln.normal[0] + hy * ln.normal[1] - ln.rho).min() > 1.0:  # it misses the hole
+        across = hx * ln.normal[0] + hy * ln.normal[1] - ln.rho  # the hole's pixels' signed distances
+        if np.abs(across).min() > max(1.0, p.graze):  # it misses the hole
             continue
+        # how deep the hole reaches across the line on its smaller side (< 0: not at all)
+        sliver = min(float(across.max()), float(-across.min()))
         ends = ln.ends()
         ex = np.clip(np.rint(ends[:, 0]), 0, w - 1).astype(int)
         ey = np.clip(np.rint(ends[:, 1]), 0, h - 1).astype(int)
@@ -355,6 +409,11 @@ def hole_lines(image: np.ndarray, known: np.ndarray, hole: np.ndarray, block: in
             if len(through_both) >= 2:
                 ln, entries = turned, through_both
         if len(entries) >= 2:
+            through.append(ln)
+        elif (p.graze > 0 and sliver <= p.graze
+              and len(_entries(img, known, grown_hole(), ln, block, p.min_contrast)) >= 2):
+            # a border that passes beside the hole, its edge seen on both sides of where it passes (not
+            # a rug's side that ends at its corner by the hole): the hole keeps to its side
             through.append(ln)
         elif len(entries) == 1 and near_end <= corner_reach:
             one_sided.append((ln, entries[0]))

@@ -126,16 +126,15 @@ def _reach(line: Line, border: Line, side: float, open_end: np.ndarray) -> float
     return float("inf") if open_end[y, x] else float((far @ border.normal - border.rho) * side) + CORNER_MARGIN
 
 
-def _channel_segments(channel: np.ndarray, valid: np.ndarray, inner: np.ndarray, blur: float) -> list[tuple]:
-    """LSD segments of one uint8 channel, cut to their runs on ``inner`` pixels."""
-    if (~valid).any():
-        channel = cv2.inpaint(channel, (~valid).astype(np.uint8), 3, cv2.INPAINT_TELEA)
+def _channel_segments(channel: np.ndarray, inner: np.ndarray, blur: float) -> list[tuple]:
+    """LSD segments of one uint8 channel (its invalid pixels filled smoothly), cut to their runs on
+    ``inner`` pixels."""
     if blur > 0:
         channel = cv2.GaussianBlur(channel, (0, 0), blur)
     lines = cv2.createLineSegmentDetector().detect(channel)[0]
     if lines is None:
         return []
-    h, w = valid.shape
+    h, w = inner.shape
     out = []
     for x0, y0, x1, y1 in lines.reshape(-1, 4).astype(np.float64):
         # the runs of the segment on valid pixels (the smooth fill may carry an edge into the hole)
@@ -179,13 +178,16 @@ def _segments(image: np.ndarray, valid: np.ndarray, blur: float, colour: bool = 
     u8 = np.clip(np.asarray(image, np.float32) * 255 + 0.5, 0, 255).astype(np.uint8)
     valid = np.asarray(valid, bool)
     inner = cv2.erode(valid.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
-    out = _channel_segments(cv2.cvtColor(u8, cv2.COLOR_RGB2GRAY), valid, inner, blur)
-    if colour:
-        lab = cv2.cvtColor(u8, cv2.COLOR_RGB2LAB)
-        for c in (1, 2):
-            found = np.array(out, np.float64).reshape(-1, 4)
-            out += [sg for sg in _channel_segments(np.ascontiguousarray(lab[:, :, c]), valid, inner, blur)
-                    if not _covered(sg, found, angle_deg, dist)]
+    grey = cv2.cvtColor(u8, cv2.COLOR_RGB2GRAY)
+    channels = np.dstack([grey, cv2.cvtColor(u8, cv2.COLOR_RGB2LAB)[:, :, 1:]]) if colour else grey
+    if (~valid).any():  # (TELEA fills each channel alike: one call for the three)
+        channels = cv2.inpaint(channels, (~valid).astype(np.uint8), 3, cv2.INPAINT_TELEA)
+    channels = channels.reshape(*grey.shape, -1)
+    out = _channel_segments(np.ascontiguousarray(channels[:, :, 0]), inner, blur)
+    for c in range(1, channels.shape[2]):
+        found = np.array(out, np.float64).reshape(-1, 4)
+        out += [sg for sg in _channel_segments(np.ascontiguousarray(channels[:, :, c]), inner, blur)
+                if not _covered(sg, found, angle_deg, dist)]
     return np.array(out, np.float32).reshape(-1, 4)
 
 

@@ -4,11 +4,13 @@ Man-made planes (a table with mats, a floor with a rug, tiles) are bounded by st
 that grows from the hole's rim in layers lets each region of the rim advance at one speed, so where
 two regions meet inside the hole their border wanders (mip360 kitchen from one mask: blobs of the
 orange mat in the wood between the mats). Here the straight edges near the hole are found on the
-known image (OpenCV's LSD on a lightly blurred grey image, segments on the same line merged), kept
-when they are long, have contrast across them and their edge meets the hole on both sides (a border
-passing under the object; a few px off on the far side, the line is turned through both), or on one
-side as one of two borders of a region whose corner the hole hides; they are extended through it (an
-edge that stops at the hole's rim, or beside it, is not). The lines
+known image (OpenCV's LSD on a lightly blurred grey image and on its two CIELAB colour channels, for
+borders between colours of about one brightness; segments on the same line merged), kept when they
+are long, have contrast across them and their edge meets the hole on both sides (a border passing
+under the object; a few px off on the far side, the line is turned through both; or passing beside
+it, within ``graze`` px, where the detector cannot see the edge along the rim), or on one side as one
+of two borders of a region whose corner the hole hides; they are extended through it (an edge that
+stops at the hole's rim, or beside it, is not). The lines
 cut the image into cells (the side of every line; the two borders of a hidden corner split off only
 their region, the quadrant between them, since beyond the corner they border nothing: on mip360 room
 the three other quadrants put the wood at the hole's side into the carpet's part of the hole; and the
@@ -355,9 +357,10 @@ def hole_lines(image: np.ndarray, known: np.ndarray, hole: np.ndarray, block: in
                params: StructureParams | None = None) -> list[Line]:
     """The straight edges of the ``known`` part of ``image`` (float RGB in [0, 1]) that run through
     ``hole``: long enough, with contrast across them, a segment end near the hole, and the edge there
-    where the line enters the hole on both sides (a border that passes under the object), or on one
-    side where it meets another such line inside the hole (a hidden corner; its edge then reaches the
-    rim, within ``corner_reach`` px). An edge that stops short
+    where the line enters the hole on both sides (a border that passes under the object, or beside it
+    within ``graze`` px: the hole grown by that much), or on one side where it meets another such line
+    inside the hole (a hidden corner; its edge then reaches the rim, within ``corner_reach`` px). An
+    edge that stops short
     of the hole (a rug's border ending at its corner beside it) or that ends at the hole (an object's
     side the hole cuts off) is not continued. Longest first, at most ``max_lines``."""
     p = params or StructureParams()

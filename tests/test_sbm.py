@@ -31,8 +31,10 @@ from sgpor_pipeline.removal.multiview import (
 )
 from sgpor_pipeline.removal.rpr import hf_energy
 from sgpor_pipeline.removal.sbm import (
+    BOUNDARY_ANCHOR,
     SBMParams,
     SeamComposite,
+    agreeing_rim,
     block_log_depth,
     build_source_bank,
     feather,
@@ -1162,6 +1164,39 @@ def test_blend_reach_keeps_a_dark_rim_from_tinting_the_whole_fill():
     assert abs(tone[5.0]) < 0.5 * abs(tone[0.0]), tone
     with pytest.raises(PipelineError, match="blend_reach"):
         SBMParams(blend_reach=-1).validate()
+
+
+def test_blend_boundary_keeps_a_lawn_at_the_rim_from_tinting_a_pedestals_fill():
+    """SPIn-NeRF statue's case: the hole's rim is lawn above and white stone below, and the paste's
+    stone reaches a few px higher than the photo's, so at the hole's sides white paste meets green
+    rim. Matching every rim pixel spreads green over the stone's fill; with ``blend_boundary`` those
+    rim pixels are free and the fill keeps its colour, while the rim pixels that agree still hold."""
+    rng = np.random.default_rng(0)
+    yy, xx = np.mgrid[0:100, 0:100]
+    lawn, stone = np.array([0.30, 0.45, 0.20]), np.array([0.85, 0.84, 0.80])
+    grain = 0.02 * cv2.GaussianBlur(rng.standard_normal((100, 100)).astype(np.float32), (0, 0), 1.0)[..., None]
+    image = (np.where((yy < 40)[..., None], lawn, stone) + grain).astype(np.float32)
+    hole = (yy >= 25) & (yy < 70) & (xx >= 20) & (xx < 80)
+    paste = (np.where((yy < 34)[..., None], lawn, stone) + grain[::-1]).astype(np.float32)  # stone from 34
+    composite = np.where(hole[..., None], paste, image).astype(np.float32)
+    boundary = agreeing_rim(composite, hole, 0.3)  # (the image outside the hole, the paste inside)
+    disagree = ~hole & ~boundary
+    assert disagree.any() and (yy[disagree] >= 33).all() and (yy[disagree] < 41).all()  # the sides' rows 34-39
+    assert boundary[24, 20:80].all() and boundary[70, 20:80].all()  # the lawn above and the stone below hold
+    deep = hole & (yy >= 45) & (yy < 60)
+    tint = {}
+    for name, kw in (("all", {}), ("agreeing", {"boundary": boundary, "anchor": BOUNDARY_ANCHOR})):
+        out = poisson_blend(composite, paste, hole, **kw)  # (the paste's blocks reach over the rim too)
+        assert np.array_equal(out[~hole], composite[~hole])
+        tint[name] = float(np.linalg.norm(out[deep].mean(axis=0) - stone))
+    assert tint["all"] > 0.03 and tint["agreeing"] < 0.3 * tint["all"], tint
+    with pytest.raises(PipelineError, match="blend_boundary"):
+        SBMParams(blend_boundary=-0.1).validate()
+    # through inpaint_view: the known pixels stay, the fill is finite
+    p = SBMParams(blend_boundary=0.3)
+    bank = build_source_bank(["v"], [image], [hole], [hole], p)
+    filled = inpaint_view(image, hole, bank, p).image
+    assert np.array_equal(filled[~hole], image[~hole]) and np.isfinite(filled).all()
 
 
 def test_inpaint_stage_plane_blend_gives_each_view_the_plane_fill_in_its_own_tone(scene, tmp_path):

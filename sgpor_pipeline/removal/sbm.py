@@ -93,6 +93,12 @@ class SBMParams:
     # and the interior keeps its sources' colours. A rim darker than the sources (the removed object's
     # shadow, dark texels of the fit at its foot) tinted the whole fill of mip360 kitchen's mat.
     blend_reach: float = 0.0
+    # Which rim pixels the Poisson blend matches: 0 = all; > 0 = those whose colour differs from the
+    # pasted pixel beside them by at most this much (RGB L2 in [0, 1], after a 1 px blur). Where a region's
+    # border meets the rim (a lawn beside a pedestal's fill) the others are free (Neumann), so one
+    # region's colour does not tint the other's fill (SPIn-NeRF statue: the green lawn tinted the white
+    # pedestal's top).
+    blend_boundary: float = 0.0
     peel: int = 0  # onion-peel layer depth: targets within this many px of the unknown region's rim; 0 = stride
     # "onion": a layer's targets are filled together (every part of the rim advances at one speed);
     # "priority": of each layer, first the blocks where strong edges of the known image meet the rim
@@ -173,6 +179,9 @@ class SBMParams:
         if not (self.blend_reach >= 0 and np.isfinite(self.blend_reach)):
             raise PipelineError(f"blend_reach must be a finite number >= 0 (got {self.blend_reach})",
                                 fix="use 0 (the blend reaches everywhere) or a distance in pixels, e.g. 15")
+        if not (self.blend_boundary >= 0 and np.isfinite(self.blend_boundary)):
+            raise PipelineError(f"blend_boundary must be a finite number >= 0 (got {self.blend_boundary})",
+                                fix="use 0 (every rim pixel holds) or a colour difference, e.g. 0.3")
         if self.overlap not in OVERLAPS:
             raise PipelineError(f"unknown overlap mode {self.overlap!r}", fix=f"use one of {', '.join(OVERLAPS)}")
         if self.rerank_margin < -1:
@@ -506,6 +515,39 @@ def feather(block: int) -> np.ndarray:
     c = (block - 1) / 2.0
     t = 1.0 - np.abs(np.arange(block) - c) / (c + 1.0)
     return np.outer(t, t).astype(np.float32)
+
+
+BOUNDARY_ANCHOR = 1e-3  # poisson_blend's anchor when some rim pixels are free (blend_boundary)
+
+
+def agreeing_rim(composite: np.ndarray, region: np.ndarray, max_difference: float) -> np.ndarray:
+    """The pixels outside ``region`` that the Poisson blend matches (``poisson_blend``'s ``boundary``):
+    all but the rim pixels whose colour differs from a ``region`` neighbour's in ``composite`` (the
+    paste) by more than ``max_difference`` (RGB L2, each side blurred by 1 px): a region's border meets the
+    rim there, and matching it would spread one region's colour over the other's fill."""
+    region = np.asarray(region, bool)
+    img = np.asarray(composite, np.float32)
+
+    def smooth_within(part: np.ndarray) -> np.ndarray:  # blurred over ``part``'s pixels only
+        m = part.astype(np.float32)
+        num = cv2.GaussianBlur(img * m[..., None], (0, 0), 1.0)
+        return num / np.maximum(cv2.GaussianBlur(m, (0, 0), 1.0), 1e-6)[..., None]
+
+    # (each side blurred on its own: a blur across the rim would mix the paste into the rim's colour)
+    inside, outside = smooth_within(region), smooth_within(~region)
+    h, w = region.shape
+    worst = np.zeros((h, w), np.float32)
+    for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+        # q = p + (dy, dx) outside the region, p inside
+        ys, xs = np.nonzero(region)
+        qy, qx = ys + dy, xs + dx
+        ok = (qy >= 0) & (qy < h) & (qx >= 0) & (qx < w)
+        ys, xs, qy, qx = ys[ok], xs[ok], qy[ok], qx[ok]
+        out = ~region[qy, qx]
+        ys, xs, qy, qx = ys[out], xs[out], qy[out], qx[out]
+        d = np.linalg.norm(outside[qy, qx] - inside[ys, xs], axis=1)
+        np.maximum.at(worst, (qy, qx), d)
+    return ~region & (worst <= max_difference)
 
 
 def poisson_blend(image: np.ndarray, guide: np.ndarray | None, region: np.ndarray,
@@ -1050,11 +1092,16 @@ def inpaint_view(image: np.ndarray, hole: np.ndarray, bank: SourceBank, params: 
         cur[left] = cv2.inpaint(u8, left.astype(np.uint8), 3, cv2.INPAINT_TELEA)[left].astype(np.float32) / 255
     out = cur
     if params.blend == "poisson" and todo.any():
+        boundary = None if params.blend_boundary <= 0 else agreeing_rim(cur, todo, params.blend_boundary)
+        # (a part of the hole left with no rim to match keeps its paste: the anchor)
+        anchor = 0.0 if boundary is None else BOUNDARY_ANCHOR
         if seams is None:
             guide = np.where(wsum[..., None] > 0, acc / np.maximum(wsum, 1e-12)[..., None], cur)
-            out = poisson_blend(cur, guide.astype(np.float32), todo).astype(np.float32)
+            out = poisson_blend(cur, guide.astype(np.float32), todo, boundary=boundary,
+                                anchor=anchor).astype(np.float32)
         else:
-            out = poisson_blend(cur, None, todo, seams.differences(cur)).astype(np.float32)
+            out = poisson_blend(cur, None, todo, seams.differences(cur), boundary=boundary,
+                                anchor=anchor).astype(np.float32)
         if params.blend_reach > 0:
             d = cv2.distanceTransform(todo.astype(np.uint8), cv2.DIST_L2, 3)
             fade = np.exp(-d[todo] / params.blend_reach)[:, None]

@@ -537,10 +537,10 @@ def agreeing_rim(composite: np.ndarray, region: np.ndarray, max_difference: floa
     inside, outside = smooth_within(region), smooth_within(~region)
     h, w = region.shape
     worst = np.zeros((h, w), np.float32)
+    py, px = np.nonzero(region)
     for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
         # q = p + (dy, dx) outside the region, p inside
-        ys, xs = np.nonzero(region)
-        qy, qx = ys + dy, xs + dx
+        ys, xs, qy, qx = py, px, py + dy, px + dx
         ok = (qy >= 0) & (qy < h) & (qx >= 0) & (qx < w)
         ys, xs, qy, qx = ys[ok], xs[ok], qy[ok], qx[ok]
         out = ~region[qy, qx]

@@ -5,7 +5,8 @@
                                            synthetic-box-contact,synthetic-box-cast,
                                            synthetic-raised-cast,synthetic-box-1mask,synthetic-cast,
                                            synthetic-raised-cast-1mask,lund-1mask,statue-box-1mask,
-                                           synthetic-box-edge,synthetic-box-corner,synthetic-photos,
+                                           synthetic-box-edge,synthetic-box-corner,synthetic-box-round,
+                                           synthetic-photos,
                                            synthetic-raised,synthetic-box-coins,synthetic-box-brick]]
                                  [--set STAGE.PARAM=VALUE ...]   (overrides for every run of (a), (b), (c))
                                  [--novel]   (+ the novel-view protocol (d) on the scenes of (a) and (b))
@@ -199,6 +200,8 @@ SYNTHETIC_SCENES: dict[str, dict[str, Any]] = {
     # border through what the box hides (as the mats on mip360 kitchen's table); inpaint.plane_structure
     "synthetic-box-edge": {"object_kind": "box", "rug_place": "edge"},
     "synthetic-box-corner": {"object_kind": "box", "rug_place": "corner"},
+    # ... and a round rug's curved border under it (no straight structure to continue)
+    "synthetic-box-round": {"object_kind": "box", "rug_place": "edge", "rug_shape": "ellipse"},
     # synthetic-box on a rug with a regular pattern: a grid of coins, a wall of bricks (tiles, parquet,
     # a patterned rug); inpaint.plane_lattice
     "synthetic-box-coins": {"object_kind": "box", "rug_texture": "coins"},
@@ -223,6 +226,7 @@ PREFIX = {"synthetic": "synthetic", "synthetic-box": "synthetic_box", "synthetic
           "synthetic-box-1mask": "synthetic_box_1mask", "synthetic-cast": "synthetic_cast",
           "synthetic-raised-cast-1mask": "synthetic_raised_cast_1mask",
           "synthetic-box-edge": "synthetic_box_edge", "synthetic-box-corner": "synthetic_box_corner",
+          "synthetic-box-round": "synthetic_box_round",
           "synthetic-box-coins": "synthetic_box_coins", "synthetic-box-brick": "synthetic_box_brick",
           "synthetic-photos": "synthetic_photos",
           "lund": "lund_inserted", "lund-1mask": "lund_inserted_1mask",
@@ -1185,7 +1189,8 @@ def main(argv: list[str] | None = None) -> int:
                          "(the box from one given mask), synthetic-cast (the sphere with its shadows), "
                          "synthetic-raised-cast-1mask (the box on feet from one given mask), lund-1mask (lund + "
                          "box from one given mask), statue-box-1mask (statue + box, likewise), synthetic-box-edge, "
-                         "synthetic-box-corner (the rug's edge or corner under the box), synthetic-box-coins, "
+                         "synthetic-box-corner (the rug's edge or corner under the box), synthetic-box-round (a round "
+                         "rug's curved edge under it), synthetic-box-coins, "
                          "synthetic-box-brick (the box on a rug of coins in a grid, or of bricks), synthetic-photos "
                          "(the demo from its photos: SfM instead of its cameras)")
     ap.add_argument("--verbose", action="store_true", help="log every stage")

@@ -94,6 +94,9 @@ class SceneParams:
     # bricks); "" = drawn with the scene. Set, it is made with its own seed, so the rest of the scene
     # stays the same.
     rug_texture: str = ""
+    # The rug's outline: "rect", or "ellipse" (inscribed in that rectangle, a round rug: its border under
+    # the object is curved; with rug_place "edge" the object stands on the end of an axis)
+    rug_shape: str = "rect"
     shadows: bool = True  # hard shadows cast by the background objects (never by the object)
     # How the object darkens the background in ``images`` (never in ``images_gt``), as in a real
     # photo: "none"; "contact" (its ambient occlusion: the floor darkens where it stands); "cast"
@@ -391,6 +394,23 @@ def _raycasting_scene(surfaces: Sequence[_Surface]):
 # meshes
 
 
+def _rug_mesh(shape: str, center: np.ndarray, half: np.ndarray, rot: np.ndarray, segments: int = 128):
+    """The rug's mesh: its rectangle, or the ellipse inscribed in it (a fan of ``segments`` triangles)."""
+    if shape == "rect":
+        return _quad(np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]]) * half @ rot.T + center)
+    if shape != "ellipse":
+        raise ValueError(f"rug_shape must be 'rect' or 'ellipse', got {shape!r}")
+    import open3d as o3d
+
+    a = np.linspace(0.0, 2 * np.pi, segments, endpoint=False)
+    rim = np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], 1) * half @ rot.T + center
+    m = o3d.geometry.TriangleMesh()
+    m.vertices = o3d.utility.Vector3dVector(np.vstack([center, rim]).astype(np.float64))
+    fan = np.stack([np.zeros(segments), 1 + np.arange(segments), 1 + (np.arange(segments) + 1) % segments], 1)
+    m.triangles = o3d.utility.Vector3iVector(fan.astype(np.int32))
+    return m
+
+
 def _quad(corners: np.ndarray):
     import open3d as o3d
 
@@ -656,23 +676,24 @@ def _build_layout(p: SceneParams, rng: np.random.Generator):
         rug_half = np.array([rng.uniform(0.6, 0.9), rng.uniform(0.45, 0.7), 0.0])
         rug_c = np.array([*rng.uniform(-0.15, 0.15, 2), base])
         rug_rot = _rot_z(rng.uniform(0, np.pi))
-        corners = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]]) * rug_half @ rug_rot.T + rug_c
         rug_tex = pick(BACKGROUND_TEXTURES)
         rug_img = _texture(rug_tex, rng, size)  # (made even when replaced: its draws keep the rest of the scene)
         if p.rug_texture:
             if p.rug_texture not in BACKGROUND_TEXTURES:
                 raise ValueError(f"rug_texture must be one of {', '.join(BACKGROUND_TEXTURES)}, got {p.rug_texture!r}")
             rug_img = _texture(p.rug_texture, np.random.default_rng([p.seed, 1]), size)
-        surfaces.append(_Surface("rug", "plane", rug_img, rug_c, rug_half, rug_rot, fit=True, mesh=_quad(corners)))
+        surfaces.append(_Surface("rug", "plane", rug_img, rug_c, rug_half, rug_rot, fit=True,
+                                 mesh=_rug_mesh(p.rug_shape, rug_c, rug_half, rug_rot)))
     obj_c = np.array([*rng.uniform(-0.2, 0.2, 2), base + half[2]])
     if p.rug and p.rug_place != "centre":  # (after every draw: the rest of the scene stays the same)
         if p.rug_place not in ("edge", "corner"):
             raise ValueError(f"rug_place must be 'centre', 'edge' or 'corner', got {p.rug_place!r}")
         reach = rug_half * (np.array([0.0, 1.0, 0.0]) if p.rug_place == "edge" else np.array([1.0, 1.0, 0.0]))
+        if p.rug_shape == "ellipse" and p.rug_place == "corner":  # (the ellipse's point at 45 degrees)
+            reach = reach * np.sqrt(0.5)
         rug_c = np.array([*(obj_c[:2] - (rug_rot @ reach)[:2]), base])
-        corners = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]]) * rug_half @ rug_rot.T + rug_c
         rug = next(i for i, sf in enumerate(surfaces) if sf.name == "rug")
-        surfaces[rug] = replace(surfaces[rug], center=rug_c, mesh=_quad(corners))
+        surfaces[rug] = replace(surfaces[rug], center=rug_c, mesh=_rug_mesh(p.rug_shape, rug_c, rug_half, rug_rot))
     obj = _Surface("object", kind, _texture(obj_tex_name, rng, size, tint=False), obj_c, half, rot,
                    fit=True, mesh=_primitive_mesh(kind, half, obj_c, rot))
 

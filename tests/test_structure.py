@@ -221,6 +221,14 @@ def test_rug_place_puts_the_rugs_edge_or_corner_under_the_object():
         assert not np.array_equal(sc.images_gt, centre.images_gt)
     with pytest.raises(ValueError, match="rug_place"):
         generate_scene(SceneParams(**small, rug_place="middle"))
+    # a round rug (the ellipse inscribed in the rectangle): the same scene, less of the floor is rug
+    rect = generate_scene(SceneParams(**small, rug_place="edge"))
+    oval = generate_scene(SceneParams(**small, rug_place="edge", rug_shape="ellipse"))
+    np.testing.assert_array_equal(oval.object_bounds, rect.object_bounds)
+    changed = np.abs(oval.images_gt - rect.images_gt).max(axis=-1) > 1e-6
+    assert 0 < changed.mean() < 0.2  # the rug's corners became floor
+    with pytest.raises(ValueError, match="rug_shape"):
+        generate_scene(SceneParams(**small, rug_shape="star"))
 
 
 def test_an_edge_that_ends_at_the_hole_is_not_continued():

@@ -379,14 +379,8 @@ def hole_lines(image: np.ndarray, known: np.ndarray, hole: np.ndarray, block: in
     to_hole = cv2.distanceTransform((~hole).astype(np.uint8), cv2.DIST_L2, 5)
     hy, hx = np.nonzero(hole)
     h, w = hole.shape
-    grown: list[np.ndarray] = []
-
-    def grown_hole() -> np.ndarray:  # the hole grown by ``graze`` px (a grazing line's entries)
-        if not grown:
-            r = int(np.ceil(p.graze))
-            grown.append(cv2.dilate(hole.astype(np.uint8), cv2.getStructuringElement(
-                cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))) > 0)
-        return grown[0]
+    r = int(np.ceil(p.graze))  # the hole grown by ``graze`` px: where a grazing line's entries are found
+    grown = cv2.dilate(hole.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2)) > 0
 
     through: list[Line] = []
     one_sided: list[tuple[Line, tuple]] = []
@@ -416,7 +410,7 @@ def hole_lines(image: np.ndarray, known: np.ndarray, hole: np.ndarray, block: in
         if len(entries) >= 2:
             through.append(ln)
         elif (p.graze > 0 and sliver <= p.graze
-              and len(_entries(img, known, grown_hole(), ln, block, p.min_contrast)) >= 2):
+              and len(_entries(img, known, grown, ln, block, p.min_contrast)) >= 2):
             # a border that passes beside the hole, its edge seen on both sides of where it passes (not
             # a rug's side that ends at its corner by the hole): the hole keeps to its side
             through.append(ln)

@@ -53,7 +53,7 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -78,10 +78,11 @@ from sgpor_pipeline.gaussians.train import (
     training_size,
 )
 from sgpor_pipeline.hashing import hash_obj
-from sgpor_pipeline.imageio import read_mask, read_rgb8, write_png
+from sgpor_pipeline.imageio import read_labels, read_mask, read_rgb8, write_png
 from sgpor_pipeline.removal import diffusion as sd
 from sgpor_pipeline.removal.harmonize import rim_harmonized
 from sgpor_pipeline.removal.holes import subset
+from sgpor_pipeline.removal.multiview import FILLED_INPAINTED
 from sgpor_pipeline.removal.selection import contribution_scores, median_spacing, render_channels, within_margin
 from sgpor_pipeline.scene import Camera, load_cameras
 
@@ -174,6 +175,15 @@ class FinetuneParams:
     # 16.34, 22.43 -> 22.54. 0.05: 26.60, 28.11, 15.88, 23.19 (seed 0). A uniform seen_weight 1 instead:
     # 26.49, 27.79, 15.87, 23.29 (the synthetic scenes lose).
     seen_offset: float = 0.1
+    # Whose fill gives the holes their detail. "every": every view's hole is a target in full (L1 +
+    # D-SSIM); where each view filled its hole on its own (a thick hole whose rim crosses a depth step:
+    # the inpaint stage's filled_from 2) the fills differ, and the re-fit averages them into a smooth
+    # patch (SPIn-NeRF statue's lawn). "largest": only the view with the most such pixels keeps them in
+    # full; in the other views they are compared with the render blurred by a Gaussian of
+    # hole_detail_sigma px (training resolution): they give the hole its colours, the largest view its
+    # detail. The pixels filled consistently (from the plane texture, or carried) stay full targets.
+    hole_detail: Literal["every", "largest"] = added_param("every")
+    hole_detail_sigma: float = added_param(4.0)
 
     def sds(self) -> sd.SDSParams:
         return sd.SDSParams(prompt=self.sds_prompt, guidance=self.sds_guidance, min_t=self.sds_min_t,
@@ -287,11 +297,15 @@ def crop_views(views: list[TrainView], reaches: list[np.ndarray], margin: int
             y0, y1 = max(0, int(ys.min()) - margin), min(H, int(ys.max()) + 1 + margin)
             x0, x1 = max(0, int(xs.min()) - margin), min(W, int(xs.max()) + 1 + margin)
             weight = None if v.weight is None else v.weight[y0:y1, x0:x1].contiguous()
+            lowpass = None if v.lowpass is None else v.lowpass[y0:y1, x0:x1].contiguous()
             whole = float(H * W) if v.weight is None else float(v.weight.sum())
             part = float((y1 - y0) * (x1 - x0)) if weight is None else float(weight.sum())
+            if lowpass is not None:  # (the low-pass term's pixels count in the normaliser too)
+                whole, part = whole + float(v.lowpass.sum()), part + float(lowpass.sum())
             if part > 0:
                 crop = TrainView(v.name, v.image[y0:y1, x0:x1].contiguous(),
-                                 crop_camera(v.camera, y0, y1, x0, x1), weight, loss_scale=part / whole)
+                                 crop_camera(v.camera, y0, y1, x0, x1), weight, loss_scale=part / whole,
+                                 lowpass=lowpass, lowpass_sigma=v.lowpass_sigma)
                 box = (y0, y1, x0, x1)
         out.append(crop)
         boxes.append(box)
@@ -437,6 +451,11 @@ class FinetuneStage(Stage):
     libraries = ("torch",)
 
     @classmethod
+    def upstream(cls, params: FinetuneParams) -> tuple[str, ...]:
+        # (hole_detail "largest" reads which hole pixels each view filled on its own)
+        return cls.inputs + (("inpaint",) if params.hole_detail != "every" else ())
+
+    @classmethod
     def key_extra(cls, params: FinetuneParams) -> dict[str, Any]:
         # with SDS the result depends on the weights ($SGPOR_DIFFUSION_MODEL may change between runs)
         if params.lambda_sds <= 0:
@@ -457,6 +476,10 @@ class FinetuneStage(Stage):
         if p.lambda_sds > 0:  # fail before any work, saying what to provide
             sd.require_diffusers()
             sds_dir = sd.resolve_model_dir(p.diffusion_model, "finetune.diffusion_model")
+        if p.hole_detail not in ("every", "largest") or not p.hole_detail_sigma > 0:
+            raise PipelineError(f"finetune.hole_detail must be 'every' or 'largest' and hole_detail_sigma > 0 (got "
+                                f"{p.hole_detail!r}, {p.hole_detail_sigma})", fix='use "every" (the default) or '
+                                '"largest" with e.g. hole_detail_sigma = 4')
         if p.targets not in ("photos", "inpainted"):
             raise PipelineError(f"unknown finetune.targets {p.targets!r}", fix='use "photos" or "inpainted"')
         device = stage_device("finetune", p.device, p.backend)
@@ -497,7 +520,18 @@ class FinetuneStage(Stage):
                                                   "hole_gaussians": int(len(seed_ids)), "hole_pixels": hole_px,
                                                   "iterations": 0, "skipped": skipped})
             return
-        views = [self._view(ctx, c, h, p, r) for c, h, r in zip(cameras, holes, relit)]
+        lowpass: list[np.ndarray | None] = [None] * len(cameras)  # (hole_detail: the low-pass targets)
+        detail_info: dict[str, Any] | None = None
+        if p.hole_detail == "largest":
+            own = [self._filled_on_its_own(ctx, c, h) for c, h in zip(cameras, holes)]
+            largest = int(np.argmax([o.sum() for o in own]))
+            lowpass = [None if i == largest or not o.any() else o for i, o in enumerate(own)]
+            detail_info = {"view": cameras[largest].image, "own_pixels": int(own[largest].sum()),
+                           "lowpass_pixels": int(sum(o.sum() for o in lowpass if o is not None))}
+            ctx.log.info(f"finetune: the holes' detail from {cameras[largest].image} ({int(own[largest].sum())} px "
+                         f"filled on its own); {int(sum(o.sum() for o in lowpass if o is not None))} px that the "
+                         f"other views filled on their own give their colours blurred by {p.hole_detail_sigma:g} px")
+        views = [self._view(ctx, c, h, p, r, lp) for c, h, r, lp in zip(cameras, holes, relit, lowpass)]
         whole_views: list[TrainView] = []  # (with crop_info: the views before cropping, and their boxes)
         boxes: list = []
         crop_info: dict[str, Any] | None = None
@@ -571,6 +605,8 @@ class FinetuneStage(Stage):
                 "resumed_from_iteration": summary.get("resumed_from_iteration")}
         if crop_info is not None:
             info["crop"] = crop_info
+        if detail_info is not None:
+            info["hole_detail"] = detail_info
         if densify is not None:
             info["densify"] = {"budget": budget - n_before, "net_added": len(trainer.model) - n_before,
                                "trainable_after": int(trainer.sstate["eligible"].sum())}
@@ -588,16 +624,35 @@ class FinetuneStage(Stage):
         return read_mask(path) & ~hole if path.is_file() else np.zeros(hole.shape, bool)
 
     @staticmethod
-    def _view(ctx: StageContext, cam: Camera, hole: np.ndarray, p: FinetuneParams, relit: np.ndarray | None = None):
+    def _filled_on_its_own(ctx: StageContext, cam: Camera, hole: np.ndarray) -> np.ndarray:
+        """The hole pixels the inpaint stage filled in this view on its own (``filled_from`` 2), or the
+        whole hole when the run has no such record (a caller without the inpaint stage)."""
+        path = Path(ctx.inputs["inpaint"]) / "filled_from" / f"{cam.image}.png" if "inpaint" in ctx.inputs else None
+        return hole & (read_labels(path) == FILLED_INPAINTED) if path is not None and path.is_file() else hole
+
+    @staticmethod
+    def _view(ctx: StageContext, cam: Camera, hole: np.ndarray, p: FinetuneParams, relit: np.ndarray | None = None,
+              lowpass: np.ndarray | None = None):
         """One training view: target image and per-pixel weight (see ``targets``). ``relit`` pixels
-        take the refine stage's image with full weight, inside the mask or out."""
+        take the refine stage's image with full weight, inside the mask or out. The ``lowpass`` pixels
+        are low-pass targets only (``hole_detail``)."""
         fill = read_rgb8(ctx.inputs["refine"] / "images" / f"{cam.image}.png")
         sfm_dir = ctx.inputs.get("sfm")  # (a caller may run the stage without the photos)
         photo_path = Path(sfm_dir or ".") / "images" / f"{cam.image}.png"
         with_photo = p.targets == "photos" and sfm_dir is not None and photo_path.is_file()
         mask_path = ctx.inputs["remove"] / "masks" / f"{cam.image}.png"
+
+        def view(target: np.ndarray, weight: np.ndarray | None = None) -> TrainView:
+            if lowpass is None or not lowpass.any():
+                return make_view(cam.image, target, cam, p.max_size, weight)
+            # (hole_detail: those pixels a low-pass target, sigma given at the training resolution)
+            weight = np.where(lowpass, 0.0, 1.0 if weight is None else weight).astype(np.float32)
+            sigma = p.hole_detail_sigma * max(hole.shape) / max(training_size(hole.shape[1], hole.shape[0], p.max_size))
+            return make_view(cam.image, target, cam, p.max_size, weight, lowpass=lowpass.astype(np.float32),
+                             lowpass_sigma=sigma)
+
         if not with_photo and not mask_path.is_file():  # (a caller without photos and masks: the fill alone)
-            return make_view(cam.image, fill, cam, p.max_size)
+            return view(fill)
         mask = read_mask(mask_path)
         if mask.shape != hole.shape or mask.shape != fill.shape[:2]:
             raise PipelineError(f"finetune: the mask and the inpainted image of {cam.image} differ in size",
@@ -607,7 +662,7 @@ class FinetuneStage(Stage):
         seen = band & ~hole & ~relit  # there that image is the render after deletion: weight seen_weight
         weight = np.where(seen, p.seen_weight, 1.0).astype(np.float32) if p.seen_weight != 1 and seen.any() else None
         if not with_photo:
-            return make_view(cam.image, fill, cam, p.max_size, weight)
+            return view(fill, weight)
         photo = read_rgb8(photo_path)
         if photo.shape != fill.shape:
             raise PipelineError(f"finetune: the photo and the inpainted image of {cam.image} differ in size",
@@ -619,8 +674,7 @@ class FinetuneStage(Stage):
                 off = np.abs(fill - before).mean(axis=2)
                 weight = np.where(seen, np.maximum(np.minimum(off / p.seen_offset, 1.0), p.seen_weight),
                                   1.0).astype(np.float32)
-        target = np.where((band | hole | relit)[..., None], fill, photo)
-        return make_view(cam.image, target, cam, p.max_size, weight)
+        return view(np.where((band | hole | relit)[..., None], fill, photo), weight)
 
     @staticmethod
     def _write(ctx: StageContext, model: GaussianModel, cameras: list, curve: list, info: dict) -> None:

@@ -16,7 +16,7 @@ from sgpor_pipeline.errors import PipelineError
 from sgpor_pipeline.gaussians.model import GaussianModel, rgb_to_sh
 from sgpor_pipeline.gaussians.ply import read_ply, write_ply
 from sgpor_pipeline.gaussians.train import render_view
-from sgpor_pipeline.imageio import read_mask, read_rgb8, write_mask01, write_png
+from sgpor_pipeline.imageio import read_mask, read_rgb8, write_labels, write_mask01, write_png
 from sgpor_pipeline.scene import Camera, load_cameras, save_cameras
 from sgpor_pipeline.stages.finetune import FinetuneParams, FinetuneStage
 
@@ -265,14 +265,15 @@ def test_the_trainer_steps_adam_on_the_trained_tail_only(tmp_path):
     assert scattered._grad_mask[3] is None  # (the seeds are not the last Gaussians here)
 
 
-@pytest.mark.parametrize("weighted", [False, True])
+@pytest.mark.parametrize("weighted", [False, True, "lowpass"])
 def test_a_cropped_view_gives_the_whole_views_gradients(tmp_path, weighted):
     """The finetune's crop (``crop_views``): the loss of the crop around the trainable Gaussians'
     reach, scaled by its ``loss_scale``, has the gradients of the whole view's loss, the D-SSIM
     windows included, once the margin covers them (10 px); without a margin they differ at the
-    crop's border. A view they do not reach is left out."""
+    crop's border. A view they do not reach is left out. With a low-pass term (``hole_detail``) on
+    the reached pixels its weight counts in the crop's share too."""
     from sgpor_pipeline.gaussians.rasterizer import rasterization
-    from sgpor_pipeline.gaussians.train import make_view, photometric_loss
+    from sgpor_pipeline.gaussians.train import make_view, view_loss
     from sgpor_pipeline.removal.holes import subset
     from sgpor_pipeline.stages.finetune import crop_views, reach
 
@@ -283,9 +284,17 @@ def test_a_cropped_view_gives_the_whole_views_gradients(tmp_path, weighted):
     trainable[np.load(inputs["remove"] / "seed_ids.npy")] = True
     rng = np.random.default_rng(3)
     weight = rng.random((cam.height, cam.width)).astype(np.float32) if weighted else None
-    view = make_view(cam.image, rng.random((cam.height, cam.width, 3)).astype(np.float32), cam, 0, weight)
     r = reach(subset(model, trainable), cam, "auto")
     assert 0 < r.mean() < 0.5
+    lowpass = None
+    if weighted == "lowpass":  # (the low-pass pixels: the middle of the reach, where the weight is 0)
+        lowpass = np.zeros(r.shape, np.float32)
+        ys, xs = np.nonzero(r)
+        lowpass[(ys.min() + ys.max()) // 2 - 4:(ys.min() + ys.max()) // 2 + 4,
+                (xs.min() + xs.max()) // 2 - 4:(xs.min() + xs.max()) // 2 + 4] = 1.0
+        weight = np.where(lowpass > 0, 0.0, weight).astype(np.float32)
+    view = make_view(cam.image, rng.random((cam.height, cam.width, 3)).astype(np.float32), cam, 0, weight,
+                     lowpass=lowpass, lowpass_sigma=1.5)
 
     def grads(v):
         p = {n: t.detach().clone().requires_grad_(True) for n, t in model.params.items()}
@@ -293,7 +302,7 @@ def test_a_cropped_view_gives_the_whole_views_gradients(tmp_path, weighted):
         img, _, _ = rasterization(p["means"], p["quats"], torch.exp(p["scales"]), torch.sigmoid(p["opacities"]),
                                   p["sh0"], vm, K, v.camera.width, v.camera.height, sh_degree=0,
                                   backgrounds=torch.zeros(3), grad_mask=torch.from_numpy(trainable))
-        (photometric_loss(img[0], v.image, 0.2, v.weight) * v.loss_scale).backward()
+        (view_loss(img[0], v, 0.2) * v.loss_scale).backward()
         return {n: t.grad[torch.from_numpy(trainable)] for n, t in p.items() if t.grad is not None}
 
     whole = grads(view)
@@ -369,3 +378,93 @@ def test_harmonize_moves_the_targets_mask_region_to_the_photos_colours(tmp_path)
     assert np.abs((small[True] - small[False])[inner_small] - 0.1).mean() < 0.01
     with pytest.raises(PipelineError, match="harmonize_ring"):
         run_finetune(tmp_path / "bad", inputs, harmonize_ring=0)
+
+
+def test_the_low_pass_term_leaves_the_detail_free():
+    """``lowpass_l1`` (the finetune's ``hole_detail``): a render that differs from the target by a
+    checkerboard (detail) costs almost nothing on the low-pass pixels, a colour offset costs its size;
+    ``view_loss`` mixes it with the photometric loss as one mean over both sets of pixels, and passes a
+    gradient only through what the blur keeps."""
+    from sgpor_pipeline.gaussians.train import TrainView, lowpass_l1, photometric_loss, view_loss
+
+    rng = np.random.default_rng(0)
+    h, w = 40, 48
+    target = torch.from_numpy(rng.random((h, w, 3)).astype(np.float32))
+    yy, xx = np.mgrid[0:h, 0:w]
+    checker = torch.from_numpy(np.where((yy + xx) % 2 == 0, 0.2, -0.2).astype(np.float32))[..., None].expand(h, w, 3)
+    low = torch.zeros(h, w)
+    low[10:30, 12:36] = 1.0
+    assert float((checker.abs() * low[..., None]).sum() / (low.sum() * 3)) == pytest.approx(0.2)
+    assert float(lowpass_l1(target + checker, target, low, 2.0)) < 0.01
+    assert float(lowpass_l1(target + 0.1, target, low, 2.0)) == pytest.approx(0.1, abs=1e-4)
+    cam = Camera("v", w, h, np.array([[40.0, 0, w / 2], [0, 40.0, h / 2], [0, 0, 1]]), np.eye(4), image="v")
+    plain = TrainView("v", target, cam)
+    render = (target + 0.1).clone().requires_grad_(True)
+    assert torch.equal(view_loss(render, plain, 0.2), photometric_loss(render, target, 0.2))
+    weight = 1.0 - low
+    mixed = TrainView("v", target, cam, weight=weight, lowpass=low, lowpass_sigma=2.0)
+    n_full, n_low = float(weight.sum()), float(low.sum())
+    expect = (photometric_loss(render, target, 0.0, weight) * n_full + 0.1 * n_low) / (n_full + n_low)
+    assert float(view_loss(render, mixed, 0.0)) == pytest.approx(float(expect), abs=1e-4)
+    detail = (target + checker).clone().requires_grad_(True)
+    lowpass_l1(detail, target, low, 2.0).backward()
+    assert torch.isfinite(detail.grad).all() and float(detail.grad.abs().sum()) > 0
+    assert float(detail.grad[:3].abs().max()) == 0.0  # (rows beyond the blur's reach of the low-pass pixels)
+
+
+def _textured_fills(inputs: dict[str, Path], seed: int = 1) -> None:
+    """Each view's fill of the hole made its own random texture (blobs of about 6 px) around one colour:
+    fills that do not agree in their detail, as the views' own fills of a thick hole."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    for cam in load_cameras(inputs["remove"] / "cameras.json"):
+        hole = read_mask(inputs["remove"] / "holes" / f"{cam.image}.png")
+        img = read_rgb8(inputs["refine"] / "images" / f"{cam.image}.png").astype(np.float32) / 255
+        noise = cv2.GaussianBlur(rng.standard_normal(hole.shape).astype(np.float32), (0, 0), 2.5)
+        texture = np.clip(np.array([0.35, 0.55, 0.3], np.float32) + 1.2 * noise[..., None], 0, 1)
+        write_png(inputs["refine"] / "images" / f"{cam.image}.png", np.where(hole[..., None], texture, img))
+
+
+def test_hole_detail_largest_keeps_the_largest_views_fill(tmp_path):
+    """``hole_detail``: with "every" the re-fit averages the views' disagreeing textures; with
+    "largest" the view with the most hole pixels keeps its own texture in the render (closer to its
+    fill, with more of its detail) while every view's hole keeps the fills' colour."""
+    import cv2
+
+    inputs = plane_inputs(tmp_path / "in", side=60, w=96, h=72, hole_box=(0.3, 0.7), seed_extent=0.45)
+    _textured_fills(inputs)
+    cams = load_cameras(inputs["remove"] / "cameras.json")
+    hole = read_mask(inputs["remove"] / "holes" / "v0.png")
+    inner = cv2.erode(hole.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0
+
+    def score(out: Path, name: str) -> tuple[float, float, float]:
+        """PSNR of the render against the view's fill, the render's texture contrast (std) over the
+        fill's, and the largest channel's difference of their means, in the hole."""
+        render = read_rgb8(out / "renders" / f"{name}.png").astype(np.float64)[inner] / 255
+        fill = read_rgb8(inputs["refine"] / "images" / f"{name}.png").astype(np.float64)[inner] / 255
+        return (-10 * np.log10(((render - fill) ** 2).mean()), float(render.std(0).mean() / fill.std(0).mean()),
+                float(np.abs(render.mean(0) - fill.mean(0)).max()))
+
+    runs = {mode: run_finetune(tmp_path / mode, inputs, device="cpu", iterations=300, hole_detail=mode)
+            for mode in ("every", "largest")}
+    every, largest = (score(runs[m][2], "v0") for m in ("every", "largest"))  # (v0: the first of equal holes)
+    assert largest[0] > every[0] + 2.0, (every, largest)
+    for cam in cams[1:]:  # the other views' holes: the colour as with "every"
+        assert score(runs["largest"][2], cam.image)[2] < score(runs["every"][2], cam.image)[2] + 0.02, cam.image
+    assert runs["largest"][0]["hole_detail"]["view"] == "v0" and "hole_detail" not in runs["every"][0]
+    # with the inpaint stage's record only the pixels a view filled on its own count: v2 filled all of
+    # its hole on its own, the others took the left half of theirs from elsewhere (consistent)
+    assert FinetuneStage.upstream(FinetuneParams()) == ("sfm", "remove", "refine")
+    assert "inpaint" in FinetuneStage.upstream(FinetuneParams(hole_detail="largest"))
+    filled = tmp_path / "in" / "inpaint" / "filled_from"
+    filled.mkdir(parents=True)
+    half = hole & (np.arange(hole.shape[1]) >= hole.shape[1] // 2)[None]
+    for cam in cams:
+        own = hole if cam.image == "v2" else half
+        write_labels(filled / f"{cam.image}.png", np.where(own, 2, hole).astype(np.uint8))
+    info = run_finetune(tmp_path / "record", {**inputs, "inpaint": filled.parent}, device="cpu", iterations=2,
+                        hole_detail="largest")[0]["hole_detail"]
+    assert info == {"view": "v2", "own_pixels": int(hole.sum()), "lowpass_pixels": 3 * int(half.sum())}
+    with pytest.raises(PipelineError, match="hole_detail"):
+        run_finetune(tmp_path / "bad", inputs, hole_detail="median")

@@ -122,6 +122,12 @@ class TrainView:
     # The view's loss is multiplied by this: a crop of a larger image (the finetune's) gives its loss
     # the weight its pixels have in the whole image's mean, so its gradients are the whole image's.
     loss_scale: float = 1.0
+    # A low-pass term (:func:`view_loss`): on these pixels ([H,W] weight, >= 0; best 0 in ``weight``
+    # there) the render and the image are compared (L1) only after both are blurred by a Gaussian of
+    # ``lowpass_sigma`` px, so the detail there is left free. Its weight counts in the view's loss
+    # normaliser as ``weight``'s does. None: no such term.
+    lowpass: torch.Tensor | None = None
+    lowpass_sigma: float = 0.0
 
     @property
     def viewmat(self) -> torch.Tensor:
@@ -176,10 +182,12 @@ def training_size(width: int, height: int, max_size: int) -> tuple[int, int]:
 
 
 def make_view(name: str, image: np.ndarray, camera: Camera, max_size: int = 0,
-              weight: np.ndarray | None = None) -> TrainView:
+              weight: np.ndarray | None = None, lowpass: np.ndarray | None = None,
+              lowpass_sigma: float = 0.0) -> TrainView:
     """A :class:`TrainView` from an HxWx3 image (uint8 or float in [0,1]), downscaled (INTER_AREA) so
     its longer side is at most ``max_size``; the intrinsics are scaled with it. ``weight`` (HxW, the
-    per-pixel loss weight) is resized with the image."""
+    per-pixel loss weight) and ``lowpass`` (HxW, the low-pass term's weight; its ``lowpass_sigma`` in
+    the image's px) are resized with the image."""
     import cv2
 
     img = np.asarray(image)
@@ -193,15 +201,19 @@ def make_view(name: str, image: np.ndarray, camera: Camera, max_size: int = 0,
     if (tw, th) != (w, h):
         img = cv2.resize(img, (tw, th), interpolation=cv2.INTER_AREA)
         camera = camera.scaled(tw, th)
-    wt = None
-    if weight is not None:
-        wt = np.asarray(weight, np.float32)
-        if wt.shape != (h, w):
-            raise ValueError(f"weight of {name}: shape {wt.shape} != image {(h, w)}")
+
+    def resized(a: np.ndarray | None, what: str) -> torch.Tensor | None:
+        if a is None:
+            return None
+        a = np.asarray(a, np.float32)
+        if a.shape != (h, w):
+            raise ValueError(f"{what} of {name}: shape {a.shape} != image {(h, w)}")
         if (tw, th) != (w, h):
-            wt = cv2.resize(wt, (tw, th), interpolation=cv2.INTER_AREA)
-        wt = torch.from_numpy(np.ascontiguousarray(wt))
-    return TrainView(name, torch.from_numpy(np.ascontiguousarray(img)), camera, wt)
+            a = cv2.resize(a, (tw, th), interpolation=cv2.INTER_AREA)
+        return torch.from_numpy(np.ascontiguousarray(a))
+
+    return TrainView(name, torch.from_numpy(np.ascontiguousarray(img)), camera, resized(weight, "weight"),
+                     lowpass=resized(lowpass, "low-pass weight"), lowpass_sigma=lowpass_sigma * tw / w)
 
 
 def scene_extent(cameras: Sequence[Camera]) -> float:
@@ -382,6 +394,36 @@ def photometric_loss(render: torch.Tensor, target: torch.Tensor, lambda_dssim: f
         return l1
     s = ssim_mean(render.permute(2, 0, 1), target.permute(2, 0, 1), weight)
     return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - s)
+
+
+def lowpass_l1(render: torch.Tensor, target: torch.Tensor, weight: torch.Tensor, sigma: float) -> torch.Tensor:
+    """Weighted mean L1 of HxWx3 images after each is blurred by a Gaussian of ``sigma`` px (kornia,
+    reflect padding), over the pixels of ``weight`` ([H,W], >= 0): their colours without their detail."""
+    import kornia
+
+    half = max(1, math.ceil(3.0 * sigma))
+    both = torch.stack([render, target.detach()]).permute(0, 3, 1, 2)
+    if min(both.shape[-2:]) <= half:  # (reflect padding needs more pixels than the kernel's half)
+        blurred = both
+    else:
+        blurred = kornia.filters.gaussian_blur2d(both, (2 * half + 1,) * 2, (sigma, sigma), border_type="reflect")
+    diff = (blurred[0] - blurred[1]).abs() * weight[None]
+    return diff.sum() / (weight.sum().clamp_min(1e-12) * 3)
+
+
+def view_loss(render: torch.Tensor, view: TrainView, lambda_dssim: float) -> torch.Tensor:
+    """A training view's loss: :func:`photometric_loss` with its ``weight``, and with its ``lowpass``
+    weight :func:`lowpass_l1`, the two a mean over the pixels of both weights (not scaled by
+    ``loss_scale``)."""
+    loss = photometric_loss(render, view.image, lambda_dssim, view.weight)
+    if view.lowpass is None:
+        return loss
+    full = render.shape[0] * render.shape[1] if view.weight is None else float(view.weight.sum())
+    low = float(view.lowpass.sum())
+    if low <= 0:
+        return loss
+    lp = lowpass_l1(render, view.image, view.lowpass, view.lowpass_sigma)
+    return (loss * full + lp * low) / (full + low) if full > 0 else lp
 
 
 def psnr(a: torch.Tensor, b: torch.Tensor, weight: torch.Tensor | None = None) -> float:
@@ -624,7 +666,8 @@ class Trainer:
         if view.image.device == self.device:
             return view
         return replace(view, image=view.image.to(self.device),
-                       weight=None if view.weight is None else view.weight.to(self.device))
+                       weight=None if view.weight is None else view.weight.to(self.device),
+                       lowpass=None if view.lowpass is None else view.lowpass.to(self.device))
 
     # optimisation ------------------------------------------------------------------------------
 
@@ -671,7 +714,9 @@ class Trainer:
             h, w = max(1, round(H / f)), max(1, round(W / f))
             img = F.interpolate(v.image.permute(2, 0, 1)[None], size=(h, w), mode="area")[0].permute(1, 2, 0)
             wt = None if v.weight is None else F.interpolate(v.weight[None, None], size=(h, w), mode="area")[0, 0]
+            lp = None if v.lowpass is None else F.interpolate(v.lowpass[None, None], size=(h, w), mode="area")[0, 0]
             small = replace(v, image=img.contiguous(), weight=None if wt is None else wt.contiguous(),
+                            lowpass=None if lp is None else lp.contiguous(), lowpass_sigma=v.lowpass_sigma * w / W,
                             camera=v.camera.scaled(w, h))
             self._coarse[i] = (small, (self._cameras[i][0], small.K.to(self.device)))
         return self._coarse[i]
@@ -883,8 +928,8 @@ class Trainer:
             raise RollbackNeeded(f"non-finite rasterizer input ({e.message})") from None
         info["generator"] = self.gen
         self.strategy.step_pre_backward(self.model, self.optimizers, self.sstate, step, info)
-        view_loss = photometric_loss(render[0], view.image, self.p.lambda_dssim, view.weight)
-        loss = view_loss if view.loss_scale == 1.0 else view_loss * view.loss_scale
+        own_loss = view_loss(render[0], view, self.p.lambda_dssim)
+        loss = own_loss if view.loss_scale == 1.0 else own_loss * view.loss_scale
         extra = self.strategy.extra_loss(self.model, step)
         if extra is not None:
             loss = loss + extra
@@ -932,7 +977,7 @@ class Trainer:
         self._params_checked = True
         self.step = step
         # logged: the view's own loss (a crop's mean over its pixels, not scaled by loss_scale)
-        return float(view_loss.detach()) + (0.0 if extra is None else float(extra.detach()))
+        return float(own_loss.detach()) + (0.0 if extra is None else float(extra.detach()))
 
     # the loop ----------------------------------------------------------------------------------
 

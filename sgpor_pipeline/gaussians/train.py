@@ -418,12 +418,11 @@ def view_loss(render: torch.Tensor, view: TrainView, lambda_dssim: float) -> tor
     loss = photometric_loss(render, view.image, lambda_dssim, view.weight)
     if view.lowpass is None:
         return loss
-    full = render.shape[0] * render.shape[1] if view.weight is None else float(view.weight.sum())
-    low = float(view.lowpass.sum())
-    if low <= 0:
-        return loss
+    # (tensor sums: no device synchronisation; an all-zero weight gives its term no share)
+    full = view.weight.sum() if view.weight is not None else render.new_tensor(float(render.shape[0] * render.shape[1]))
+    low = view.lowpass.sum()
     lp = lowpass_l1(render, view.image, view.lowpass, view.lowpass_sigma)
-    return (loss * full + lp * low) / (full + low) if full > 0 else lp
+    return (loss * full + lp * low) / (full + low).clamp_min(1e-12)
 
 
 def psnr(a: torch.Tensor, b: torch.Tensor, weight: torch.Tensor | None = None) -> float:

@@ -465,6 +465,38 @@ def test_hole_detail_largest_keeps_the_largest_views_fill(tmp_path):
         write_labels(filled / f"{cam.image}.png", np.where(own, 2, hole).astype(np.uint8))
     info = run_finetune(tmp_path / "record", {**inputs, "inpaint": filled.parent}, device="cpu", iterations=2,
                         hole_detail="largest")[0]["hole_detail"]
-    assert info == {"view": "v2", "own_pixels": int(hole.sum()), "lowpass_pixels": 3 * int(half.sum())}
+    assert info == {"view": "v2", "own_pixels": int(hole.sum()), "lowpass_pixels": 3 * int(half.sum()),
+                    "views_following": 3}
     with pytest.raises(PipelineError, match="hole_detail"):
         run_finetune(tmp_path / "bad", inputs, hole_detail="median")
+
+
+def test_only_the_views_that_see_the_holes_like_the_reference_follow_it():
+    """``like_the_reference`` (hole_detail): a view follows the largest view only when it sees the holes
+    from about its distance and direction: along a street (a forward capture whose nearest view has
+    the largest hole) none of the far views does; around an object the near-by views of an arc do,
+    the far side of the ring does not."""
+    from sgpor_pipeline.stages.finetune import like_the_reference
+
+    K = np.array([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]])
+
+    def looking_at(centre: np.ndarray, target: np.ndarray, name: str) -> Camera:
+        z = (target - centre) / np.linalg.norm(target - centre)
+        x = np.cross([0.0, -1.0, 0.0], z)
+        x /= np.linalg.norm(x)
+        R = np.stack([x, np.cross(z, x), z])
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R, -R @ centre
+        return Camera(name, 64, 48, K, T, image=name)
+
+    hole = np.array([[0.0, 0.0, 10.0], [0.2, 0.1, 10.2]])
+    street = [looking_at(np.array([0.0, 0.0, z]), hole.mean(0), f"s{i}") for i, z in enumerate((-30, -20, -10, 7))]
+    assert like_the_reference(street, 3, hole, 1.5).tolist() == [False, False, False, True]
+    # (distances 40, 30, 20 and 3: from the second, 1.33x and 0.67x)
+    assert like_the_reference(street, 1, hole, 1.5).tolist() == [True, True, True, False]
+    assert like_the_reference(street, 1, hole, 1.2).tolist() == [False, True, False, False]
+    angles = np.radians([0, 10, 20, 180])
+    ring = [looking_at(np.array([5 * np.sin(a), 0.0, 10 - 5 * np.cos(a)]), hole.mean(0), f"r{i}")
+            for i, a in enumerate(angles)]
+    assert like_the_reference(ring, 0, hole, 1.5).tolist() == [True, True, True, False]
+    assert like_the_reference(ring, 0, np.zeros((0, 3)), 1.5).all()

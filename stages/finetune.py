@@ -32,6 +32,12 @@ has the DC colours only: weight 1 pulls the trained Gaussians there towards view
 and away from what the photos of the other views taught them. The photos outside the masks keep them
 in place.
 
+Where each view filled a thick hole on its own (the inpaint stage's ``filled_from`` 2) the fills
+disagree in their detail, and the re-fit averages them. With ``hole_detail = "largest"`` (off by default)
+only the view with the most such pixels keeps them as full targets; the views that see the holes about
+as it does (``hole_detail_reach``) give theirs through a blurred comparison only
+(:func:`~sgpor_pipeline.gaussians.train.view_loss`), their colours without their detail.
+
 When the holes are negligible (fewer than ``min_hole_pixels`` pixels over all views: everything
 behind the object was seen from another view) nothing is trained: the scene after deletion is the
 answer, and a re-fit would only cost minutes.

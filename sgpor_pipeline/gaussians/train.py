@@ -1009,7 +1009,7 @@ class Trainer:
                 render, _, _ = rasterization(means, quats, act["scales"], act["opacities"], colors,
                                              self.eval_poses.viewmat(i, viewmat), K, W, H,
                                              sh_degree=deg, backgrounds=self.bg, backend=self.p.backend)
-                photometric_loss(render[0], view.image, self.p.lambda_dssim, view.weight).backward()
+                view_loss(render[0], view, self.p.lambda_dssim).backward()
                 if first_non_finite(self.eval_poses.grads(i)) is not None:  # (a frozen model: skip, never roll back)
                     self.eval_poses.zero_grad()
                     break

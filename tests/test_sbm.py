@@ -1325,3 +1325,32 @@ def test_high_pass_is_the_texture_without_its_colour():
     assert hp.dtype == np.float32 and hp.shape == img.shape
     np.testing.assert_allclose(hp + cv2.GaussianBlur(img, (0, 0), 3.0), img, atol=1e-6)
     assert abs(float(hp.mean())) < 0.01 < float(hp.std())
+
+
+def test_a_plain_opencv_over_contrib_is_a_clear_error(monkeypatch, tmp_path):
+    """Another package's plain opencv-python installed over opencv-contrib leaves ``cv2.xphoto`` and
+    ``cv2.ximgproc`` empty namespaces: the FSR fill, the masks' guided filter and the inpaint stage's
+    check before the run (backend opencv only) say so and how to restore it, instead of an
+    AttributeError deep in a stage."""
+    import types
+
+    from sgpor_pipeline.dag import RunInputs
+    from sgpor_pipeline.removal.selection import SelectionParams, refine_mask
+    from sgpor_pipeline.stages.inpaint import InpaintParams, InpaintStage
+
+    image = np.full((20, 24, 3), 0.5, np.float32)
+    hole = np.zeros((20, 24), bool)
+    hole[8:12, 8:14] = True
+    assert np.isfinite(fsr_inpaint(image, hole)).all()  # (the installed contrib build)
+    run_inputs = RunInputs(images=tmp_path)
+    InpaintStage.check_inputs(InpaintParams(backend="opencv"), run_inputs)
+    monkeypatch.setattr(cv2, "xphoto", types.ModuleType("cv2.xphoto"))  # (what the stubs leave)
+    monkeypatch.setattr(cv2, "ximgproc", types.ModuleType("cv2.ximgproc"))
+    with pytest.raises(PipelineError, match=r"cv2\.xphoto\.inpaint is missing.*opencv-contrib") as err:
+        fsr_inpaint(image, hole)
+    assert "pip install opencv-contrib-python-headless" in str(err.value)
+    with pytest.raises(PipelineError, match=r"cv2\.xphoto\.inpaint is missing"):
+        InpaintStage.check_inputs(InpaintParams(backend="opencv"), run_inputs)
+    InpaintStage.check_inputs(InpaintParams(), run_inputs)  # SBM needs no contrib function
+    with pytest.raises(PipelineError, match=r"cv2\.ximgproc\.guidedFilter is missing"):
+        refine_mask(np.zeros((20, 24), np.float32), image, SelectionParams())

@@ -43,7 +43,7 @@ import cv2
 import numpy as np
 
 from sgpor_pipeline.errors import PipelineError
-from sgpor_pipeline.imageio import to_float32
+from sgpor_pipeline.imageio import opencv_contrib, to_float32
 
 from . import linsolve
 from .features import BlockFeatures, CellLayout, Descriptors, make_backend
@@ -1118,13 +1118,8 @@ def inpaint_view(image: np.ndarray, hole: np.ndarray, bank: SourceBank, params: 
 
 def fsr_inpaint(image: np.ndarray, hole: np.ndarray, quality: str = "fast") -> np.ndarray:
     """OpenCV xphoto frequency-selective reconstruction (FSR) of the hole; float RGB in, float RGB out."""
-    try:
-        xphoto = cv2.xphoto
-        algo = xphoto.INPAINT_FSR_FAST if quality == "fast" else xphoto.INPAINT_FSR_BEST
-    except AttributeError:
-        raise PipelineError("OpenCV's xphoto module is missing (opencv-python without contrib?)",
-                            fix="pip uninstall opencv-python opencv-python-headless && "
-                                "pip install --force-reinstall opencv-contrib-python-headless") from None
+    xphoto_inpaint = opencv_contrib("xphoto", "inpaint", "the FSR inpainting, inpaint.backend=opencv")
+    algo = cv2.xphoto.INPAINT_FSR_FAST if quality == "fast" else cv2.xphoto.INPAINT_FSR_BEST
     img = to_float32(image)
     hole = np.asarray(hole, bool)
     if not hole.any():
@@ -1133,7 +1128,7 @@ def fsr_inpaint(image: np.ndarray, hole: np.ndarray, quality: str = "fast") -> n
     mask = np.where(hole, 0, 255).astype(np.uint8)  # xphoto: NON-ZERO = VALID
     u8[hole] = 0
     dst = np.zeros_like(u8)
-    xphoto.inpaint(u8, mask, dst, algo)
+    xphoto_inpaint(u8, mask, dst, algo)
     out = img.copy()
     out[hole] = dst[:, :, ::-1][hole].astype(np.float32) / 255.0
     return out

@@ -32,6 +32,7 @@ from scipy.spatial import cKDTree
 
 from ..gaussians.model import GaussianModel
 from ..gaussians.rasterizer import rasterization
+from ..imageio import opencv_contrib
 from ..scene import Camera
 
 
@@ -381,8 +382,9 @@ def render_object_probability(model: GaussianModel, is_object: np.ndarray, camer
 def refine_mask(prob: np.ndarray, image: np.ndarray, params: SelectionParams) -> np.ndarray:
     """Threshold the soft mask after a guided filter that snaps its edges to the photo's edges."""
     p = prob.astype(np.float32)
-    if params.guided_radius > 0 and hasattr(cv2, "ximgproc"):
-        p = cv2.ximgproc.guidedFilter(image.astype(np.float32), p, params.guided_radius, params.guided_eps)
+    if params.guided_radius > 0:
+        guided_filter = opencv_contrib("ximgproc", "guidedFilter", "the masks' edges, masks.guided_radius")
+        p = guided_filter(image.astype(np.float32), p, params.guided_radius, params.guided_eps)
     return p >= params.render_threshold
 
 

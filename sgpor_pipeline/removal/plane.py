@@ -67,6 +67,10 @@ class PlaneParams:
     footprint_quantile: float = 0.2  # texel size: this quantile of the views' pixel footprints on the plane
     votes: int = 5  # a texel's colour: the median of at most this many views that see it, finest first
     vote_ratio: float = 2.0  # ... whose pixel footprint there is at most this x the finest one's
+    # ... or the finest view's own colour where it is within this of that median (largest RGB
+    # difference; 0: the median everywhere). The views' rectified images differ by a pixel or so, and
+    # their median averages a fine weave away; one view keeps it where no other view outvotes it.
+    finest_within: float = 0.0
     # texels within this many of the hole that only the views' renders coloured (``rendered``: inside their
     # object masks, outside their holes) join it; 0: off (the inpaint stage's plane_render_rim)
     render_rim: int = 0
@@ -373,7 +377,12 @@ def plane_texture(cameras: list[Camera], images: list[np.ndarray], knowns: list[
     colour = np.zeros((h * w, 3), np.float32)
     if seen_flat.any():
         picked = np.where(ok[:, seen_flat, None], cols[:, seen_flat], np.nan)
-        colour[seen_flat] = np.nanmedian(picked, axis=0)
+        median = np.nanmedian(picked, axis=0)
+        if params.finest_within > 0:
+            finest = cols[0, seen_flat]
+            agrees = np.abs(finest - median).max(axis=1) <= params.finest_within
+            median[agrees] = finest[agrees]
+        colour[seen_flat] = median
     best_view = np.where(seen_flat, views[0], -1).astype(np.int16)
     del cols
     seen = (best_view >= 0).reshape(h, w)

@@ -627,6 +627,9 @@ class InpaintStage(Stage):
             ctx.log.warning("the remove folder has no cameras/depth: views are inpainted independently")
         if p.plane_thin not in ("always", "shadow"):
             raise PipelineError(f"unknown inpaint.plane_thin {p.plane_thin!r}", fix="use always or shadow")
+        if not (p.plane_finest_within >= 0 and np.isfinite(p.plane_finest_within)):
+            raise PipelineError("inpaint.plane_finest_within must be a finite number >= 0 "
+                                f"(got {p.plane_finest_within})", fix="use 0 (the views' median) or e.g. 0.25")
         if p.lift_shadow not in LIFT_SHADOW:
             raise PipelineError(f"unknown inpaint.lift_shadow {p.lift_shadow!r}",
                                 fix=f"use one of {', '.join(LIFT_SHADOW)}")

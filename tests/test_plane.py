@@ -587,6 +587,8 @@ def test_inpaint_stage_lifts_the_shadow_of_an_object_on_feet(tmp_path, monkeypat
                               read_image(ctx_off.out_dir / "images" / f"{cam.name}.png"))
     with pytest.raises(PipelineError, match="plane_thin"):
         inpaint(plain, "bad", plane_thin="never")
+    with pytest.raises(PipelineError, match="plane_finest_within"):
+        inpaint(plain, "bad_finest", plane_finest_within=-0.1)
 
 
 def test_inpaint_stage_refills_the_floor_under_a_raised_object_through_floaters(tmp_path):

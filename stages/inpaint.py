@@ -80,16 +80,7 @@ from sgpor_pipeline.config import added_param
 from sgpor_pipeline.dag import RunInputs, Stage, StageContext
 from sgpor_pipeline.errors import PipelineError
 from sgpor_pipeline.hashing import hash_obj
-from sgpor_pipeline.imageio import (
-    opencv_contrib,
-    read_image,
-    read_labels,
-    read_mask,
-    read_rgb8,
-    write_labels,
-    write_mask01,
-    write_png,
-)
+from sgpor_pipeline.imageio import read_image, read_labels, read_mask, read_rgb8, write_labels, write_mask01, write_png
 from sgpor_pipeline.removal import diffusion as sd
 from sgpor_pipeline.removal.lattice import LatticeParams, lattice_fill
 from sgpor_pipeline.removal.multiview import (
@@ -120,7 +111,14 @@ from sgpor_pipeline.removal.plane import (
     sample_into_view,
     shading_into_view,
 )
-from sgpor_pipeline.removal.sbm import SBMParams, build_source_bank, free_blocks, high_pass, membrane_fill
+from sgpor_pipeline.removal.sbm import (
+    SBMParams,
+    build_source_bank,
+    free_blocks,
+    high_pass,
+    membrane_fill,
+    require_fsr,
+)
 from sgpor_pipeline.removal.structure import FREE, draw_lines, structure_cells
 from sgpor_pipeline.scene import Camera
 
@@ -568,13 +566,13 @@ class InpaintStage(Stage):
     VERSION = 21
     Params = InpaintParams
     inputs = ("remove",)
+    libraries = ("torch",)
 
     @classmethod
     def check_inputs(cls, params: InpaintParams, run_inputs: RunInputs) -> None:
         """The FSR baseline (backend opencv) needs OpenCV's contrib build: said before SfM and the fit run."""
         if resolve_backend(params)[0] == "opencv":
-            opencv_contrib("xphoto", "inpaint", "the FSR inpainting, inpaint.backend=opencv")
-    libraries = ("torch",)
+            require_fsr()
 
     @classmethod
     def key_extra(cls, params: InpaintParams) -> dict[str, Any]:
@@ -594,6 +592,9 @@ class InpaintStage(Stage):
         if not 0.0 <= p.plane_smooth_guide <= 1.0:
             raise PipelineError(f"inpaint.plane_smooth_guide must be in [0, 1] (got {p.plane_smooth_guide})",
                                 fix="use 0 (off) or a weight such as 0.25")
+        if not (p.plane_finest_within >= 0 and np.isfinite(p.plane_finest_within)):
+            raise PipelineError("inpaint.plane_finest_within must be a finite number >= 0 "
+                                f"(got {p.plane_finest_within})", fix="use 0 (the views' median) or e.g. 0.25")
         backend, reason = resolve_backend(p)
         uses_sbm = backend in ("sbm", "diffusion")  # diffusion refines the SBM match
         dmodel_dir = None
@@ -627,9 +628,6 @@ class InpaintStage(Stage):
             ctx.log.warning("the remove folder has no cameras/depth: views are inpainted independently")
         if p.plane_thin not in ("always", "shadow"):
             raise PipelineError(f"unknown inpaint.plane_thin {p.plane_thin!r}", fix="use always or shadow")
-        if not (p.plane_finest_within >= 0 and np.isfinite(p.plane_finest_within)):
-            raise PipelineError("inpaint.plane_finest_within must be a finite number >= 0 "
-                                f"(got {p.plane_finest_within})", fix="use 0 (the views' median) or e.g. 0.25")
         if p.lift_shadow not in LIFT_SHADOW:
             raise PipelineError(f"unknown inpaint.lift_shadow {p.lift_shadow!r}",
                                 fix=f"use one of {', '.join(LIFT_SHADOW)}")

@@ -377,12 +377,12 @@ def plane_texture(cameras: list[Camera], images: list[np.ndarray], knowns: list[
     colour = np.zeros((h * w, 3), np.float32)
     if seen_flat.any():
         picked = np.where(ok[:, seen_flat, None], cols[:, seen_flat], np.nan)
-        median = np.nanmedian(picked, axis=0)
-        if params.finest_within > 0:
+        voted = np.nanmedian(picked, axis=0)
+        if params.finest_within > 0:  # (the finest view's own colour where the median agrees with it)
             finest = cols[0, seen_flat]
-            agrees = np.abs(finest - median).max(axis=1) <= params.finest_within
-            median[agrees] = finest[agrees]
-        colour[seen_flat] = median
+            agrees = np.abs(finest - voted).max(axis=1) <= params.finest_within
+            voted[agrees] = finest[agrees]
+        colour[seen_flat] = voted
     best_view = np.where(seen_flat, views[0], -1).astype(np.int16)
     del cols
     seen = (best_view >= 0).reshape(h, w)

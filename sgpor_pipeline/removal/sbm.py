@@ -1116,9 +1116,14 @@ def inpaint_view(image: np.ndarray, hole: np.ndarray, bank: SourceBank, params: 
 # OpenCV baseline
 
 
+def require_fsr() -> Callable:
+    """OpenCV xphoto's inpainting (contrib), or a PipelineError saying how to restore it."""
+    return opencv_contrib("xphoto", "inpaint", "the FSR inpainting, inpaint.backend=opencv")
+
+
 def fsr_inpaint(image: np.ndarray, hole: np.ndarray, quality: str = "fast") -> np.ndarray:
     """OpenCV xphoto frequency-selective reconstruction (FSR) of the hole; float RGB in, float RGB out."""
-    xphoto_inpaint = opencv_contrib("xphoto", "inpaint", "the FSR inpainting, inpaint.backend=opencv")
+    xphoto_inpaint = require_fsr()
     algo = cv2.xphoto.INPAINT_FSR_FAST if quality == "fast" else cv2.xphoto.INPAINT_FSR_BEST
     img = to_float32(image)
     hole = np.asarray(hole, bool)

@@ -593,6 +593,33 @@ def test_unproject_project_round_trip(scene):
         assert np.abs(cols[got] - scene.images_gt[1][got]).mean() < 0.05
 
 
+def test_cubic_warp_is_bilinear_at_the_filled_regions_edge(scene):
+    """``warp_from_reference(interpolation="cubic")``: bicubic where the 4x4 reference pixels around the
+    point are filled, exactly the bilinear sample where they are not (a cubic kernel there would
+    read the unfilled pixels or lean on the normalisation), and the colours stay in [0, 1]; an unknown
+    interpolation is an error."""
+    cam = scene.cameras[1]
+    filled = np.zeros((120, 160), bool)
+    filled[20:100, 30:130] = True
+    args = (scene.images_gt[0], scene.cameras[0], scene.depth_gt[0], filled, cam, scene.depth_gt[1],
+            np.ones((120, 160), bool), "backward")
+    lin, got = warp_from_reference(*args)
+    cub, got_c = warp_from_reference(*args, interpolation="cubic")
+    assert np.array_equal(got, got_c) and got.sum() > 3000
+    assert cub[got].min() >= 0.0 and cub[got].max() <= 1.0
+    # where the point falls on the filled region's outermost pixels in the reference: the same sample
+    px, _, inside = scene.cameras[0].pixels(cam.unproject(*np.nonzero(got), scene.depth_gt[1][got]))
+    inner = np.zeros((120, 160), bool)
+    inner[21:99, 31:129] = True
+    near_edge = np.zeros(got.sum(), bool)
+    near_edge[inside] = ~inner[px[inside, 1], px[inside, 0]]
+    assert near_edge.sum() > 50 and (~near_edge).sum() > 1000
+    np.testing.assert_array_equal(cub[got][near_edge], lin[got][near_edge])
+    assert np.abs(cub[got][~near_edge] - lin[got][~near_edge]).max() > 0.01  # (a textured scene: they differ)
+    with pytest.raises(PipelineError, match="interpolation"):
+        warp_from_reference(*args, interpolation="nearest")
+
+
 # ---------------------------------------------------------------------------------------------- stages
 
 

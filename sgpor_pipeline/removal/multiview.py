@@ -51,6 +51,7 @@ from sgpor_pipeline.imageio import read_image, read_mask, read_rgb8, to_float32,
 from sgpor_pipeline.scene import Camera, load_cameras, save_cameras
 
 PROJECTION_MODES = ("backward", "splat")
+INTERPOLATIONS = ("linear", "cubic")  # warp_from_reference's
 REFERENCE_MODES = ("largest", "central")
 PROGRESSIVE = "smallest_first"  # no single reference: every view carries what the views before it inpainted
 CONSENSUS = "consensus"  # no reference: every view is filled on its own, then each takes the views' median
@@ -238,12 +239,13 @@ def nearest_per_pixel(lin: np.ndarray, z: np.ndarray) -> np.ndarray:
 
 
 def sample_bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray, row: int = 1024,
-                    origin: tuple[int, int] = (0, 0)) -> np.ndarray:
+                    origin: tuple[int, int] = (0, 0), interpolation: int = cv2.INTER_LINEAR) -> np.ndarray:
     """``image`` (HxW or HxWxC float32) bilinearly sampled at N points (x, y: pixel-index coordinates,
     0 = centre of the first pixel; outside = 0): [N] or [N,C]. The maps are laid out in rows of
     ``row`` points because cv2.remap takes maps of fewer than 32767 rows (large masks have more points).
     ``origin`` (row, column): ``image`` is a crop starting there and x, y are in the full image; the
-    offset is taken after the float32 rounding of x, y (exact), so a crop samples as the full image."""
+    offset is taken after the float32 rounding of x, y (exact), so a crop samples as the full image.
+    ``interpolation``: another cv2.remap flag (``cv2.INTER_CUBIC``: see :func:`warp_from_reference`)."""
     n = len(x)
     rows = max(1, -(-n // row))
     mx = np.full(rows * row, -1e4, np.float32)
@@ -253,7 +255,7 @@ def sample_bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray, row: int = 
     if origin != (0, 0):
         mx[:n] -= np.float32(origin[1])
         my[:n] -= np.float32(origin[0])
-    out = cv2.remap(np.asarray(image, np.float32), mx.reshape(rows, row), my.reshape(rows, row), cv2.INTER_LINEAR,
+    out = cv2.remap(np.asarray(image, np.float32), mx.reshape(rows, row), my.reshape(rows, row), interpolation,
                     borderMode=cv2.BORDER_CONSTANT)
     return out.reshape(rows * row, *image.shape[2:])[:n]
 
@@ -278,13 +280,21 @@ def on_same_surface(points: np.ndarray, cam: Camera, depth: np.ndarray, filled: 
 
 def warp_from_reference(ref_image: np.ndarray, ref_cam: Camera, ref_depth: np.ndarray, ref_filled: np.ndarray,
                         cam: Camera, depth: np.ndarray, target: np.ndarray, mode: str = "backward",
-                        depth_tol: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
+                        depth_tol: float = 0.02, interpolation: str = "linear") -> tuple[np.ndarray, np.ndarray]:
     """Colours for ``target`` pixels of ``cam`` taken from the reference's filled pixels.
 
     Returns (colours HxWx3 float32, got bool HxW); ``got`` is a subset of ``target``. A pixel is
     taken only where both completed depths agree within ``depth_tol`` (relative): the same surface.
     ``ref_image``: float in [0, 1] or uint8.
+
+    ``interpolation`` (``backward`` mode): ``linear``, or ``cubic`` (bicubic where the 4x4 reference
+    pixels around the point are all filled, bilinear at the filled region's edge; clipped to [0, 1]).
+    A bilinear sample halfway between two pixels is their mean: a pattern near the pixel pitch (a woven
+    mat's ribs 3-4 px apart) loses most of its contrast at each resampling, and the plane texture's
+    round trip (views -> texture -> view) resamples twice.
     """
+    if interpolation not in INTERPOLATIONS:
+        raise PipelineError(f"unknown interpolation {interpolation!r}", fix=f"use one of {', '.join(INTERPOLATIONS)}")
     ref_image = to_float32(ref_image)
     h, w = target.shape
     out = np.zeros((h, w, 3), np.float32)
@@ -304,7 +314,16 @@ def warp_from_reference(ref_image: np.ndarray, ref_cam: Camera, ref_depth: np.nd
         col = sample_bilinear(src, u - 0.5, v - 0.5, origin=origin)
         wt = sample_bilinear(wmap, u - 0.5, v - 0.5, origin=origin)
         good = wt > 1e-3
-        out[ys[good], xs[good]] = col[good] / wt[good, None]
+        col[good] /= wt[good, None]
+        if interpolation == "cubic":
+            # (the 4x4 neighbours of a point are filled where the bilinear corners' 3x3 neighbourhoods are)
+            inner = cv2.erode(ref_filled.astype(np.uint8), np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT,
+                              borderValue=0).astype(np.float32)
+            whole = sample_bilinear(inner, u - 0.5, v - 0.5, origin=origin) > 1.0 - 1e-4
+            if whole.any():
+                col[whole] = np.clip(sample_bilinear(src, u[whole] - 0.5, v[whole] - 0.5, origin=origin,
+                                                     interpolation=cv2.INTER_CUBIC), 0.0, 1.0)
+        out[ys[good], xs[good]] = col[good]
         got[ys[good], xs[good]] = True
         return out, got
     if mode == "splat":

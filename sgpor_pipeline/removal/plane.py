@@ -71,6 +71,8 @@ class PlaneParams:
     # difference; 0: the median everywhere). The views' rectified images differ by a pixel or so, and
     # their median averages a fine weave away; one view keeps it where no other view outvotes it.
     finest_within: float = 0.0
+    # how the views are resampled into the texture and the texture into the views (warp_from_reference)
+    interpolation: str = "linear"
     # texels within this many of the hole that only the views' renders coloured (``rendered``: inside their
     # object masks, outside their holes) join it; 0: off (the inpaint stage's plane_render_rim)
     render_rim: int = 0
@@ -354,7 +356,7 @@ def plane_texture(cameras: list[Camera], images: list[np.ndarray], knowns: list[
         if cam is None:
             continue
         col, got = warp_from_reference(images[j], cam, depths[j], knowns[j], vcam, vdepth, everything,
-                                       "backward", depth_tol)
+                                       "backward", depth_tol, params.interpolation)
         idx = np.nonzero(got.ravel())[0]
         if not len(idx):
             continue
@@ -452,14 +454,14 @@ def snapped_depth(vcam: Camera, vdepth: np.ndarray, normal: np.ndarray, cam: Cam
 
 
 def sample_into_view(texture: np.ndarray, vcam: Camera, vdepth: np.ndarray, normal: np.ndarray, cam: Camera,
-                     depth: np.ndarray, target: np.ndarray, depth_tol: float = 0.02, snap_tol: float = 0.0
-                     ) -> tuple[np.ndarray, np.ndarray]:
+                     depth: np.ndarray, target: np.ndarray, depth_tol: float = 0.02, snap_tol: float = 0.0,
+                     interpolation: str = "linear") -> tuple[np.ndarray, np.ndarray]:
     """Colours for ``cam``'s ``target`` pixels that lie on the plane (unit ``normal``; their completed ``depth`` within
     ``depth_tol`` of it), from the filled ``texture`` low-pass filtered to the view's pixel footprint.
     With ``snap_tol`` > 0, a target pixel whose depth is within ``snap_tol`` (relative) of the plane is
     taken where its ray meets the plane (:func:`plane_depth`): a hole's depth is only completed from
     around it, and leans where the plane was refitted to the floor seen there (``PlaneParams.rim``).
-    Returns (colours HxWx3 float32, got bool HxW)."""
+    ``interpolation``: :func:`~.multiview.warp_from_reference`'s. Returns (colours HxWx3 float32, got bool HxW)."""
     if snap_tol > 0:
         depth = snapped_depth(vcam, vdepth, normal, cam, depth, target, snap_tol)
     ys, xs = np.nonzero(target & np.isfinite(depth) & (depth > 0))
@@ -474,7 +476,7 @@ def sample_into_view(texture: np.ndarray, vcam: Camera, vdepth: np.ndarray, norm
         sigma = 0.5 * np.sqrt(ratio * ratio - 1.0)
         tex = cv2.GaussianBlur(tex, (0, 0), sigma)
     return warp_from_reference(tex, vcam, vdepth, np.ones(vdepth.shape, bool), cam, depth, target,
-                               "backward", depth_tol)
+                               "backward", depth_tol, interpolation)
 
 
 def blend_into_view(image: np.ndarray, colours: np.ndarray, got: np.ndarray, texture_ring: np.ndarray,

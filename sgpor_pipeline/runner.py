@@ -163,15 +163,16 @@ def run_pipeline(
 ) -> RunResult:
     """Run (or resume) the pipeline into ``out``; returns what each stage did."""
     out = Path(out).resolve()
+    # (before the stages are imported: that takes seconds, torch and Open3D among them)
+    if not Path(run_inputs.images).is_dir():
+        raise PipelineError("image folder not found", path=run_inputs.images,
+                            fix="pass the folder that holds your photos")
     stages = discover_stages() if stages is None else stages
     config = resolve_config({n: c.Params for n, c in stages.items()}, config_file, overrides)
     order = topological_order(stages, config, run_inputs)
     for f in force:
         if f not in stages:
             raise PipelineError(f"unknown stage '{f}' for --force", fix=f"choose one of: {', '.join(order)}")
-    if not Path(run_inputs.images).is_dir():
-        raise PipelineError("image folder not found", path=run_inputs.images,
-                            fix="pass the folder that holds your photos")
     selected = select_stages(stages, order, config, run_inputs, until)
     for name in selected:
         stages[name].check_inputs(config[name], run_inputs)
@@ -326,13 +327,18 @@ class StageStatus:
     peak_memory: int | None = None  # bytes, while it ran (manifests of older builds: None)
 
 
-def load_run(out: Path, stages: dict[str, type[Stage]]) -> tuple[RunInputs, dict[str, Any]]:
-    out = Path(out)
-    run_file = out / RUN_FILE
+def require_run_folder(out: Path) -> Path:
+    """``out``'s run.json; a clear error when ``out`` is not the folder of a run."""
+    run_file = Path(out) / RUN_FILE
     if not run_file.is_file():
         raise PipelineError("not a run folder (no run.json)", path=out,
                             fix="pass the --out folder of a previous 'sgpor-pipeline run'")
-    record = json.loads(run_file.read_text())
+    return run_file
+
+
+def load_run(out: Path, stages: dict[str, type[Stage]]) -> tuple[RunInputs, dict[str, Any]]:
+    out = Path(out)
+    record = json.loads(require_run_folder(out).read_text())
     run_inputs = RunInputs.from_dict(record["run_inputs"])
     config = resolve_config({n: c.Params for n, c in stages.items()}, out / CONFIG_FILE)
     return run_inputs, config
@@ -390,6 +396,7 @@ def pipeline_status(out: Path, stages: dict[str, type[Stage]] | None = None) -> 
     """Per stage: hit (a verified result for the run's configuration), stale (only results of other
     configurations or inputs), damaged (the result fails verification) or missing."""
     out = Path(out)
+    require_run_folder(out)  # (before the stages are imported, which takes seconds)
     stages = discover_stages() if stages is None else stages
     run_inputs, config = load_run(out, stages)
     order = topological_order(stages, config, run_inputs)

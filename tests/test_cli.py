@@ -65,6 +65,14 @@ def test_errors_are_one_line_with_the_file_and_fix(tmp_path):
     r = run_cli(["status", str(tmp_path)])
     assert r.returncode == 1 and "not a run folder" in r.stderr
 
+    # a mistyped folder is named before the stages are imported (torch and Open3D take seconds)
+    probe = ("import sys; from sgpor_pipeline.cli.main import main; "
+             f"codes = [main(['run', {str(tmp_path / 'nope')!r}]), main(['status', {str(tmp_path)!r}])]; "
+             "print(codes, 'torch' in sys.modules, 'open3d' in sys.modules)")
+    r = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, env=cli_env(),
+                       cwd=tmp_path)
+    assert r.stdout.split() == ["[1,", "1]", "False", "False"], (r.stdout, r.stderr)
+
 
 def test_config_file_and_saved_config(tmp_path):
     images = tmp_path / "images"

@@ -9,6 +9,7 @@
                                            synthetic-photos,
                                            synthetic-raised,synthetic-box-coins,synthetic-box-brick]]
                                  [--set STAGE.PARAM=VALUE ...]   (overrides for every run of (a), (b), (c))
+                                 [--preset detail]   (a named parameter set, under the --set items)
                                  [--novel]   (+ the novel-view protocol (d) on the scenes of (a) and (b))
                                  [--fit-seeds 0,1,2]   (every method on each seed's fit; targets on the mean)
                                  [--methods ours,fsr-refit]   (only these methods: experiments; targets not judged)
@@ -137,6 +138,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from sgpor_pipeline.presets import PRESETS, as_overrides
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_DATA = ROOT.parent / "shared" / "data"
@@ -1208,7 +1211,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="config override added to every variant of the ground-truth scenes and to the "
                          "runs of statue and room (e.g. remove.min_views=2); repeatable")
+    ap.add_argument("--preset", choices=sorted(PRESETS), metavar="NAME",
+                    help="a named parameter set (as the command line's --preset) under the --set items: "
+                         + ", ".join(sorted(PRESETS)))
     args = ap.parse_args(argv)
+    if args.preset:
+        args.set = [*as_overrides(args.preset), *args.set]
     from sgpor_pipeline.allocator import keep_freed_memory
 
     keep_freed_memory()  # as the command line does: the timings are the user's

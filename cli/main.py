@@ -12,6 +12,8 @@ from pathlib import Path
 from sgpor_pipeline import __version__
 from sgpor_pipeline.allocator import keep_freed_memory
 from sgpor_pipeline.errors import PipelineError
+from sgpor_pipeline.presets import PRESETS
+from sgpor_pipeline.presets import describe as describe_preset
 
 log = logging.getLogger("sgpor_pipeline")
 
@@ -38,6 +40,9 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--force", metavar="STAGE", action="append", default=[],
                    help="recompute this stage and everything downstream even if cached (repeatable)")
     p.add_argument("--config", metavar="FILE", type=Path, help="TOML file with one [stage] table of parameters each")
+    p.add_argument("--preset", choices=sorted(PRESETS), metavar="NAME",
+                   help="a named set of parameters, under --config and --set: "
+                        + "; ".join(describe_preset(name) for name in sorted(PRESETS)))
     p.add_argument("--set", metavar="STAGE.PARAM=VALUE", dest="overrides", action="append", default=[],
                    help="override one parameter, e.g. --set fit.iterations=3000 (repeatable)")
     p.add_argument("--export", metavar="LIST", help="comma-separated export formats (default: all installed), "
@@ -132,7 +137,7 @@ def _run(args: argparse.Namespace, inputs: object) -> int:
         overrides.append(f"export.scale={args.scale!r}")
     t0 = time.perf_counter()
     result = run_pipeline(args.out, inputs, config_file=args.config, overrides=overrides, until=args.until,
-                          force=args.force, debug=args.debug)
+                          force=args.force, debug=args.debug, preset=args.preset)
     log.info(f"done in {time.perf_counter() - t0:.1f} s: {len(result.ran)} stage(s) ran, "
              f"{len(result.hits)} cache hit(s); output in {result.out}")
     return 0

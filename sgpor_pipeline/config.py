@@ -163,9 +163,11 @@ def resolve_config(
     param_types: dict[str, type],
     config_file: Path | None = None,
     overrides: list[str] | tuple[str, ...] = (),
+    preset: str | None = None,
 ) -> dict[str, Any]:
-    """Defaults, then the TOML file, then ``stage.field=value`` overrides. A file value that an
-    override replaces is never read, so ``--set`` can repair a bad value in a saved config."""
+    """Defaults, then the named preset (:mod:`sgpor_pipeline.presets`), then the TOML file, then
+    ``stage.field=value`` overrides. A file value that an override replaces is never read, so ``--set``
+    can repair a bad value in a saved config."""
     config = {name: tp() for name, tp in param_types.items()}
     valid_stages = ", ".join(sorted(param_types))
 
@@ -181,6 +183,12 @@ def resolve_config(
         split.append((item, bool(sep and dot), stage.strip(), field, text.strip()))
     overridden = {(stage, field.strip()) for _, ok, stage, field, _ in split if ok}
 
+    if preset is not None:
+        from .presets import preset_tables
+
+        for stage, table in preset_tables(preset).items():
+            check_stage(stage, f"preset '{preset}'")
+            config[stage] = _apply(config[stage], stage, table, f"preset '{preset}'")
     if config_file is not None:
         config_file = Path(config_file)
         try:

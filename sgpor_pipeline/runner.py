@@ -30,6 +30,7 @@ from .dag import (
 from .errors import FREE_DISK, PipelineError
 from .hashing import DigestMemo, file_digest, hash_obj
 from .imageio import opencv_logging
+from .presets import describe as describe_preset
 
 CACHE_FORMAT = 1
 RUN_FILE = "run.json"
@@ -160,15 +161,19 @@ def run_pipeline(
     force: list[str] | tuple[str, ...] = (),
     debug: bool = False,
     stages: dict[str, type[Stage]] | None = None,
+    preset: str | None = None,
 ) -> RunResult:
-    """Run (or resume) the pipeline into ``out``; returns what each stage did."""
+    """Run (or resume) the pipeline into ``out``; returns what each stage did. ``preset``: a name of
+    :data:`sgpor_pipeline.presets.PRESETS`, under ``config_file`` and ``overrides``."""
     out = Path(out).resolve()
     # (before the stages are imported: that takes seconds, torch and Open3D among them)
     if not Path(run_inputs.images).is_dir():
         raise PipelineError("image folder not found", path=run_inputs.images,
                             fix="pass the folder that holds your photos")
+    if preset is not None:
+        log.info(f"preset {describe_preset(preset)}")  # (an unknown name: an error before the imports too)
     stages = discover_stages() if stages is None else stages
-    config = resolve_config({n: c.Params for n, c in stages.items()}, config_file, overrides)
+    config = resolve_config({n: c.Params for n, c in stages.items()}, config_file, overrides, preset)
     order = topological_order(stages, config, run_inputs)
     for f in force:
         if f not in stages:
@@ -194,6 +199,7 @@ def run_pipeline(
             "sgpor_pipeline": __version__,
             "run_inputs": run_inputs.to_dict(),
             "stages": selected,
+            "preset": preset,
             "keys": {n: keys[n] for n in selected},
             "started": time.time(),
         }

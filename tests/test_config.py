@@ -96,3 +96,47 @@ def test_set_repairs_a_bad_value_in_a_saved_file(tmp_path):
     assert (f.mode, f.iterations) == ("classic", 3000)  # the override replaces it; the rest is read
     with pytest.raises(PipelineError, match="fit.iterations"):  # a bad override is still refused
         resolve_config(TYPES, saved, ["fit.mode=classic", "fit.iterations=lots"])
+
+
+def test_a_preset_sits_under_the_file_and_the_overrides(tmp_path, monkeypatch):
+    from sgpor_pipeline import presets
+
+    monkeypatch.setitem(presets.PRESETS, "sharp", {"fit": {"iterations": 5000, "mode": "classic", "lr": 0.2}})
+    monkeypatch.setitem(presets.PRESET_HELP, "sharp", "for the test")
+    assert resolve_config(TYPES, preset="sharp")["fit"] == FitLike(iterations=5000, mode="classic", lr=0.2)
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[fit]\niterations = 3000\n")
+    f = resolve_config(TYPES, cfg, ["fit.lr=0.5"], preset="sharp")["fit"]
+    assert (f.iterations, f.mode, f.lr) == (3000, "classic", 0.5)  # file and --set over the preset
+    # as --set items (benchmarks/removal.py) it gives the same values
+    assert resolve_config(TYPES, None, presets.as_overrides("sharp")) == resolve_config(TYPES, preset="sharp")
+    assert presets.describe("sharp") == "sharp: for the test (fit.iterations=5000, fit.mode=classic, fit.lr=0.2)"
+    with pytest.raises(PipelineError, match="unknown preset 'blurry'.*choose one of: .*sharp"):
+        resolve_config(TYPES, preset="blurry")
+    monkeypatch.setitem(presets.PRESETS, "typo", {"fit": {"iterashuns": 3}})
+    with pytest.raises(PipelineError, match="unknown parameter 'fit.iterashuns'") as e:
+        resolve_config(TYPES, preset="typo")
+    assert "preset 'typo'" in str(e.value)
+
+
+def test_every_preset_changes_real_parameters_and_a_run_records_it(tmp_path, image_dir):
+    import json
+
+    from sgpor_pipeline.dag import RunInputs, discover_stages
+    from sgpor_pipeline.presets import PRESET_HELP, PRESETS
+    from sgpor_pipeline.runner import CONFIG_FILE, RUN_FILE, run_pipeline
+
+    types = {n: c.Params for n, c in discover_stages().items()}
+    default = resolve_config(types)
+    assert PRESETS and set(PRESETS) == set(PRESET_HELP)
+    for name, tables in PRESETS.items():
+        config = resolve_config(types, preset=name)
+        for stage, table in tables.items():
+            for key, value in table.items():
+                assert getattr(config[stage], key) == value != getattr(default[stage], key), (name, stage, key)
+    run_pipeline(tmp_path / "run", RunInputs(images=image_dir), until="ingest", preset="detail",
+                 overrides=["finetune.hole_detail=every"])
+    saved = resolve_config(types, tmp_path / "run" / CONFIG_FILE)  # the saved file repeats it without the preset
+    assert (saved["inpaint"].plane_interp, saved["inpaint"].plane_finest_within) == ("cubic", 0.25)
+    assert saved["finetune"].hole_detail == "every"
+    assert json.loads((tmp_path / "run" / RUN_FILE).read_text())["preset"] == "detail"

@@ -1,0 +1,53 @@
+"""Named parameter sets for one purpose, chosen with ``--preset NAME``: plain data, applied over the
+defaults and under ``--config`` and ``--set`` (either can still change one of its values). The run's
+saved ``config.toml`` holds the values it ran with, so ``--config`` repeats it without the preset.
+
+The defaults are chosen for mask PSNR against the truth (``benchmarks/removal.py``). Where the
+removed object stood on a fine texture (a woven mat, grass), that fill is a smooth patch: each
+option that keeps the texture costs a little PSNR, because an invented texture is never in phase
+with the true one. ``detail`` turns those options on together for users who judge the result by eye.
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+from .errors import PipelineError
+
+#: name -> {stage: {parameter: value}}; what each option measured is in its comment in the stage's Params
+PRESETS: dict[str, dict[str, dict[str, Any]]] = {
+    # Sharper fills of thick holes: the plane texture resampled bicubically from the views and back
+    # (inpaint.plane_interp), its texels taking the finest view's colour where that agrees with the
+    # views' median (inpaint.plane_finest_within), and in the re-fit one view giving a thick hole that
+    # the views filled each on its own its detail (finetune.hole_detail). Measured together: the
+    # results notebook (benchmarks/removal_results.md, session 64).
+    "detail": {
+        "inpaint": {"plane_interp": "cubic", "plane_finest_within": 0.25},
+        "finetune": {"hole_detail": "largest"},
+    },
+}
+
+#: one line each for ``--help``
+PRESET_HELP = {
+    "detail": "sharper fills on fine textures (woven mats, grass) at a small cost in PSNR against the truth",
+}
+
+
+def preset_tables(name: str) -> dict[str, dict[str, Any]]:
+    """The preset's ``{stage: {parameter: value}}`` (a copy)."""
+    if name not in PRESETS:
+        raise PipelineError(f"unknown preset '{name}'", fix=f"choose one of: {', '.join(sorted(PRESETS))}")
+    return {stage: dict(table) for stage, table in PRESETS[name].items()}
+
+
+def describe(name: str) -> str:
+    """``name: what it is for (stage.param=value, ...)``."""
+    sets = ", ".join(f"{stage}.{k}={v}" for stage, table in preset_tables(name).items() for k, v in table.items())
+    return f"{name}: {PRESET_HELP[name]} ({sets})"
+
+
+def as_overrides(name: str) -> list[str]:
+    """The preset as ``--set`` items (``stage.param=value``, the value a TOML literal), for a caller
+    that has no config file to put under them (benchmarks/removal.py)."""
+    return [f"{stage}.{k}={json.dumps(v)}" for stage, table in preset_tables(name).items() for k, v in table.items()]

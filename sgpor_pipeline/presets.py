@@ -18,12 +18,13 @@ from .errors import PipelineError
 #: name -> {stage: {parameter: value}}; what each option measured is in its comment in the stage's Params
 PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     # Sharper fills of thick holes: the plane texture resampled bicubically from the views and back
-    # (inpaint.plane_interp), its texels taking the finest view's colour where that agrees with the
-    # views' median (inpaint.plane_finest_within), and in the re-fit one view giving a thick hole that
-    # the views filled each on its own its detail (finetune.hole_detail). Measured together: the
-    # results notebook (benchmarks/removal_results.md, session 64).
+    # (inpaint.plane_interp), and in the re-fit one view giving a thick hole that the views filled each
+    # on its own its detail (finetune.hole_detail). Measured together: benchmarks/removal_results.md,
+    # session 64. Not inpaint.plane_finest_within: with the bicubic texture it cost synthetic-box 0.67 dB
+    # mask PSNR and raised its feature distance 0.063 -> 0.071; nor plane_overlap=seam (block steps
+    # where two regions meet in the hole).
     "detail": {
-        "inpaint": {"plane_interp": "cubic", "plane_finest_within": 0.25},
+        "inpaint": {"plane_interp": "cubic"},
         "finetune": {"hole_detail": "largest"},
     },
 }

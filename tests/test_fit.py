@@ -892,3 +892,15 @@ def test_mask_band_weights_the_background_around_the_object(tmp_path):
     assert np.array_equal(views[1].weight.numpy(), np.ones((48, 64), np.float32))
     with pytest.raises(PipelineError, match="mask_band_gain must be >= 0"):
         fit_scene(tmp_path, tmp_path / "out", FitParams(mask_band_gain=-1.0), None, logging.getLogger("test"))
+
+
+def test_a_fit_that_sees_each_photo_too_few_times_names_the_iterations_that_would():
+    from sgpor_pipeline.stages.fit import MIN_PASSES_PER_VIEW, few_passes_warning
+
+    assert MIN_PASSES_PER_VIEW == 40
+    assert few_passes_warning(2000, 24) is None and few_passes_warning(2000, 50) is None  # (the demo, lund)
+    assert few_passes_warning(10, 0) is None
+    many = few_passes_warning(2000, 96)
+    assert "2000 iterations over 96 training photos see each about 21 times" in many
+    assert "--set fit.iterations=4000 sees each 40 times" in many  # (3840 rounded up to 500s)
+    assert "fit.iterations=2500 " in few_passes_warning(2000, 51)

@@ -44,15 +44,14 @@ class ArraysOnDisk(Sequence):
     def __init__(self, folder: Path, n: int = 0) -> None:
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=True)
-        self._present = [False] * n  # (False: None)
-        # each file's (shape, dtype, data offset), known from its write: a read maps the data without
-        # parsing the header again (np.load's parse took 190 us a read, np.memmap of a known layout 60;
-        # the remove stage's observing_views reads two arrays of every other view per view: 29,000
-        # reads at 96 views)
-        self._layout: dict[int, tuple[tuple[int, ...], np.dtype, int]] = {}
+        # per item its file's (shape, dtype, data offset), known from its write, or None (no file): a read
+        # maps the data without parsing the header again (np.load's parse took 190 us a read, np.memmap of
+        # a known layout 60; the remove stage's observing_views reads two arrays of every other view per
+        # view: 29,000 reads at 96 views)
+        self._layout: list[tuple[tuple[int, ...], np.dtype, int] | None] = [None] * n
 
     def __len__(self) -> int:
-        return len(self._present)
+        return len(self._layout)
 
     def _path(self, i: int) -> Path:
         return self.folder / f"{i}.npy"
@@ -60,7 +59,7 @@ class ArraysOnDisk(Sequence):
     def __setitem__(self, i: int, array: np.ndarray | None) -> None:
         i = range(len(self))[i]  # (negative indices; IndexError past the end)
         if array is None:
-            self._present[i] = False
+            self._layout[i] = None
             self._path(i).unlink(missing_ok=True)
             return
         # (a new file, renamed over the old: an item read before stays mapped to what it was)
@@ -68,19 +67,19 @@ class ArraysOnDisk(Sequence):
         array = np.asarray(array, order="C")  # (np.ascontiguousarray would make a 0-d array 1-d)
         np.save(tmp, array)
         # (the .npy format: a header, then the raw C-order data to the end of the file)
-        self._layout[i] = (array.shape, array.dtype, os.path.getsize(tmp) - array.nbytes)
+        layout = (array.shape, array.dtype, os.path.getsize(tmp) - array.nbytes)
         os.replace(tmp, self._path(i))
-        self._present[i] = True
+        self._layout[i] = layout
 
     def append(self, array: np.ndarray | None) -> None:
-        self._present.append(False)
+        self._layout.append(None)
         self[len(self) - 1] = array
 
     def __getitem__(self, i):
         if isinstance(i, slice):
             return [self[k] for k in range(*i.indices(len(self)))]
         i = range(len(self))[i]
-        if not self._present[i]:
+        if self._layout[i] is None:
             return None
         shape, dtype, offset = self._layout[i]
         if not shape or math.prod(shape) == 0:  # (nothing to map; a memmap makes a 0-d array 1-d)
@@ -92,10 +91,10 @@ class ArraysOnDisk(Sequence):
     def release(self) -> None:
         """Delete the files (the disk they take: the remove stage's maps are ~60 bytes a pixel of every
         view); arrays read before stay readable until dropped, and every item reads None after."""
-        for i, present in enumerate(self._present):
-            if present:
+        for i, layout in enumerate(self._layout):
+            if layout is not None:
                 self._path(i).unlink(missing_ok=True)
-        self._present = [False] * len(self._present)
+        self._layout = [None] * len(self._layout)
 
 
 def release(arrays: Sequence[np.ndarray | None] | None) -> None:

@@ -53,13 +53,18 @@ def preset_tables(name: str) -> dict[str, dict[str, Any]]:
     return {stage: dict(table) for stage, table in PRESETS[name].items()}
 
 
+def _settings(name: str) -> list[tuple[str, Any]]:
+    """The preset's (``stage.param``, value) pairs."""
+    return [(f"{stage}.{k}", v) for stage, table in preset_tables(name).items() for k, v in table.items()]
+
+
 def describe(name: str) -> str:
     """``name: what it is for (stage.param=value, ...)``."""
-    sets = ", ".join(f"{stage}.{k}={v}" for stage, table in preset_tables(name).items() for k, v in table.items())
+    sets = ", ".join(f"{key}={v}" for key, v in _settings(name))
     return f"{name}: {PRESET_HELP[name]} ({sets})"
 
 
 def as_overrides(name: str) -> list[str]:
     """The preset as ``--set`` items (``stage.param=value``, the value a TOML literal), for a caller
     that has no config file to put under them (benchmarks/removal.py)."""
-    return [f"{stage}.{k}={json.dumps(v)}" for stage, table in preset_tables(name).items() for k, v in table.items()]
+    return [f"{key}={json.dumps(v)}" for key, v in _settings(name)]

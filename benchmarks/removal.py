@@ -9,7 +9,7 @@
                                            synthetic-photos,
                                            synthetic-raised,synthetic-box-coins,synthetic-box-brick]]
                                  [--set STAGE.PARAM=VALUE ...]   (overrides for every run of (a), (b), (c))
-                                 [--preset detail]   (a named parameter set, under the --set items)
+                                 [--preset detail|fast]   (a named parameter set, under the --set items)
                                  [--novel]   (+ the novel-view protocol (d) on the scenes of (a) and (b))
                                  [--fit-seeds 0,1,2]   (every method on each seed's fit; targets on the mean)
                                  [--methods ours,fsr-refit]   (only these methods: experiments; targets not judged)

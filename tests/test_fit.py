@@ -150,6 +150,9 @@ def test_init_from_points_colours_and_scales():
     assert torch.all(s <= 1.0 + 1e-6) and torch.all(s > 0)  # clamped to 0.1 x extent
     assert torch.allclose(m.opacities_activated(), torch.full((5,), 0.1), atol=1e-6)
     assert torch.allclose(rgb_to_sh(torch.tensor([0.5])), torch.tensor([0.0]))
+    act, geometry = m.activated(), m.activated(sh=False)
+    assert act["colors"].shape == (5, 9, 3) and "colors" not in geometry
+    assert all(torch.equal(act[k], geometry[k]) for k in ("means", "quats", "scales", "opacities"))
 
 
 # --------------------------------------------------------------------------------------------------

@@ -58,7 +58,7 @@ def _stack_cameras(cameras: list[Camera]) -> tuple[torch.Tensor, torch.Tensor]:
 
 def _render_one(model: GaussianModel, camera: Camera, colors: torch.Tensor | None, render_mode: str, backend: str,
                 contribution_mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
-    act = model.activated()
+    act = model.activated(sh=False)  # (the colours are the caller's channels)
     vm, K = _stack_cameras([camera])
     cmask = None if contribution_mask is None else torch.from_numpy(np.asarray(contribution_mask, bool))[None]
     with torch.no_grad():

@@ -119,7 +119,7 @@ from sgpor_pipeline.removal.sbm import (
     membrane_fill,
     require_fsr,
 )
-from sgpor_pipeline.removal.structure import FREE, draw_lines, structure_cells
+from sgpor_pipeline.removal.structure import FREE, StructureParams, draw_lines, structure_cells
 from sgpor_pipeline.scene import Camera
 
 
@@ -574,8 +574,9 @@ class InpaintStage(Stage):
     # (plane_thin); 19: the plane texture's regular patterns translated by their period first
     # (plane_lattice; the version marks the results of its development versions stale); 20: the plane
     # texture's hole filled again from its smooth completion (plane_smooth_guide); 21: structure lines from
-    # colour edges too, and borders that graze the hole (StructureParams colour, graze)
-    VERSION = 21
+    # colour edges too, and borders that graze the hole (StructureParams colour, graze); 22: borders joined
+    # through the hole from their two entries (StructureParams paired)
+    VERSION = 22
     Params = InpaintParams
     inputs = ("remove",)
     libraries = ("torch",)
@@ -679,7 +680,10 @@ class InpaintStage(Stage):
                 for i, v in enumerate(data.views):
                     lab = np.full(holes[i].shape, FREE, np.int32)
                     if holes[i].any():
-                        lines, cells = structure_cells(v.context(), ~holes[i], holes[i], sbm.block_size)
+                        # (no paired entries in a photo: edges of different surfaces meet at the object's
+                        # outline there; the test scene's horizon was joined to the rug's edge)
+                        lines, cells = structure_cells(v.context(), ~holes[i], holes[i], sbm.block_size,
+                                                       StructureParams(paired=False))
                         if cells is not None:
                             lab = np.where(cells >= 0, i * CELLS_PER_VIEW + cells, FREE).astype(np.int32)
                             lines_by_view[v.name] = len(lines)

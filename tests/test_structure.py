@@ -352,3 +352,54 @@ def test_the_reranking_keeps_a_small_cells_few_sources_first():
     got = lab[pos[0, :, 1] + c, pos[0, :, 2] + c]
     n = min(own, pos.shape[1])
     assert (got[:n] == 1).all(), (got, own)
+
+
+def bent_border(seed: int, jog: float = 6.0, turn: float = 0.0, right_region=(0.85, 0.5, 0.35)):
+    """mip360 kitchen's orange mat under the bulldozer, drawn: the orange region's straight border runs
+    into the round hole at the left and comes out ``jog`` px lower (its pieces parallel, or turned by
+    ``turn`` degrees); beside it the wood goes from dark teal on the left to pale, nearly orange, on the
+    right. The region below the border right of the hole has colour ``right_region``. Returns (image,
+    hole, the border's two entry points into the hole)."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:N, 0:N].astype(np.float64)
+    slope_right = np.tan(np.arctan(0.7) + np.deg2rad(turn))
+    below = np.where(xx < 80, (yy - 80) > 0.7 * (xx - 80), (yy - 80) > slope_right * (xx - 80) + jog)
+    ramp = np.clip((xx - 40) / 80, 0, 1)[..., None]
+    wood = (1 - ramp) * np.array([0.2, 0.45, 0.5]) + ramp * np.array([0.8, 0.6, 0.5])
+    region = np.where((xx < 80)[..., None], np.array([0.85, 0.5, 0.35]), np.array(right_region))
+    g = grain(rng)[..., None]
+    img = (np.where(below[..., None], region, wood) + g).astype(np.float32)
+    hole = (yy - 80) ** 2 + (xx - 80) ** 2 < 30 ** 2
+    u = np.roots([1 + slope_right ** 2, 2 * slope_right * jog, jog ** 2 - 900]).max()  # right entry: x - 80
+    entries = [(80 - 30 / np.hypot(1, 0.7), 80 - 0.7 * 30 / np.hypot(1, 0.7)), (80 + u, 80 + slope_right * u + jog)]
+    return img, hole, entries
+
+
+def through(lines, points, tol: float = 3.0) -> bool:
+    return any(max(abs(x * ln.normal[0] + y * ln.normal[1] - ln.rho) for x, y in points) < tol for ln in lines)
+
+
+def test_a_border_seen_as_two_offset_pieces_is_joined_through_the_hole():
+    """StructureParams.paired: the border's two pieces are 6 px apart across the hole and the wood beside
+    them differs (teal / pale: the turned line's contrast-ratio test rejects it), so no single line is
+    seen; the line between the two entries continues it, and the hole's part below it is the orange
+    region's cell."""
+    img, hole, entries = bent_border(11)
+    assert not through(hole_lines(img, ~hole, hole, 15, StructureParams(paired=False)), entries)
+    lines = hole_lines(img, ~hole, hole, 15)
+    assert through(lines, entries), [ln.to_dict() for ln in lines]
+    labels = cell_labels(hole.shape, lines, ~hole, hole, 15)
+    yy, xx = np.mgrid[0:N, 0:N]
+    (x0, y0), (x1, y1) = entries
+    below = (yy - y0) * (x1 - x0) > (y1 - y0) * (xx - x0)  # below the line through the entries
+    orange = np.bincount(labels[~hole & below & (np.abs(xx - 80) < 40) & (np.abs(yy - 80) < 40)]).argmax()
+    assert (labels[hole & below] == orange).mean() > 0.95 and (labels[hole & ~below] == orange).mean() < 0.05
+
+
+@pytest.mark.parametrize("case", ["turned", "other region"])
+def test_pieces_that_do_not_continue_each_other_are_not_joined(case):
+    """Turned by 15 degrees the pieces do not run along the line between their entries; with a blue
+    region right of the hole no side is the same at both entries: no line is made."""
+    kw = {"turn": 15.0} if case == "turned" else {"right_region": (0.3, 0.3, 0.85)}
+    img, hole, _ = bent_border(12, **kw)
+    assert len(hole_lines(img, ~hole, hole, 15)) == len(hole_lines(img, ~hole, hole, 15, StructureParams(paired=False)))

@@ -20,6 +20,13 @@ quadrant, unbounded, held the wood beyond the rug's far side);
 with ``labels`` then fills each target block from source blocks of its own cell, and each pixel mainly
 from the blocks of its cell, so the edges continue straight through the hole and meet at corners.
 
+A border the detector sees as no single line (its pieces short, ragged, a few px apart on the two sides
+of the hole, with other colours beside it on each side: mip360 kitchen's orange mat, bent under the
+bulldozer, dark wood beside it above the hole and pale wood below) is found from where it meets the
+hole instead: the colour changes along the hole's rim, each followed away from the hole as the ray with
+the most contrast across it, and two such edges that leave the hole in opposite directions along the
+line between their entries, with one side's colour the same at both, are joined by that line.
+
 Curved borders (an ellipse, a round rug) give no long segment and nothing changes there.
 """
 
@@ -59,6 +66,12 @@ class StructureParams:
     # detector cannot see an edge this close to the rim (segments start 2 px in, after a 1 px blur). 0 = off
     graze: float = 3.0
     colour: bool = True  # also the edges of CIELAB's colour channels that the grey image lacks
+    # A border seen as no single line (short pieces, a few px apart across the hole, other colours beside
+    # it on each side) is continued all the same where two edges leave the hole opposite each other along
+    # the line between their entries with one side's colour the same at both (_paired_entries). mip360
+    # kitchen from one mask: the orange mat's edge under the bulldozer, whose fill bulged orange into the
+    # wood between the mats without it
+    paired: bool = True
 
     def validate(self) -> None:
         if self.max_lines < 1 or self.max_lines > 16:
@@ -353,6 +366,139 @@ def _corner(a: tuple[Line, tuple], b: tuple[Line, tuple], hole: np.ndarray, tole
     return None
 
 
+def _rim_transitions(image: np.ndarray, known: np.ndarray, hole: np.ndarray, window: int, min_contrast: float,
+                     offset: int = 3) -> list[tuple[np.ndarray, int]]:
+    """Where colour borders meet the hole: along the contour ``offset`` px outside each part of the hole,
+    the points where the mean colour over ``window`` px before differs from that after by at least
+    ``min_contrast`` (local maxima along the contour, both windows mostly on ``known`` pixels).
+    Returns (point (x, y), index of the hole's part) each."""
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * offset + 1,) * 2)
+    grown = cv2.dilate(np.asarray(hole, np.uint8), kernel)
+    contours, _ = cv2.findContours(grown, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    steps = np.arange(2, window + 1)
+    out = []
+    for part, contour in enumerate(contours):
+        pts = contour.reshape(-1, 2)
+        n = len(pts)
+        if n < 4 * window:
+            continue
+        ok = known[pts[:, 1], pts[:, 0]].astype(np.float64)
+        col = image[pts[:, 1], pts[:, 0]].astype(np.float64) * ok[:, None]
+        # running sums over the closed contour: the windows' known pixels and colours before / after each point
+        before = (np.arange(n)[:, None] - steps[None]) % n
+        after = (np.arange(n)[:, None] + steps[None]) % n
+        nb, na = ok[before].sum(1), ok[after].sum(1)
+        full = (nb >= 0.8 * len(steps)) & (na >= 0.8 * len(steps))
+        diff = np.linalg.norm(col[after].sum(1) / np.maximum(na, 1)[:, None]
+                              - col[before].sum(1) / np.maximum(nb, 1)[:, None], axis=1) * full
+        around = (np.arange(n)[:, None] + np.arange(-window, window + 1)[None]) % n
+        peak = (diff >= min_contrast) & (np.argmax(diff[around], axis=1) == window)
+        out += [(pts[j].astype(np.float64), part) for j in np.flatnonzero(peak)]
+    return out
+
+
+def _outward_edge(image: np.ndarray, known: np.ndarray, hole: np.ndarray, point: np.ndarray, length: int,
+                  to_hole: np.ndarray, offset: float = 3.0, shift: int = 2, angle_step: float = 2.0
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, float] | None:
+    """The straight edge that leaves the hole at ``point``: over the directions away from the hole and
+    start points up to ``shift`` px aside, the ray of ``length`` px (on known pixels) with the largest
+    contrast across it (the mean colour difference ``offset`` px either side, as :func:`_contrast`).
+    Measured along the edge rather than at the rim, where the hole's own border and the fill's seam
+    blur it (mip360 kitchen: the local gradient at the orange mat's entry points along the rim).
+    The ray must end at least ``length`` x 0.4 px from the hole (``to_hole``: each pixel's distance to
+    it), i.e. leave the rim at 24 degrees or more: a ray along the rim measures the rim's own seam.
+    Returns (start point, unit direction (x, y), colours on the direction's left (+normal) side and on
+    its right, contrast), or None when no ray has ``length`` / 2 px of known pixels either side."""
+    h, w = known.shape
+    angles = np.deg2rad(np.arange(0.0, 360.0, angle_step))
+    d = np.stack([np.cos(angles), np.sin(angles)], 1)  # [A,2]
+    nrm = np.stack([-d[:, 1], d[:, 0]], 1)
+    t = np.arange(2, length + 1, dtype=np.float64)
+    best = None
+    for s in range(-shift, shift + 1):
+        start = point[None] + s * nrm  # [A,2]: aside along each ray's normal
+        pts = start[:, None] + t[None, :, None] * d[:, None]  # [A,T,2]
+        a = np.rint(pts + offset * nrm[:, None]).astype(int)
+        b = np.rint(pts - offset * nrm[:, None]).astype(int)
+        c = np.rint(pts).astype(int)
+        inside = ((a >= 0).all(-1) & (a[..., 0] < w) & (a[..., 1] < h) & (b >= 0).all(-1) & (b[..., 0] < w)
+                  & (b[..., 1] < h))
+        a, b, c = (np.where(inside[..., None], q, 0) for q in (a, b, c))
+        ok = inside & known[a[..., 1], a[..., 0]] & known[b[..., 1], b[..., 0]] & ~hole[c[..., 1], c[..., 0]]
+        count = ok.sum(1)
+        plus = (image[a[..., 1], a[..., 0]] * ok[..., None]).sum(1) / np.maximum(count, 1)[:, None]
+        minus = (image[b[..., 1], b[..., 0]] * ok[..., None]).sum(1) / np.maximum(count, 1)[:, None]
+        end = np.rint(start + length * d).astype(int)
+        away = np.zeros(len(d), bool)
+        fits = (end[:, 0] >= 0) & (end[:, 0] < w) & (end[:, 1] >= 0) & (end[:, 1] < h)
+        away[fits] = to_hole[end[fits, 1], end[fits, 0]] >= 0.4 * length
+        contrast = np.linalg.norm(plus - minus, axis=1) * (count >= len(t) // 2) * away
+        k = int(np.argmax(contrast))
+        if contrast[k] > 0 and (best is None or contrast[k] > best[4]):
+            best = (start[k], d[k], plus[k], minus[k], float(contrast[k]))
+    if best is None:
+        return None
+    start, direction, plus, minus, contrast = best
+    return start, direction, np.asarray(plus, np.float64), np.asarray(minus, np.float64), contrast
+
+
+def _paired_entries(image: np.ndarray, known: np.ndarray, hole: np.ndarray, block: int, min_contrast: float,
+                    found: list[Line], max_angle: float = 8.0) -> list[Line]:
+    """A region's straight border that enters the hole at two places but is seen as no single line (its
+    visible pieces short, a few px apart across the hole, or bordering other colours on each side; mip360
+    kitchen's orange mat under the bulldozer: parallel pieces 20 texels apart, dark wood beside it above
+    the hole and pale wood below): where colour borders meet the hole's rim, each one's edge followed
+    away from the hole (:func:`_outward_edge`), and two such edges joined through the hole when they
+    leave it in opposite directions, the line between their entry points runs along both (within
+    ``max_angle`` degrees), mostly through the hole, and one side's colour is the same at both (the
+    region that runs under the object) and clearly unlike the other sides. A border already among
+    ``found`` is not found again. Returns the joining lines, best-aligned first, each entry used once."""
+    length = 3 * block
+    to_hole = cv2.distanceTransform((~np.asarray(hole, bool)).astype(np.uint8), cv2.DIST_L2, 5)
+    entries = []
+    for point, part in _rim_transitions(image, known, hole, max(3, block // 2), min_contrast):
+        edge = _outward_edge(image, known, hole, point, length, to_hole)
+        if edge is not None and edge[4] >= min_contrast:
+            entries.append((part, *edge))
+    r = 4
+    grown = cv2.dilate(np.asarray(hole, np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2)) > 0
+    cos_tol = np.cos(np.deg2rad(max_angle))
+    candidates = []
+    for i, (part_a, pa, da, a_left, a_right, ca) in enumerate(entries):
+        for j in range(i + 1, len(entries)):
+            part_b, pb, db, b_left, b_right, cb = entries[j]
+            chord = pb - pa
+            span = float(np.linalg.norm(chord))
+            if part_a != part_b or span < block:
+                continue
+            u = chord / span  # from a to b: a's edge leaves the hole along -u, b's along +u
+            if not (da @ -u >= cos_tol and db @ u >= cos_tol):
+                continue
+            samples = pa + np.linspace(0.0, 1.0, int(span) + 1)[:, None] * chord
+            if grown[np.rint(samples[:, 1]).astype(int), np.rint(samples[:, 0]).astype(int)].mean() < 0.75:
+                continue
+            # the sides seen from a's direction (-u) and from b's (+u) are mirrored: a's left is b's right
+            same = (np.linalg.norm(a_left - b_right), np.linalg.norm(a_right - b_left))
+            cross = (np.linalg.norm(a_left - b_left), np.linalg.norm(a_right - b_right),
+                     np.linalg.norm(a_left - a_right), np.linalg.norm(b_left - b_right))
+            if min(same) >= 0.5 * min(cross):
+                continue
+            normal = np.array([-u[1], u[0]])
+            line = Line(normal, float(pa @ normal), 2.0 * length, min(ca, cb),
+                        [np.r_[pa, pa + length * da], np.r_[pb, pb + length * db]])
+            if any(max(abs(float(q @ ln.normal) - ln.rho) for q in (pa, pb)) <= r for ln in found):
+                continue
+            misalign = 2.0 - float(da @ -u) - float(db @ u)
+            candidates.append((misalign, i, j, line))
+    out, used = [], set()
+    for _, i, j, line in sorted(candidates, key=lambda c: c[0]):
+        if i in used or j in used:
+            continue
+        used |= {i, j}
+        out.append(line)
+    return out
+
+
 def hole_lines(image: np.ndarray, known: np.ndarray, hole: np.ndarray, block: int,
                params: StructureParams | None = None) -> list[Line]:
     """The straight edges of the ``known`` part of ``image`` (float RGB in [0, 1]) that run through
@@ -429,6 +575,8 @@ def hole_lines(image: np.ndarray, known: np.ndarray, hole: np.ndarray, block: in
                                    _reach(b[0], a[0], found[0], open_end))
                     corners.append(a[0])
                     break
+    if p.paired:
+        through += _paired_entries(img, known, hole, block, p.min_contrast, through + corners)
     out = sorted(through + corners, key=lambda ln: -ln.length)
     return out[: p.max_lines]
 

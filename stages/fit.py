@@ -485,16 +485,20 @@ def save_renders(folder: Path, model: GaussianModel, views: list, sh_degree: int
     return names
 
 
-def few_passes_warning(iterations: int, train_views: int) -> str | None:
+def few_passes_warning(iterations: int, train_views: int, densify_until: float = 0.6) -> str | None:
     """The warning for a fit of ``iterations`` over ``train_views`` photos that sees each fewer than
-    :data:`MIN_PASSES_PER_VIEW` times (None when it does not), naming the iterations that would."""
+    :data:`MIN_PASSES_PER_VIEW` times (None when it does not), naming the iterations that would, and the
+    ``densify_until`` that ends adding Gaussians where this fit would: the extra passes, not more
+    Gaussians, are what such a fit lacks (benchmarks/removal_results.md, sessions 64-65)."""
     if train_views < 1 or iterations >= MIN_PASSES_PER_VIEW * train_views:
         return None
     enough = -(-MIN_PASSES_PER_VIEW * train_views // 500) * 500  # (rounded up to a multiple of 500)
+    keep = densify_until * iterations / enough
     return (f"fit: {iterations} iterations over {train_views} training photos see each about "
-            f"{iterations / train_views:.0f} times, too few to converge (the demo scene with 96 photos: mask PSNR "
-            f"24.06 dB after 2000 iterations, 26.58 after 4000, the fit 2.8x as long): --set "
-            f"fit.iterations={enough} sees each {MIN_PASSES_PER_VIEW} times")
+            f"{iterations / train_views:.0f} times, too few to converge: --set fit.iterations={enough} --set "
+            f"fit.densify_until={keep:.2f} sees each {MIN_PASSES_PER_VIEW} times and stops adding Gaussians "
+            f"where this fit would (the demo scene with 96 photos: mask PSNR 24.06 dB after 2000 iterations, "
+            f"26.78 after 4000 with densify_until 0.3, 26.58 with 0.6 and twice the Gaussians)")
 
 
 def fit_scene(sfm_dir: Path, out_dir: Path, params: FitParams, checkpoint_dir: Path | None,
@@ -546,7 +550,7 @@ def fit_scene(sfm_dir: Path, out_dir: Path, params: FitParams, checkpoint_dir: P
         raise PipelineError("no registered view with an image to fit", path=sfm_dir,
                             fix="check the sfm stage's result (sgpor-pipeline status)")
     train_views, test_views = split_views(views, params.holdout_every)
-    too_few = few_passes_warning(params.iterations, len(train_views))
+    too_few = few_passes_warning(params.iterations, len(train_views), params.densify_until)
     if too_few:
         log.warning(too_few)
     extent = scene_extent([v.camera for v in views])

@@ -905,5 +905,7 @@ def test_a_fit_that_sees_each_photo_too_few_times_names_the_iterations_that_woul
     assert few_passes_warning(10, 0) is None
     many = few_passes_warning(2000, 96)
     assert "2000 iterations over 96 training photos see each about 21 times" in many
-    assert "--set fit.iterations=4000 sees each 40 times" in many  # (3840 rounded up to 500s)
-    assert "fit.iterations=2500 " in few_passes_warning(2000, 51)
+    # (3840 rounded up to 500s; densification still ends at iteration 1200)
+    assert "--set fit.iterations=4000 --set fit.densify_until=0.30 sees each 40 times" in many
+    assert "fit.iterations=2500 --set fit.densify_until=0.48 " in few_passes_warning(2000, 51)
+    assert "fit.densify_until=0.25 " in few_passes_warning(2000, 96, densify_until=0.5)

@@ -384,7 +384,7 @@ def _rim_transitions(image: np.ndarray, known: np.ndarray, hole: np.ndarray, win
             continue
         ok = known[pts[:, 1], pts[:, 0]].astype(np.float64)
         col = image[pts[:, 1], pts[:, 0]].astype(np.float64) * ok[:, None]
-        # running sums over the closed contour: the windows' known pixels and colours before / after each point
+        # each point's windows before and after it along the closed contour: their known pixels and mean colours
         before = (np.arange(n)[:, None] - steps[None]) % n
         after = (np.arange(n)[:, None] + steps[None]) % n
         nb, na = ok[before].sum(1), ok[after].sum(1)
@@ -460,8 +460,9 @@ def _paired_entries(image: np.ndarray, known: np.ndarray, hole: np.ndarray, bloc
         edge = _outward_edge(image, known, hole, point, length, to_hole)
         if edge is not None and edge[4] >= min_contrast:
             entries.append((part, *edge))
-    r = 4
-    grown = cv2.dilate(np.asarray(hole, np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2)) > 0
+    near = 4  # px: the line runs through the hole grown by this much; a found border this close is the same
+    grown = cv2.dilate(np.asarray(hole, np.uint8),
+                       cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * near + 1,) * 2)) > 0
     cos_tol = np.cos(np.deg2rad(max_angle))
     candidates = []
     for i, (part_a, pa, da, a_left, a_right, ca) in enumerate(entries):
@@ -486,7 +487,7 @@ def _paired_entries(image: np.ndarray, known: np.ndarray, hole: np.ndarray, bloc
             normal = np.array([-u[1], u[0]])
             line = Line(normal, float(pa @ normal), 2.0 * length, min(ca, cb),
                         [np.r_[pa, pa + length * da], np.r_[pb, pb + length * db]])
-            if any(max(abs(float(q @ ln.normal) - ln.rho) for q in (pa, pb)) <= r for ln in found):
+            if any(max(abs(float(q @ ln.normal) - ln.rho) for q in (pa, pb)) <= near for ln in found):
                 continue
             misalign = 2.0 - float(da @ -u) - float(db @ u)
             candidates.append((misalign, i, j, line))

@@ -485,7 +485,8 @@ def save_renders(folder: Path, model: GaussianModel, views: list, sh_degree: int
     return names
 
 
-def few_passes_warning(iterations: int, train_views: int, densify_until: float = 0.6) -> str | None:
+def few_passes_warning(iterations: int, train_views: int,
+                       densify_until: float = FitParams.densify_until) -> str | None:
     """The warning for a fit of ``iterations`` over ``train_views`` photos that sees each fewer than
     :data:`MIN_PASSES_PER_VIEW` times (None when it does not), naming the iterations that would, and the
     ``densify_until`` that ends adding Gaussians where this fit would: the extra passes, not more

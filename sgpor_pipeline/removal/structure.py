@@ -442,8 +442,8 @@ def _outward_edge(image: np.ndarray, known: np.ndarray, hole: np.ndarray, point:
     return start, direction, np.asarray(plus, np.float64), np.asarray(minus, np.float64), contrast
 
 
-def _paired_entries(image: np.ndarray, known: np.ndarray, hole: np.ndarray, block: int, min_contrast: float,
-                    found: list[Line], max_angle: float = 8.0) -> list[Line]:
+def _paired_entries(image: np.ndarray, known: np.ndarray, hole: np.ndarray, to_hole: np.ndarray, block: int,
+                    min_contrast: float, found: list[Line], max_angle: float = 8.0) -> list[Line]:
     """A region's straight border that enters the hole at two places but is seen as no single line (its
     visible pieces short, a few px apart across the hole, or bordering other colours on each side; mip360
     kitchen's orange mat under the bulldozer: parallel pieces 20 texels apart, dark wood beside it above
@@ -452,9 +452,9 @@ def _paired_entries(image: np.ndarray, known: np.ndarray, hole: np.ndarray, bloc
     leave it in opposite directions, the line between their entry points runs along both (within
     ``max_angle`` degrees), mostly through the hole, and one side's colour is the same at both (the
     region that runs under the object) and clearly unlike the other sides. A border already among
-    ``found`` is not found again. Returns the joining lines, best-aligned first, each entry used once."""
+    ``found`` is not found again. ``to_hole``: each pixel's distance to the hole. Returns the joining
+    lines, best-aligned first, each entry used once."""
     length = 3 * block
-    to_hole = cv2.distanceTransform((~np.asarray(hole, bool)).astype(np.uint8), cv2.DIST_L2, 5)
     entries = []
     for point, part in _rim_transitions(image, known, hole, max(3, block // 2), min_contrast):
         edge = _outward_edge(image, known, hole, point, length, to_hole)
@@ -484,11 +484,11 @@ def _paired_entries(image: np.ndarray, known: np.ndarray, hole: np.ndarray, bloc
                      np.linalg.norm(a_left - a_right), np.linalg.norm(b_left - b_right))
             if min(same) >= 0.5 * min(cross):
                 continue
+            if any(max(abs(float(q @ ln.normal) - ln.rho) for q in (pa, pb)) <= near for ln in found):
+                continue
             normal = np.array([-u[1], u[0]])
             line = Line(normal, float(pa @ normal), 2.0 * length, min(ca, cb),
                         [np.r_[pa, pa + length * da], np.r_[pb, pb + length * db]])
-            if any(max(abs(float(q @ ln.normal) - ln.rho) for q in (pa, pb)) <= near for ln in found):
-                continue
             misalign = 2.0 - float(da @ -u) - float(db @ u)
             candidates.append((misalign, i, j, line))
     out, used = [], set()
@@ -509,7 +509,8 @@ def hole_lines(image: np.ndarray, known: np.ndarray, hole: np.ndarray, block: in
     inside the hole (a hidden corner; its edge then reaches the rim, within ``corner_reach`` px). An
     edge that stops short
     of the hole (a rug's border ending at its corner beside it) or that ends at the hole (an object's
-    side the hole cuts off) is not continued. Longest first, at most ``max_lines``."""
+    side the hole cuts off) is not continued. With ``paired``, also the borders seen as no single line
+    that :func:`_paired_entries` joins from their two entries. Longest first, at most ``max_lines``."""
     p = params or StructureParams()
     p.validate()
     hole = np.asarray(hole, bool)
@@ -577,7 +578,7 @@ def hole_lines(image: np.ndarray, known: np.ndarray, hole: np.ndarray, block: in
                     corners.append(a[0])
                     break
     if p.paired:
-        through += _paired_entries(img, known, hole, block, p.min_contrast, through + corners)
+        through += _paired_entries(img, known, hole, to_hole, block, p.min_contrast, through + corners)
     out = sorted(through + corners, key=lambda ln: -ln.length)
     return out[: p.max_lines]
 

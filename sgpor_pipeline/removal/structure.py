@@ -232,17 +232,25 @@ def _merge(seg: np.ndarray, angle_deg: float, dist: float) -> list[Line]:
     return lines
 
 
+def _side_pixels(known: np.ndarray, points: np.ndarray, normal: np.ndarray, offset: float = 3.0
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pixels ``offset`` px either side of ``points`` [..., 2] (x, y) along ``normal`` (broadcast
+    against them): (on its side, on the other), integer (x, y) [..., 2] each, and where both are in the
+    image and ``known`` [...]. Pixels that are not are (0, 0), so they can index the image as they are."""
+    h, w = known.shape
+    a = np.rint(points + offset * normal).astype(int)
+    b = np.rint(points - offset * normal).astype(int)
+    inside = ((a >= 0).all(-1) & (a[..., 0] < w) & (a[..., 1] < h) & (b >= 0).all(-1) & (b[..., 0] < w)
+              & (b[..., 1] < h))
+    a, b = (np.where(inside[..., None], q, 0) for q in (a, b))
+    return a, b, inside & known[a[..., 1], a[..., 0]] & known[b[..., 1], b[..., 0]]
+
+
 def _sides(image: np.ndarray, known: np.ndarray, points: np.ndarray, normal: np.ndarray,
            offset: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
     """The colours ``offset`` px either side of ``points`` [K,2] (x, y) along ``normal``: (on its side,
     on the other), [M,3] each, for the points whose two pixels are both in the image and ``known``."""
-    h, w = known.shape
-    a = np.rint(points + offset * normal).astype(int)
-    b = np.rint(points - offset * normal).astype(int)
-    ok = ((a[:, 0] >= 0) & (a[:, 0] < w) & (a[:, 1] >= 0) & (a[:, 1] < h) & (b[:, 0] >= 0) & (b[:, 0] < w)
-          & (b[:, 1] >= 0) & (b[:, 1] < h))
-    a, b = a[ok], b[ok]
-    ok = known[a[:, 1], a[:, 0]] & known[b[:, 1], b[:, 0]]
+    a, b, ok = _side_pixels(known, points, normal, offset)
     return image[a[ok, 1], a[ok, 0]], image[b[ok, 1], b[ok, 0]]
 
 
@@ -418,13 +426,9 @@ def _outward_edge(image: np.ndarray, known: np.ndarray, hole: np.ndarray, point:
     for s in range(-shift, shift + 1):
         start = point[None] + s * nrm  # [A,2]: aside along each ray's normal
         pts = start[:, None] + t[None, :, None] * d[:, None]  # [A,T,2]
-        a = np.rint(pts + offset * nrm[:, None]).astype(int)
-        b = np.rint(pts - offset * nrm[:, None]).astype(int)
-        c = np.rint(pts).astype(int)
-        inside = ((a >= 0).all(-1) & (a[..., 0] < w) & (a[..., 1] < h) & (b >= 0).all(-1) & (b[..., 0] < w)
-                  & (b[..., 1] < h))
-        a, b, c = (np.where(inside[..., None], q, 0) for q in (a, b, c))
-        ok = inside & known[a[..., 1], a[..., 0]] & known[b[..., 1], b[..., 0]] & ~hole[c[..., 1], c[..., 0]]
+        a, b, ok = _side_pixels(known, pts, nrm[:, None], offset)
+        c = np.where(ok[..., None], np.rint(pts).astype(int), 0)
+        ok &= ~hole[c[..., 1], c[..., 0]]
         count = ok.sum(1)
         plus = (image[a[..., 1], a[..., 0]] * ok[..., None]).sum(1) / np.maximum(count, 1)[:, None]
         minus = (image[b[..., 1], b[..., 0]] * ok[..., None]).sum(1) / np.maximum(count, 1)[:, None]

@@ -65,6 +65,55 @@ def _by_stem(paths: list[Path], what: str) -> dict[str, Path]:
     return out
 
 
+# How mask files are often named after their photo IMG_01.jpg, besides IMG_01.png: IMG_01_mask.png,
+# mask_IMG_01.png, IMG_01.jpg.png (the photo's whole name). Matched case-insensitively; a mask of the
+# photo's own base name always wins.
+MASK_SUFFIXES = ("_mask", "-mask", ".mask", " mask", "_masks", "_seg", "-seg", "_label", "_matte", "_alpha")
+MASK_PREFIXES = ("mask_", "mask-", "masks_")
+
+
+def mask_base_names(stem: str) -> list[str]:
+    """The photo base names a mask's base name ``stem`` may stand for, most specific first: itself, the
+    name without an image extension left in it (``IMG_01.jpg``), without a mask suffix or prefix."""
+    names = [stem]
+    inner = Path(stem)
+    if inner.suffix.lower() in IMAGE_EXTENSIONS:
+        names.append(inner.stem)
+    lower = stem.lower()
+    for suffix in MASK_SUFFIXES:
+        if lower.endswith(suffix) and len(stem) > len(suffix):
+            bare = stem[:-len(suffix)]
+            names += [bare] + ([Path(bare).stem] if Path(bare).suffix.lower() in IMAGE_EXTENSIONS else [])
+    for prefix in MASK_PREFIXES:
+        if lower.startswith(prefix) and len(stem) > len(prefix):
+            names.append(stem[len(prefix):])
+    return list(dict.fromkeys(names))
+
+
+def match_masks(paths: list[Path], photos: set[str]) -> tuple[dict[str, Path], list[str]]:
+    """Each photo's mask among ``paths``, by :func:`mask_base_names`: (photo base name -> mask file, the
+    masks that name no photo). A mask of the photo's own base name wins over one named by a rule; two
+    masks that only a rule gives the same photo are an error naming both."""
+    exact = _by_stem(paths, "masks")
+    out = {stem: p for stem, p in exact.items() if stem in photos}
+    by_rule: dict[str, Path] = {}
+    orphans = []
+    for stem, p in exact.items():
+        if stem in photos:
+            continue
+        name = next((n for n in mask_base_names(stem)[1:] if n in photos), None)
+        if name is None:
+            orphans.append(stem)
+        elif name in out:
+            orphans.append(stem)  # (the photo has a mask of its own name)
+        elif name in by_rule:
+            raise PipelineError(f"two masks name the photo '{name}': {by_rule[name].name} and {p.name}",
+                                path=p.parent, fix="keep one mask per photo")
+        else:
+            by_rule[name] = p
+    return {**out, **by_rule}, sorted(orphans)
+
+
 def target_size(width: int, height: int, max_size: int) -> tuple[int, int]:
     if max_size <= 0 or max(width, height) <= max_size:
         return width, height
@@ -147,23 +196,37 @@ class IngestStage(Stage):
 
     def run(self, ctx: StageContext) -> None:
         image_dir = Path(ctx.run_inputs.images)
-        images = _by_stem(list_images(image_dir), "images")
+        photos = list_images(image_dir)
+        mask_dir = ctx.run_inputs.masks
+        beside = mask_dir is not None and Path(mask_dir).is_dir() and Path(mask_dir).resolve() == image_dir.resolve()
+        if beside:
+            # masks beside their photos (IMG_01.jpg, IMG_01_mask.png): a file that a mask rule names after
+            # another file of the folder is a mask, not a photo
+            stems = {p.stem for p in photos}
+            photos = [p for p in photos if not any(n in stems for n in mask_base_names(p.stem)[1:])]
+        images = _by_stem(photos, "images")
         if not images:
             raise PipelineError("no images found (JPEG, PNG, TIFF, BMP, WebP)", path=image_dir,
                                 fix="point the command at the folder that holds your photos")
         masks: dict[str, Path] = {}
-        mask_dir = ctx.run_inputs.masks
         if mask_dir is not None:
             if not Path(mask_dir).is_dir():
                 raise PipelineError("mask folder not found", path=mask_dir, fix="check the --masks path")
-            masks = _by_stem(list_images(mask_dir), "masks")
-            orphans = sorted(set(masks) - set(images))
+            mask_files = list_images(mask_dir)
+            if beside and len(photos) < len(mask_files):  # (else the photos are passed as their own masks)
+                mask_files = [p for p in mask_files if p not in photos]
+            masks, orphans = match_masks(mask_files, set(images))
             if orphans:
                 ctx.log.warning(f"{len(orphans)} mask(s) have no image of the same base name and are ignored: "
                                 f"{', '.join(orphans)}")
-            if not set(masks) & set(images):
+            if not masks:
                 raise PipelineError("no mask has the base name of an image", path=mask_dir,
-                                    fix="name each mask like its photo (IMG_01.jpg -> IMG_01.png)")
+                                    fix="name each mask like its photo (IMG_01.jpg -> IMG_01.png, IMG_01_mask.png "
+                                        "or IMG_01.jpg.png)")
+            renamed = sorted(f"{p.name} -> {stem}" for stem, p in masks.items() if p.stem != stem)
+            if renamed:
+                ctx.log.info(f"{len(renamed)} mask(s) matched to their photo by name: {', '.join(renamed[:3])}"
+                             + (", ..." if len(renamed) > 3 else ""))
 
         (ctx.out_dir / "images").mkdir()
         (ctx.out_dir / "masks").mkdir()

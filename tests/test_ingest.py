@@ -178,6 +178,49 @@ def test_mask_errors(tmp_path, caplog):
     assert sum(v.mask is not None for v in load_views(ingest(tmp_path, images, masks))) == 2
 
 
+def _mask_with(box: tuple[int, int, int, int]) -> np.ndarray:
+    m = np.zeros((30, 40), bool)
+    y0, y1, x0, x1 = box
+    m[y0:y1, x0:x1] = True
+    return m
+
+
+def test_masks_named_after_their_photo_by_common_rules(tmp_path, caplog):
+    images = tmp_path / "images"
+    make_images(images)
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    # IMG_01.jpg -> IMG_01_mask.png, mask_IMG_01.png, IMG_01.jpg.png (the photos here are PNGs)
+    write_png(masks / "view_00_Mask.png", _mask_with((0, 5, 0, 5)))
+    write_png(masks / "mask_view_01.png", _mask_with((0, 6, 0, 6)))
+    write_png(masks / "view_02.png.png", _mask_with((0, 7, 0, 7)))
+    write_png(masks / "unrelated_mask.png", _mask_with((0, 8, 0, 8)))
+    caplog.set_level(logging.INFO, logger="sgpor_pipeline")
+    out = ingest(tmp_path, images, masks)
+    pixels = {v.name: int(read_mask(out / v.mask).sum()) for v in load_views(out) if v.mask is not None}
+    assert pixels == {"view_00": 25, "view_01": 36, "view_02": 49}
+    assert "matched to their photo by name" in caplog.text and "unrelated_mask" in caplog.text
+    # a mask of the photo's own base name wins over one that only a rule names after it
+    write_png(masks / "view_00.png", _mask_with((0, 10, 0, 10)))
+    out = ingest(tmp_path, images, masks)
+    assert int(read_mask(out / "masks" / "view_00.png").sum()) == 100
+    # two masks that a rule gives the same photo: which one is meant is the user's to say
+    write_png(masks / "view_01_mask.png", _mask_with((0, 9, 0, 9)))
+    with pytest.raises(PipelineError, match="two masks name the photo 'view_01'"):
+        ingest(tmp_path, images, masks)
+
+
+def test_masks_beside_their_photos(tmp_path):
+    images = tmp_path / "images"
+    make_images(images)
+    write_png(images / "view_01_mask.png", _mask_with((2, 12, 3, 13)))
+    out = ingest(tmp_path, images, images)
+    views = load_views(out)
+    assert [v.name for v in views] == ["view_00", "view_01", "view_02", "view_03"]  # the mask is no photo
+    assert [v.name for v in views if v.mask is not None] == ["view_01"]
+    assert int(read_mask(out / "masks" / "view_01.png").sum()) == 100
+
+
 def test_duplicate_base_names(tmp_path):
     images = tmp_path / "images"
     make_images(images)

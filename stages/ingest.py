@@ -199,11 +199,18 @@ class IngestStage(Stage):
         photos = list_images(image_dir)
         mask_dir = ctx.run_inputs.masks
         beside = mask_dir is not None and Path(mask_dir).is_dir() and Path(mask_dir).resolve() == image_dir.resolve()
+        # masks beside their photos (IMG_01.jpg, IMG_01_mask.png): a file that a mask rule names after
+        # another file of the folder is a mask, not a photo
+        stems = {p.stem for p in photos}
+        named_masks = [p for p in photos if any(n in stems for n in mask_base_names(p.stem)[1:])]
+        if named_masks and mask_dir is None:
+            listed = ", ".join(p.name for p in named_masks[:3]) + (", ..." if len(named_masks) > 3 else "")
+            raise PipelineError(f"{len(named_masks)} file(s) here look like masks of the photos beside them "
+                                f"({listed}), and no --masks was given", path=image_dir,
+                                fix=f"pass --masks {image_dir} to use them as the object's masks, or move them out "
+                                    "of the photo folder")
         if beside:
-            # masks beside their photos (IMG_01.jpg, IMG_01_mask.png): a file that a mask rule names after
-            # another file of the folder is a mask, not a photo
-            stems = {p.stem for p in photos}
-            photos = [p for p in photos if not any(n in stems for n in mask_base_names(p.stem)[1:])]
+            photos = [p for p in photos if p not in named_masks]
         images = _by_stem(photos, "images")
         if not images:
             raise PipelineError("no images found (JPEG, PNG, TIFF, BMP, WebP)", path=image_dir,

@@ -214,6 +214,9 @@ def test_masks_beside_their_photos(tmp_path):
     images = tmp_path / "images"
     make_images(images)
     write_png(images / "view_01_mask.png", _mask_with((2, 12, 3, 13)))
+    # without --masks they are not taken for photos of the scene
+    with pytest.raises(PipelineError, match=r"look like masks of the photos beside them \(view_01_mask.png\)"):
+        ingest(tmp_path, images)
     out = ingest(tmp_path, images, images)
     views = load_views(out)
     assert [v.name for v in views] == ["view_00", "view_01", "view_02", "view_03"]  # the mask is no photo

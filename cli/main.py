@@ -12,6 +12,7 @@ from pathlib import Path
 from sgpor_pipeline import __version__
 from sgpor_pipeline.allocator import keep_freed_memory
 from sgpor_pipeline.errors import PipelineError
+from sgpor_pipeline.frames import FrameParams
 from sgpor_pipeline.presets import PRESETS
 from sgpor_pipeline.presets import describe as describe_preset
 
@@ -103,6 +104,18 @@ def build_parser() -> argparse.ArgumentParser:
                         "similarity: require the alignment")
     p.add_argument("--depth", action="store_true", help="also write depth/<camera>.npy (float32 z-depth)")
 
+    p = sub.add_parser("frames", help="extract sharp photos from a video, to run the pipeline on",
+                       description="Cut a video into COUNT equal stretches and write the sharpest frame of each "
+                                   "(variance of the Laplacian) as frame_<index>.jpg; draw masks on one or more, "
+                                   "named like them (frame_00123.png), and run: sgpor-pipeline run OUT --masks M.")
+    p.add_argument("video", type=Path, help="the video (MP4, MOV, AVI, MKV, WebM, ...)")
+    p.add_argument("out", type=Path, help="folder for the photos")
+    p.add_argument("--count", type=int, default=FrameParams.count,
+                   help=f"how many photos (default {FrameParams.count})")
+    p.add_argument("--max-size", type=int, default=FrameParams.max_size, metavar="PX",
+                   help=f"longest side of the photos (default {FrameParams.max_size}; 0 = as in the video)")
+    p.add_argument("--format", choices=["jpg", "png"], default=FrameParams.format, help="jpg (default) or png")
+
     p = sub.add_parser("status", help="show each stage of a run folder: hit / missing / stale, time, size",
                        description="Show each stage of a run folder: hit / missing / stale / damaged, time, size.")
     p.add_argument("out", type=Path, help="the run's output folder")
@@ -168,6 +181,21 @@ def cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_frames(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from sgpor_pipeline.frames import extract_frames
+
+    t0 = time.perf_counter()
+    params = FrameParams(count=args.count, max_size=args.max_size, format=args.format)
+    paths = extract_frames(args.video, args.out, params,
+                           progress=lambda it, total, desc: tqdm(it, total=total, desc=desc, leave=False,
+                                                                 dynamic_ncols=True, disable=None))
+    log.info(f"frames: {len(paths)} photos in {args.out} ({time.perf_counter() - t0:.1f} s), "
+             f"{paths[0].name} .. {paths[-1].name}")
+    return 0
+
+
 def cmd_status(args: argparse.Namespace) -> int:
     from sgpor_pipeline.runner import format_status, pipeline_status
 
@@ -185,7 +213,8 @@ def cmd_clean(args: argparse.Namespace) -> int:
     return 0
 
 
-COMMANDS = {"run": cmd_run, "demo": cmd_demo, "render": cmd_render, "status": cmd_status, "clean": cmd_clean}
+COMMANDS = {"run": cmd_run, "demo": cmd_demo, "render": cmd_render, "frames": cmd_frames, "status": cmd_status,
+            "clean": cmd_clean}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -168,6 +168,12 @@ def run_pipeline(
     out = Path(out).resolve()
     # (before the stages are imported: that takes seconds, torch and Open3D among them)
     if not Path(run_inputs.images).is_dir():
+        from sgpor_pipeline.frames import is_video
+
+        if is_video(Path(run_inputs.images)):
+            raise PipelineError("this is a video; the pipeline takes a folder of photos", path=run_inputs.images,
+                                fix=f"extract sharp frames first: sgpor-pipeline frames {run_inputs.images} photos/, "
+                                    "then draw a mask on one or more of them")
         raise PipelineError("image folder not found", path=run_inputs.images,
                             fix="pass the folder that holds your photos")
     if preset is not None:

@@ -1,0 +1,117 @@
+"""Photos from a video: the sharpest frame of each of ``count`` equal stretches of the video.
+
+A phone video walked around the object is the quickest capture, but its frames are many, nearly
+alike and often motion-blurred. SfM and the fit want a few dozen sharp photos spread over the walk:
+the video is cut into ``count`` stretches of equal length, and from each the frame with the most
+detail (variance of the Laplacian of its grey image, the usual blur measure) is written as a photo.
+Frames are named after their index in the video (``frame_00123.jpg``), so a mask drawn on one
+(``frame_00123.png`` in a masks folder) keeps its name when the frames are extracted again.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from sgpor_pipeline.errors import PipelineError
+
+VIDEO_EXTENSIONS = (".mp4", ".mov", ".m4v", ".avi", ".mkv", ".webm", ".mts", ".3gp")
+
+
+@dataclass
+class FrameParams:
+    """How :func:`extract_frames` picks and writes frames."""
+
+    count: int = 40  # photos to write: one per equal stretch of the video
+    # frames looked at per stretch (evenly spaced; the others are skipped undecoded where the codec
+    # allows): enough to find a sharp one, without converting every frame of a long video
+    candidates: int = 8
+    max_size: int = 1600  # longest side of the written photos in pixels (0 = as in the video)
+    sharpness_size: int = 480  # the blur measure is taken on the frame shrunk to this longest side
+    format: str = "jpg"  # "jpg" (quality 95) or "png"
+
+
+def sharpness(frame: np.ndarray, size: int = 480) -> float:
+    """Variance of the Laplacian of the frame's grey image shrunk to ``size`` px (higher = sharper)."""
+    grey = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY) if frame.ndim == 3 else frame
+    scale = size / max(grey.shape)
+    if scale < 1:
+        grey = cv2.resize(grey, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+    return float(cv2.Laplacian(grey, cv2.CV_64F).var())
+
+
+def is_video(path: Path) -> bool:
+    return path.is_file() and path.suffix.lower() in VIDEO_EXTENSIONS
+
+
+def _no_progress(iterable: Iterable, **_: Any) -> Iterable:
+    return iterable
+
+
+def extract_frames(video: Path, out_dir: Path, params: FrameParams | None = None,
+                   progress: Callable[..., Iterable] | None = None) -> list[Path]:
+    """Write the sharpest frame of each of ``params.count`` equal stretches of ``video`` into
+    ``out_dir`` and return their paths in video order."""
+    p = params or FrameParams()
+    if p.count < 3 or p.candidates < 1 or p.max_size < 0 or p.format not in ("jpg", "png"):
+        raise PipelineError(f"frames: need count >= 3, candidates >= 1, max_size >= 0 and format jpg or png "
+                            f"(got {p.count}, {p.candidates}, {p.max_size}, {p.format!r})",
+                            fix="e.g. --count 40 (SfM needs at least 3 photos; 30-60 cover a walk around)")
+    if not Path(video).is_file():
+        raise PipelineError("video not found", path=video, fix="check the path")
+    cap = cv2.VideoCapture(str(video))
+    if not cap.isOpened():
+        raise PipelineError("cannot open this video (unknown format or damaged file)", path=video,
+                            fix="convert it to MP4 (H.264), e.g. ffmpeg -i IN -c:v libx264 out.mp4")
+    try:
+        total = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+        if total <= 0:
+            raise PipelineError("the video reports no frame count", path=video,
+                                fix="convert it to MP4 (H.264), e.g. ffmpeg -i IN -c:v libx264 out.mp4")
+        count = min(p.count, total)
+        bounds = np.linspace(0, total, count + 1).round().astype(int)
+        # the frames to look at: up to `candidates` evenly spaced in each stretch
+        looks: dict[int, int] = {}  # frame index -> stretch
+        for s in range(count):
+            lo, hi = int(bounds[s]), max(int(bounds[s + 1]), int(bounds[s]) + 1)
+            for i in np.unique(np.linspace(lo, hi - 1, min(p.candidates, hi - lo)).round().astype(int)):
+                looks[int(i)] = s
+        best: dict[int, tuple[float, int, np.ndarray]] = {}
+        last = max(looks)
+        for index in (progress or _no_progress)(range(last + 1), total=last + 1, desc="frames"):
+            if index not in looks:
+                if not cap.grab():
+                    break
+                continue
+            ok, frame = cap.read()
+            if not ok:
+                break
+            s = looks[index]
+            score = sharpness(frame, p.sharpness_size)
+            if s not in best or score > best[s][0]:
+                best[s] = (score, index, frame)
+    finally:
+        cap.release()
+    if len(best) < 3:
+        raise PipelineError(f"only {len(best)} frame(s) could be decoded (of {total} the video reports)",
+                            path=video, fix="convert it to MP4 (H.264), e.g. ffmpeg -i IN -c:v libx264 out.mp4")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written = []
+    for _, index, frame in (best[s] for s in sorted(best)):
+        h, w = frame.shape[:2]
+        scale = p.max_size / max(h, w) if p.max_size else 1.0
+        if scale < 1:
+            frame = cv2.resize(frame, (max(1, round(w * scale)), max(1, round(h * scale))),
+                               interpolation=cv2.INTER_AREA)
+        path = out_dir / f"frame_{index:05d}.{p.format}"
+        args = [cv2.IMWRITE_JPEG_QUALITY, 95] if p.format == "jpg" else []
+        if not cv2.imwrite(str(path), frame, args):
+            raise PipelineError("cannot write a frame", path=path, fix="check the folder's permissions and free space")
+        written.append(path)
+    return written

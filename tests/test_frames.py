@@ -1,0 +1,68 @@
+"""Photos from a video: the sharpest frame of each stretch, named by its index; a video given to `run`."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from sgpor_pipeline.errors import PipelineError
+from sgpor_pipeline.frames import FrameParams, extract_frames, sharpness
+
+
+def _write_video(path, sharp: set[int], n: int = 30, size: tuple[int, int] = (96, 64)) -> None:
+    """A video of a random texture, blurred in every frame but those in ``sharp``."""
+    rng = np.random.default_rng(0)
+    texture = cv2.resize(rng.integers(0, 256, (size[1] // 4, size[0] // 4, 3), dtype=np.uint8), size,
+                         interpolation=cv2.INTER_NEAREST)
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, size)
+    assert writer.isOpened()
+    for i in range(n):
+        frame = np.roll(texture, i, axis=1)  # (the camera pans)
+        writer.write(frame if i in sharp else cv2.GaussianBlur(frame, (0, 0), 1.5 + (i % 3)))
+    writer.release()
+
+
+def test_sharpness_prefers_detail():
+    rng = np.random.default_rng(1)
+    img = rng.integers(0, 256, (60, 80, 3), dtype=np.uint8)
+    assert sharpness(img) > sharpness(cv2.GaussianBlur(img, (0, 0), 2.0)) > 0
+
+
+def test_the_sharpest_frame_of_each_stretch(tmp_path):
+    video = tmp_path / "walk.avi"
+    _write_video(video, sharp={3, 17, 21})
+    paths = extract_frames(video, tmp_path / "photos", FrameParams(count=3, candidates=10, format="png"))
+    # stretches [0, 10), [10, 20), [20, 30): frame 17 and 21 are both sharp, each wins its own stretch
+    assert [p.name for p in paths] == ["frame_00003.png", "frame_00017.png", "frame_00021.png"]
+    assert cv2.imread(str(paths[0])).shape == (64, 96, 3)
+    # written smaller on request, aspect kept
+    small = extract_frames(video, tmp_path / "small", FrameParams(count=3, candidates=10, max_size=48))
+    assert [p.suffix for p in small] == [".jpg"] * 3 and cv2.imread(str(small[0])).shape == (32, 48, 3)
+    # fewer candidates than frames: still one photo per stretch, in video order
+    few = extract_frames(video, tmp_path / "few", FrameParams(count=5, candidates=2))
+    idx = [int(p.stem.split("_")[1]) for p in few]
+    assert len(idx) == 5 and idx == sorted(idx) and all(6 * s <= i < 6 * (s + 1) for s, i in enumerate(idx))
+
+
+def test_frame_errors(tmp_path):
+    with pytest.raises(PipelineError, match="video not found"):
+        extract_frames(tmp_path / "none.mp4", tmp_path / "out")
+    bad = tmp_path / "bad.mp4"
+    bad.write_bytes(b"not a video at all")
+    with pytest.raises(PipelineError, match="cannot open this video|no frame count|could be decoded"):
+        extract_frames(bad, tmp_path / "out")
+    with pytest.raises(PipelineError, match="count >= 3"):
+        extract_frames(bad, tmp_path / "out", FrameParams(count=2))
+
+
+def test_run_on_a_video_names_the_frames_command(tmp_path, capsys):
+    from cli.main import main
+
+    video = tmp_path / "walk.avi"
+    _write_video(video, sharp=set(), n=12)
+    assert main(["run", str(video), "--out", str(tmp_path / "run"), "--until", "ingest"]) == 1
+    assert "sgpor-pipeline frames" in capsys.readouterr().err
+    assert main(["frames", str(video), str(tmp_path / "photos"), "--count", "4"]) == 0
+    assert len(list((tmp_path / "photos").glob("frame_*.jpg"))) == 4
+    assert main(["run", str(tmp_path / "photos"), "--out", str(tmp_path / "run"), "--until", "ingest"]) == 0

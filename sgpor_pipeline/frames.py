@@ -103,13 +103,14 @@ def extract_frames(video: Path, out_dir: Path, params: FrameParams | None = None
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
+    digits = max(5, len(str(total)))  # (zero-padded: file-name order is video order, for sequential matching)
     for _, index, frame in (best[s] for s in sorted(best)):
         h, w = frame.shape[:2]
         scale = p.max_size / max(h, w) if p.max_size else 1.0
         if scale < 1:
             frame = cv2.resize(frame, (max(1, round(w * scale)), max(1, round(h * scale))),
                                interpolation=cv2.INTER_AREA)
-        path = out_dir / f"frame_{index:05d}.{p.format}"
+        path = out_dir / f"frame_{index:0{digits}d}.{p.format}"
         args = [cv2.IMWRITE_JPEG_QUALITY, 95] if p.format == "jpg" else []
         if not cv2.imwrite(str(path), frame, args):
             raise PipelineError("cannot write a frame", path=path, fix="check the folder's permissions and free space")

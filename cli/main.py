@@ -104,11 +104,12 @@ def build_parser() -> argparse.ArgumentParser:
                         "similarity: require the alignment")
     p.add_argument("--depth", action="store_true", help="also write depth/<camera>.npy (float32 z-depth)")
 
-    p = sub.add_parser("frames", help="extract sharp photos from a video, to run the pipeline on",
+    p = sub.add_parser("frames", help="extract sharp photos from a video (or a folder of too many), to run on",
                        description="Cut a video into COUNT equal stretches and write the sharpest frame of each "
                                    "(variance of the Laplacian) as frame_<index>.jpg; draw masks on one or more, "
                                    "named like them (frame_00123.png), and run: sgpor-pipeline run OUT --masks M.")
-    p.add_argument("video", type=Path, help="the video (MP4, MOV, AVI, MKV, WebM, ...)")
+    p.add_argument("video", type=Path, help="the video (MP4, MOV, AVI, MKV, WebM, ...), or a folder with too many "
+                                            "photos: the sharpest of each stretch (name order) is copied unchanged")
     p.add_argument("out", type=Path, help="folder for the photos")
     p.add_argument("--count", type=int, default=FrameParams.count,
                    help=f"how many photos (default {FrameParams.count})")
@@ -184,13 +185,14 @@ def cmd_render(args: argparse.Namespace) -> int:
 def cmd_frames(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from sgpor_pipeline.frames import extract_frames
+    from sgpor_pipeline.frames import extract_frames, select_photos
 
     t0 = time.perf_counter()
     params = FrameParams(count=args.count, max_size=args.max_size, format=args.format)
-    paths = extract_frames(args.video, args.out, params,
-                           progress=lambda it, total, desc: tqdm(it, total=total, desc=desc, leave=False,
-                                                                 dynamic_ncols=True, disable=None))
+    pick = select_photos if args.video.is_dir() else extract_frames
+    paths = pick(args.video, args.out, params,
+                 progress=lambda it, total, desc: tqdm(it, total=total, desc=desc, leave=False, dynamic_ncols=True,
+                                                       disable=None))
     log.info(f"frames: {len(paths)} photos in {args.out} ({time.perf_counter() - t0:.1f} s), "
              f"{paths[0].name} .. {paths[-1].name}")
     return 0

@@ -1,4 +1,5 @@
 """Photos from a video: the sharpest frame of each of ``count`` equal stretches of the video.
+(Likewise from a folder with too many photos: :func:`select_photos`.)
 
 A phone video walked around the object is the quickest capture, but its frames are many, nearly
 alike and often motion-blurred. SfM and the fit want a few dozen sharp photos spread over the walk:
@@ -53,15 +54,63 @@ def _no_progress(iterable: Iterable, **_: Any) -> Iterable:
     return iterable
 
 
+def _looks(total: int, count: int, candidates: int) -> dict[int, int]:
+    """The items to look at among ``total`` in order, cut into ``count`` equal stretches: up to
+    ``candidates`` evenly spaced in each. Item index -> stretch."""
+    count = min(count, total)
+    bounds = np.linspace(0, total, count + 1).round().astype(int)
+    looks: dict[int, int] = {}
+    for s in range(count):
+        lo, hi = int(bounds[s]), max(int(bounds[s + 1]), int(bounds[s]) + 1)
+        for i in np.unique(np.linspace(lo, hi - 1, min(candidates, hi - lo)).round().astype(int)):
+            looks[int(i)] = s
+    return looks
+
+
+def _check(p: FrameParams) -> None:
+    if p.count < 3 or p.candidates < 1 or p.max_size < 0 or p.format not in ("jpg", "png"):
+        raise PipelineError(f"frames: need count >= 3, candidates >= 1, max_size >= 0 and format jpg or png "
+                            f"(got {p.count}, {p.candidates}, {p.max_size}, {p.format!r})",
+                            fix="e.g. --count 40 (SfM needs at least 3 photos; 30-60 cover a walk around)")
+
+
+def select_photos(folder: Path, out_dir: Path, params: FrameParams | None = None,
+                  progress: Callable[..., Iterable] | None = None) -> list[Path]:
+    """Too many photos (a burst, a photo every step): cut the folder's photos, in name order, into
+    ``params.count`` stretches and copy the sharpest of each into ``out_dir`` unchanged (name, EXIF
+    and GPS kept, so masks named after them still match). Returns the copies in name order."""
+    import shutil
+
+    from sgpor_pipeline.imageio import IMAGE_EXTENSIONS, UnreadableImageError, read_rgb8
+
+    p = params or FrameParams()
+    _check(p)
+    photos = sorted(f for f in Path(folder).iterdir()
+                    if f.is_file() and not f.name.startswith(".") and f.suffix.lower() in IMAGE_EXTENSIONS)
+    if len(photos) < 3:
+        raise PipelineError(f"{len(photos)} photo(s) here; at least 3 are needed", path=folder,
+                            fix="point at the folder that holds the photos")
+    looks = _looks(len(photos), p.count, p.candidates)
+    best: dict[int, tuple[float, Path]] = {}
+    for i in (progress or _no_progress)(sorted(looks), total=len(looks), desc="photos"):
+        try:
+            score = sharpness(read_rgb8(photos[i]), p.sharpness_size)
+        except UnreadableImageError:
+            continue  # (ingest names unreadable files; here they are only not chosen)
+        s = looks[i]
+        if s not in best or score > best[s][0]:
+            best[s] = (score, photos[i])
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    return [Path(shutil.copy2(best[s][1], out_dir / best[s][1].name)) for s in sorted(best)]
+
+
 def extract_frames(video: Path, out_dir: Path, params: FrameParams | None = None,
                    progress: Callable[..., Iterable] | None = None) -> list[Path]:
     """Write the sharpest frame of each of ``params.count`` equal stretches of ``video`` into
     ``out_dir`` and return their paths in video order."""
     p = params or FrameParams()
-    if p.count < 3 or p.candidates < 1 or p.max_size < 0 or p.format not in ("jpg", "png"):
-        raise PipelineError(f"frames: need count >= 3, candidates >= 1, max_size >= 0 and format jpg or png "
-                            f"(got {p.count}, {p.candidates}, {p.max_size}, {p.format!r})",
-                            fix="e.g. --count 40 (SfM needs at least 3 photos; 30-60 cover a walk around)")
+    _check(p)
     if not Path(video).is_file():
         raise PipelineError("video not found", path=video, fix="check the path")
     cap = cv2.VideoCapture(str(video))
@@ -73,14 +122,7 @@ def extract_frames(video: Path, out_dir: Path, params: FrameParams | None = None
         if total <= 0:
             raise PipelineError("the video reports no frame count", path=video,
                                 fix="convert it to MP4 (H.264), e.g. ffmpeg -i IN -c:v libx264 out.mp4")
-        count = min(p.count, total)
-        bounds = np.linspace(0, total, count + 1).round().astype(int)
-        # the frames to look at: up to `candidates` evenly spaced in each stretch
-        looks: dict[int, int] = {}  # frame index -> stretch
-        for s in range(count):
-            lo, hi = int(bounds[s]), max(int(bounds[s + 1]), int(bounds[s]) + 1)
-            for i in np.unique(np.linspace(lo, hi - 1, min(p.candidates, hi - lo)).round().astype(int)):
-                looks[int(i)] = s
+        looks = _looks(total, p.count, p.candidates)
         best: dict[int, tuple[float, int, np.ndarray]] = {}
         last = max(looks)
         for index in (progress or _no_progress)(range(last + 1), total=last + 1, desc="frames"):

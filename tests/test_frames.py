@@ -66,3 +66,28 @@ def test_run_on_a_video_names_the_frames_command(tmp_path, capsys):
     assert main(["frames", str(video), str(tmp_path / "photos"), "--count", "4"]) == 0
     assert len(list((tmp_path / "photos").glob("frame_*.jpg"))) == 4
     assert main(["run", str(tmp_path / "photos"), "--out", str(tmp_path / "run"), "--until", "ingest"]) == 0
+
+
+def test_the_sharpest_photo_of_each_stretch_of_a_folder(tmp_path):
+    from sgpor_pipeline.frames import select_photos
+    from sgpor_pipeline.imageio import write_png
+
+    rng = np.random.default_rng(2)
+    texture = cv2.resize(rng.integers(0, 256, (16, 24, 3), dtype=np.uint8), (96, 64), interpolation=cv2.INTER_NEAREST)
+    folder = tmp_path / "burst"
+    folder.mkdir()
+    for i in range(12):
+        img = texture if i in (1, 6, 10) else cv2.GaussianBlur(texture, (0, 0), 2.0)
+        write_png(folder / f"IMG_{i:02d}.png", img)
+    (folder / "IMG_99.png").write_bytes(b"broken")  # unreadable: never chosen, not an error here
+    (folder / "notes.txt").write_text("not a photo")
+    paths = select_photos(folder, tmp_path / "photos", FrameParams(count=3, candidates=5))
+    # 13 photos in name order, stretches [0, 4), [4, 9), [9, 13): the sharp one of each, copied unchanged
+    assert [p.name for p in paths] == ["IMG_01.png", "IMG_06.png", "IMG_10.png"]
+    assert all(p.read_bytes() == (folder / p.name).read_bytes() for p in paths)
+    few = tmp_path / "few"
+    few.mkdir()
+    for name in ("a.png", "b.png"):
+        write_png(few / name, texture)
+    with pytest.raises(PipelineError, match="2 photo\\(s\\) here; at least 3"):
+        select_photos(few, tmp_path / "x")

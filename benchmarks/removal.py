@@ -6,7 +6,7 @@
                                            synthetic-raised-cast,synthetic-box-1mask,synthetic-cast,
                                            synthetic-raised-cast-1mask,lund-1mask,statue-box-1mask,
                                            synthetic-box-edge,synthetic-box-corner,synthetic-box-round,
-                                           synthetic-photos,
+                                           synthetic-photos,synthetic-video,
                                            synthetic-raised,synthetic-box-coins,synthetic-box-brick]]
                                  [--set STAGE.PARAM=VALUE ...]   (overrides for every run of (a), (b), (c))
                                  [--preset detail|fast]   (a named parameter set, under the --set items)
@@ -53,7 +53,9 @@ Protocols:
     ``synthetic-raised[-cast]`` the box on short feet; ``-edge`` / ``-corner`` the rug's edge or corner
     under the box; ``synthetic-cast`` the sphere's shadow; ``-1mask`` scenes from ONE given mask
     (scored over the true masks, ``evaluate.score_masks=input``; the propagated masks' IoU is
-    reported); ``synthetic-photos`` the demo run as photos, SfM estimating the cameras.
+    reported); ``synthetic-photos`` the demo run as photos, SfM estimating the cameras;
+    ``synthetic-video`` a forward-facing walk of 120 views written as an MP4, 24 photos taken from it
+    by ``sgpor-pipeline frames``, SfM, and the object from ONE given mask.
 (b) A synthetic object inserted into a real capture. Our SfM runs on the untouched photos at full
     size; its undistorted PINHOLE images are downscaled to 320 px (``lund``; 240 with ``--quick``) or
     384 px (``statue-box``), intrinsics scaled alike. A textured box is composited into them with
@@ -211,17 +213,23 @@ SYNTHETIC_SCENES: dict[str, dict[str, Any]] = {
     "synthetic-box-brick": {"object_kind": "box", "rug_texture": "brick"},
     # the demo from its photos, as a user runs it: SfM estimates the cameras (FROM_PHOTOS)
     "synthetic-photos": {},
+    # a phone-video capture: a forward-facing walk of 120 frames as an MP4, 24 sharp frames taken by
+    # `sgpor-pipeline frames`, SfM, the object from ONE given mask (VIDEO)
+    "synthetic-video": {"rig": "forward", "n_views": 120},
 }
+# scenes given as a video (sgpor_pipeline.frames): how many photos `frames` takes from it
+VIDEO = {"synthetic-video": 24}
 # scenes run without their cameras: SfM on the photos. SIMPLE_PINHOLE (the photos have no distortion)
 # keeps the views at the photos' pixels, where every hole and headroom figure reads the truth.
-FROM_PHOTOS = {"synthetic-photos": ["sfm.camera_model=SIMPLE_PINHOLE"]}
+FROM_PHOTOS = {"synthetic-photos": ["sfm.camera_model=SIMPLE_PINHOLE"],
+               "synthetic-video": ["sfm.camera_model=SIMPLE_PINHOLE"]}
 # a run from one given mask: the fit models the object, the masks stage propagates it, and it is scored
 # over the true masks (evaluate.score_masks=input: a propagated mask that missed part of the object must
 # not leave that part out of the score); its propagated masks' IoU against the truth is reported beside
 # the removal. Which mask: the first view's (ONE_MASK) or one_mask_view's (INSERTED_ONE_MASK).
 ONE_MASK_RUN = ["fit.object_masks=fit", "evaluate.score_masks=input"]
 ONE_MASK = {scene: [*ONE_MASK_RUN, "masks.max_given=1"]
-            for scene in ("synthetic-box-1mask", "synthetic-raised-cast-1mask")}
+            for scene in ("synthetic-box-1mask", "synthetic-raised-cast-1mask", "synthetic-video")}
 GT_SCENES = (*SYNTHETIC_SCENES, *INSERTED)
 PREFIX = {"synthetic": "synthetic", "synthetic-box": "synthetic_box", "synthetic-box-contact": "synthetic_box_contact",
           "synthetic-box-cast": "synthetic_box_cast", "synthetic-raised-cast": "synthetic_raised_cast",
@@ -231,7 +239,7 @@ PREFIX = {"synthetic": "synthetic", "synthetic-box": "synthetic_box", "synthetic
           "synthetic-box-edge": "synthetic_box_edge", "synthetic-box-corner": "synthetic_box_corner",
           "synthetic-box-round": "synthetic_box_round",
           "synthetic-box-coins": "synthetic_box_coins", "synthetic-box-brick": "synthetic_box_brick",
-          "synthetic-photos": "synthetic_photos",
+          "synthetic-photos": "synthetic_photos", "synthetic-video": "synthetic_video",
           "lund": "lund_inserted", "lund-1mask": "lund_inserted_1mask",
           "statue-box": "statue_inserted", "statue-box-1mask": "statue_inserted_1mask"}
 NOVEL_EVERY = 4  # --novel: every 4th view (from the third, in name order) is a held-out test view
@@ -561,8 +569,10 @@ def protocol_synthetic(out: Path, quick: bool, extra: Sequence[str] = (), novel:
     from sgpor_pipeline.demo import ensure_demo_scene
     from sgpor_pipeline.synthetic import SceneParams
 
-    params = SceneParams(**SYNTHETIC_SCENES[scene], **({"n_views": 12} if quick else {}))
+    params = SceneParams(**{**SYNTHETIC_SCENES[scene], **({"n_views": 3 * VIDEO.get(scene, 4)} if quick else {})})
     scene_dir = ensure_demo_scene(out / scene / "scene", params)
+    if scene in VIDEO:
+        scene_dir = video_capture(scene_dir, out / scene / "video", VIDEO[scene] // (2 if quick else 1))
     inputs = RunInputs(images=scene_dir / "images", masks=scene_dir / "masks",
                        cameras=None if scene in FROM_PHOTOS else scene_dir / "cameras.json",
                        extra={"groundtruth": scene_dir / "groundtruth"})
@@ -581,6 +591,36 @@ def protocol_synthetic(out: Path, quick: bool, extra: Sequence[str] = (), novel:
     elif novel:
         r["novel"] = run_novel(scene, scene_dir, out / scene / "novel_run", base, out, methods)
     return r
+
+
+def video_capture(scene_dir: Path, folder: Path, count: int) -> Path:
+    """The generated views in name order as an MP4 (10 fps, OpenCV's MPEG-4 codec: lossy, as a phone's
+    video), and ``count`` photos taken from it by :func:`sgpor_pipeline.frames.extract_frames`, with the
+    true masks and object-free views of the frames they are: a folder laid out as the scene's."""
+    import shutil
+
+    import cv2
+
+    from sgpor_pipeline.frames import FrameParams, extract_frames
+
+    views = sorted((scene_dir / "images").glob("*.png"))
+    if (folder / "done.json").is_file() and json.loads((folder / "done.json").read_text()) == [v.name for v in views]:
+        return folder
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+    first = cv2.imread(str(views[0]))
+    writer = cv2.VideoWriter(str(folder / "walk.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 10.0,
+                             (first.shape[1], first.shape[0]))
+    for v in views:
+        writer.write(cv2.imread(str(v)))
+    writer.release()
+    photos = extract_frames(folder / "walk.mp4", folder / "images", FrameParams(count=count, format="png"))
+    for sub in ("masks", "groundtruth"):
+        (folder / sub).mkdir()
+        for p in photos:
+            shutil.copy2(scene_dir / sub / views[int(p.stem.split("_")[1])].name, folder / sub / f"{p.stem}.png")
+    (folder / "done.json").write_text(json.dumps([v.name for v in views]))
+    return folder
 
 
 def place_object(sfm_dir: Path, cams: list) -> tuple[np.ndarray, float]:
@@ -1195,7 +1235,8 @@ def main(argv: list[str] | None = None) -> int:
                          "synthetic-box-corner (the rug's edge or corner under the box), synthetic-box-round (a round "
                          "rug's curved edge under it), synthetic-box-coins, "
                          "synthetic-box-brick (the box on a rug of coins in a grid, or of bricks), synthetic-photos "
-                         "(the demo from its photos: SfM instead of its cameras)")
+                         "(the demo from its photos: SfM instead of its cameras), synthetic-video (photos "
+                         "taken from a video by `frames`, one mask)")
     ap.add_argument("--verbose", action="store_true", help="log every stage")
     ap.add_argument("--novel", action="store_true",
                     help="also protocol (d): every method scored at held-out views it never saw (a second run "

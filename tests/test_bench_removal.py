@@ -148,6 +148,28 @@ def test_the_photos_scene_is_the_demo_without_its_cameras(bench):
     assert set(bench.FROM_PHOTOS) <= set(bench.SYNTHETIC_SCENES)
 
 
+def test_the_video_scene_takes_its_photos_from_an_mp4(bench, tmp_path):
+    """synthetic-video: the views written as a video, photos taken by `frames`, each with the true
+    mask and object-free view of the frame it is."""
+    from sgpor_pipeline.demo import ensure_demo_scene
+    from sgpor_pipeline.imageio import read_image, read_mask
+    from sgpor_pipeline.synthetic import SceneParams
+
+    assert {"synthetic-video"} <= set(bench.VIDEO) & set(bench.FROM_PHOTOS) & set(bench.ONE_MASK)
+    scene_dir = ensure_demo_scene(tmp_path / "scene", SceneParams(rig="forward", n_views=9, width=96, height=72))
+    folder = bench.video_capture(scene_dir, tmp_path / "video", 3)
+    photos = sorted((folder / "images").glob("*.png"))
+    assert len(photos) == 3 and all(p.stem.startswith("frame_") for p in photos)
+    for p in photos:
+        view = f"view_{int(p.stem.split('_')[1]):03d}.png"
+        assert np.array_equal(read_mask(folder / "masks" / p.name), read_mask(scene_dir / "masks" / view))
+        assert np.array_equal(read_image(folder / "groundtruth" / p.name), read_image(scene_dir / "groundtruth" / view))
+        # the photo is the frame through a lossy codec: close to the view, not equal
+        err = np.abs(read_image(p) - read_image(scene_dir / "images" / view)).mean()
+        assert 0 < err < 0.05
+    assert bench.video_capture(scene_dir, tmp_path / "video", 3) == folder  # made once
+
+
 def test_parser_rejects_unknown_scene(bench):
     with pytest.raises(SystemExit):
         bench.main(["--scenes", "nope"])

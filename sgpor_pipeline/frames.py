@@ -81,12 +81,11 @@ def select_photos(folder: Path, out_dir: Path, params: FrameParams | None = None
     and GPS kept, so masks named after them still match). Returns the copies in name order."""
     import shutil
 
-    from sgpor_pipeline.imageio import IMAGE_EXTENSIONS, UnreadableImageError, read_rgb8
+    from sgpor_pipeline.imageio import UnreadableImageError, list_images, read_rgb8
 
     p = params or FrameParams()
     _check(p)
-    photos = sorted(f for f in Path(folder).iterdir()
-                    if f.is_file() and not f.name.startswith(".") and f.suffix.lower() in IMAGE_EXTENSIONS)
+    photos = list_images(folder)
     if len(photos) < 3:
         raise PipelineError(f"{len(photos)} photo(s) here; at least 3 are needed", path=folder,
                             fix="point at the folder that holds the photos")

@@ -19,6 +19,12 @@ from sgpor_pipeline.errors import PipelineError
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp")
 
 
+def list_images(folder: Path) -> list[Path]:
+    """The image files of ``folder`` (by extension, hidden files left out), in name order."""
+    return sorted(p for p in Path(folder).iterdir()
+                  if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in IMAGE_EXTENSIONS)
+
+
 class UnreadableImageError(Exception):
     """The file exists but no image could be decoded from it."""
 

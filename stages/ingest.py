@@ -24,6 +24,7 @@ from sgpor_pipeline.gps import read_gps
 from sgpor_pipeline.imageio import (
     IMAGE_EXTENSIONS,
     UnreadableImageError,
+    list_images,
     read_mask,
     read_rgb8,
     resize_mask_nearest,
@@ -48,11 +49,6 @@ class IngestParams:
     # inpaint 245 s, the whole run to inpaint 11 min and 4.4 GB. At 4032 px they would be 6x that.
     # 1600 keeps SIFT's input as it was.
     max_size: int = 1600
-
-
-def list_images(folder: Path) -> list[Path]:
-    return sorted(p for p in Path(folder).iterdir()
-                  if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in IMAGE_EXTENSIONS)
 
 
 def _by_stem(paths: list[Path], what: str) -> dict[str, Path]:

@@ -12,6 +12,11 @@ from pathlib import Path
 FREE_DISK = "free disk space (`sgpor-pipeline clean OUT --keep-last 1` deletes cached results the run no longer uses)"
 
 
+def named(items: list[str], limit: int) -> str:
+    """``items`` joined for a message, the first ``limit`` of them and ", ..." when there are more."""
+    return ", ".join(items[:limit]) + (", ..." if len(items) > limit else "")
+
+
 class PipelineError(Exception):
     """An error with the file it concerns and what the user can do about it."""
 

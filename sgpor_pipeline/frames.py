@@ -20,8 +20,10 @@ import cv2
 import numpy as np
 
 from sgpor_pipeline.errors import PipelineError
+from sgpor_pipeline.imageio import UnreadableImageError, list_images, read_rgb8, target_size
 
 VIDEO_EXTENSIONS = (".mp4", ".mov", ".m4v", ".avi", ".mkv", ".webm", ".mts", ".3gp")
+CONVERT = "convert it to MP4 (H.264), e.g. ffmpeg -i IN -c:v libx264 out.mp4"
 
 
 @dataclass
@@ -67,6 +69,16 @@ def _looks(total: int, count: int, candidates: int) -> dict[int, int]:
     return looks
 
 
+def _sharpest(scored: Iterable[tuple[int, float, Any]]) -> list[Any]:
+    """From (stretch, sharpness, item) triples, the sharpest item of each stretch, in stretch order
+    (the first of equals)."""
+    best: dict[int, tuple[float, Any]] = {}
+    for s, score, item in scored:
+        if s not in best or score > best[s][0]:
+            best[s] = (score, item)
+    return [best[s][1] for s in sorted(best)]
+
+
 def _check(p: FrameParams) -> None:
     if p.count < 3 or p.candidates < 1 or p.max_size < 0 or p.format not in ("jpg", "png"):
         raise PipelineError(f"frames: need count >= 3, candidates >= 1, max_size >= 0 and format jpg or png "
@@ -81,8 +93,6 @@ def select_photos(folder: Path, out_dir: Path, params: FrameParams | None = None
     and GPS kept, so masks named after them still match). Returns the copies in name order."""
     import shutil
 
-    from sgpor_pipeline.imageio import UnreadableImageError, list_images, read_rgb8
-
     p = params or FrameParams()
     _check(p)
     photos = list_images(folder)
@@ -90,18 +100,18 @@ def select_photos(folder: Path, out_dir: Path, params: FrameParams | None = None
         raise PipelineError(f"{len(photos)} photo(s) here; at least 3 are needed", path=folder,
                             fix="point at the folder that holds the photos")
     looks = _looks(len(photos), p.count, p.candidates)
-    best: dict[int, tuple[float, Path]] = {}
-    for i in (progress or _no_progress)(sorted(looks), total=len(looks), desc="photos"):
-        try:
-            score = sharpness(read_rgb8(photos[i]), p.sharpness_size)
-        except UnreadableImageError:
-            continue  # (ingest names unreadable files; here they are only not chosen)
-        s = looks[i]
-        if s not in best or score > best[s][0]:
-            best[s] = (score, photos[i])
+
+    def scored() -> Iterable[tuple[int, float, Path]]:
+        for i in (progress or _no_progress)(sorted(looks), total=len(looks), desc="photos"):
+            try:
+                yield looks[i], sharpness(read_rgb8(photos[i]), p.sharpness_size), photos[i]
+            except UnreadableImageError:
+                continue  # (ingest names unreadable files; here they are only not chosen)
+
+    chosen = _sharpest(scored())
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    return [Path(shutil.copy2(best[s][1], out_dir / best[s][1].name)) for s in sorted(best)]
+    return [Path(shutil.copy2(photo, out_dir / photo.name)) for photo in chosen]
 
 
 def extract_frames(video: Path, out_dir: Path, params: FrameParams | None = None,
@@ -114,43 +124,40 @@ def extract_frames(video: Path, out_dir: Path, params: FrameParams | None = None
         raise PipelineError("video not found", path=video, fix="check the path")
     cap = cv2.VideoCapture(str(video))
     if not cap.isOpened():
-        raise PipelineError("cannot open this video (unknown format or damaged file)", path=video,
-                            fix="convert it to MP4 (H.264), e.g. ffmpeg -i IN -c:v libx264 out.mp4")
+        raise PipelineError("cannot open this video (unknown format or damaged file)", path=video, fix=CONVERT)
     try:
         total = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
         if total <= 0:
-            raise PipelineError("the video reports no frame count", path=video,
-                                fix="convert it to MP4 (H.264), e.g. ffmpeg -i IN -c:v libx264 out.mp4")
+            raise PipelineError("the video reports no frame count", path=video, fix=CONVERT)
         looks = _looks(total, p.count, p.candidates)
-        best: dict[int, tuple[float, int, np.ndarray]] = {}
-        last = max(looks)
-        for index in (progress or _no_progress)(range(last + 1), total=last + 1, desc="frames"):
-            if index not in looks:
-                if not cap.grab():
-                    break
-                continue
-            ok, frame = cap.read()
-            if not ok:
-                break
-            s = looks[index]
-            score = sharpness(frame, p.sharpness_size)
-            if s not in best or score > best[s][0]:
-                best[s] = (score, index, frame)
+
+        def scored() -> Iterable[tuple[int, float, tuple[int, np.ndarray]]]:
+            last = max(looks)
+            for index in (progress or _no_progress)(range(last + 1), total=last + 1, desc="frames"):
+                if index not in looks:
+                    if not cap.grab():
+                        return
+                    continue
+                ok, frame = cap.read()
+                if not ok:
+                    return
+                yield looks[index], sharpness(frame, p.sharpness_size), (index, frame)
+
+        chosen = _sharpest(scored())
     finally:
         cap.release()
-    if len(best) < 3:
-        raise PipelineError(f"only {len(best)} frame(s) could be decoded (of {total} the video reports)",
-                            path=video, fix="convert it to MP4 (H.264), e.g. ffmpeg -i IN -c:v libx264 out.mp4")
+    if len(chosen) < 3:
+        raise PipelineError(f"only {len(chosen)} frame(s) could be decoded (of {total} the video reports)",
+                            path=video, fix=CONVERT)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     written = []
     digits = max(5, len(str(total)))  # (zero-padded: file-name order is video order, for sequential matching)
-    for _, index, frame in (best[s] for s in sorted(best)):
+    for index, frame in chosen:
         h, w = frame.shape[:2]
-        scale = p.max_size / max(h, w) if p.max_size else 1.0
-        if scale < 1:
-            frame = cv2.resize(frame, (max(1, round(w * scale)), max(1, round(h * scale))),
-                               interpolation=cv2.INTER_AREA)
+        size = target_size(w, h, p.max_size)
+        if size != (w, h):
+            frame = cv2.resize(frame, size, interpolation=cv2.INTER_AREA)
         path = out_dir / f"frame_{index:0{digits}d}.{p.format}"
         args = [cv2.IMWRITE_JPEG_QUALITY, 95] if p.format == "jpg" else []
         if not cv2.imwrite(str(path), frame, args):

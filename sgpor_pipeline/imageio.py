@@ -19,6 +19,14 @@ from sgpor_pipeline.errors import PipelineError
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp")
 
 
+def target_size(width: int, height: int, max_size: int) -> tuple[int, int]:
+    """(width, height) shrunk, aspect kept, so the longer side is at most ``max_size`` (0: as it is)."""
+    if max_size <= 0 or max(width, height) <= max_size:
+        return width, height
+    s = max_size / max(width, height)
+    return max(1, round(width * s)), max(1, round(height * s))
+
+
 def list_images(folder: Path) -> list[Path]:
     """The image files of ``folder`` (by extension, hidden files left out), in name order."""
     return sorted(p for p in Path(folder).iterdir()

@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from sgpor_pipeline.dag import Stage, StageContext
-from sgpor_pipeline.errors import PipelineError
+from sgpor_pipeline.errors import PipelineError, named
 from sgpor_pipeline.gps import read_gps
 from sgpor_pipeline.imageio import (
     IMAGE_EXTENSIONS,
@@ -29,6 +29,7 @@ from sgpor_pipeline.imageio import (
     read_rgb8,
     resize_mask_nearest,
     same_aspect,
+    target_size,
     write_mask01,
     write_png,
 )
@@ -98,23 +99,14 @@ def match_masks(paths: list[Path], photos: set[str]) -> tuple[dict[str, Path], l
         if stem in photos:
             continue
         name = next((n for n in mask_base_names(stem)[1:] if n in photos), None)
-        if name is None:
+        if name is None or name in out:  # (no photo, or the photo has a mask of its own name)
             orphans.append(stem)
-        elif name in out:
-            orphans.append(stem)  # (the photo has a mask of its own name)
         elif name in by_rule:
             raise PipelineError(f"two masks name the photo '{name}': {by_rule[name].name} and {p.name}",
                                 path=p.parent, fix="keep one mask per photo")
         else:
             by_rule[name] = p
     return {**out, **by_rule}, sorted(orphans)
-
-
-def target_size(width: int, height: int, max_size: int) -> tuple[int, int]:
-    if max_size <= 0 or max(width, height) <= max_size:
-        return width, height
-    s = max_size / max(width, height)
-    return max(1, round(width * s)), max(1, round(height * s))
 
 
 def _link_or_copy(src: Path, dst: Path) -> None:
@@ -200,9 +192,9 @@ class IngestStage(Stage):
         stems = {p.stem for p in photos}
         named_masks = [p for p in photos if any(n in stems for n in mask_base_names(p.stem)[1:])]
         if named_masks and mask_dir is None:
-            listed = ", ".join(p.name for p in named_masks[:3]) + (", ..." if len(named_masks) > 3 else "")
             raise PipelineError(f"{len(named_masks)} file(s) here look like masks of the photos beside them "
-                                f"({listed}), and no --masks was given", path=image_dir,
+                                f"({named([p.name for p in named_masks], 3)}), and no --masks was given",
+                                path=image_dir,
                                 fix=f"pass --masks {image_dir} to use them as the object's masks, or move them out "
                                     "of the photo folder")
         if beside:
@@ -215,9 +207,8 @@ class IngestStage(Stage):
         if mask_dir is not None:
             if not Path(mask_dir).is_dir():
                 raise PipelineError("mask folder not found", path=mask_dir, fix="check the --masks path")
-            mask_files = list_images(mask_dir)
-            if beside and len(photos) < len(mask_files):  # (else the photos are passed as their own masks)
-                mask_files = [p for p in mask_files if p not in photos]
+            # (beside the photos without mask-named files: the photos are passed as their own masks)
+            mask_files = named_masks if beside and named_masks else list_images(mask_dir)
             masks, orphans = match_masks(mask_files, set(images))
             if orphans:
                 ctx.log.warning(f"{len(orphans)} mask(s) have no image of the same base name and are ignored: "
@@ -228,8 +219,7 @@ class IngestStage(Stage):
                                         "or IMG_01.jpg.png)")
             renamed = sorted(f"{p.name} -> {stem}" for stem, p in masks.items() if p.stem != stem)
             if renamed:
-                ctx.log.info(f"{len(renamed)} mask(s) matched to their photo by name: {', '.join(renamed[:3])}"
-                             + (", ..." if len(renamed) > 3 else ""))
+                ctx.log.info(f"{len(renamed)} mask(s) matched to their photo by name: {named(renamed, 3)}")
 
         (ctx.out_dir / "images").mkdir()
         (ctx.out_dir / "masks").mkdir()

@@ -63,7 +63,7 @@ import numpy as np
 
 from sgpor_pipeline.config import added_param
 from sgpor_pipeline.dag import RunInputs, Stage, StageContext
-from sgpor_pipeline.errors import PipelineError
+from sgpor_pipeline.errors import PipelineError, named
 from sgpor_pipeline.gaussians.model import GaussianModel
 from sgpor_pipeline.gaussians.ply import read_ply
 from sgpor_pipeline.imageio import read_image, read_mask, write_mask01, write_png
@@ -197,7 +197,7 @@ class MasksStage(Stage):
         lost = sorted(v for v, (_, _, info) in propagated.items() if info.get("lifted_added"))
         if lost:
             ctx.log.info(f"masks: the selection's render lost the object in {len(lost)} of {len(propagated)} views "
-                         f"({', '.join(lost[:8])}{', ...' if len(lost) > 8 else ''}); their masks take the given "
+                         f"({named(lost, 8)}); their masks take the given "
                          "masks' lifted surface (masks.lift)")
         selection = first
         if p.reselect and p.grabcut and propagated:  # (without the photo's evidence it would be circular)

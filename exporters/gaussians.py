@@ -24,6 +24,7 @@ import numpy as np
 from sgpor_pipeline.dag import Exporter, StageContext
 from sgpor_pipeline.orientation import ExportFrame, FrameSettings, compute_export_frame, transform_model
 from sgpor_pipeline.scene import Camera, load_cameras
+from sgpor_pipeline.sfm import given_frame
 from sgpor_pipeline.views import VIEWS_FILE, load_views
 
 #: The stage whose cache folder holds the scene's Gaussians (``gaussians.ply``) that every exporter
@@ -93,7 +94,7 @@ def export_frame(ctx: StageContext, model: Any, cameras: list[Camera], out_dir: 
     with torch.no_grad():
         opac = model.opacities_activated().numpy()
     frame = compute_export_frame(registered(cameras) or cameras, settings, model.numpy()["means"], opac,
-                                 photo_gps(ctx), sfm_points(ctx))
+                                 photo_gps(ctx), sfm_points(ctx), given_frame(ctx.inputs[CAMERAS_STAGE]))
     if out_dir is not None:
         (out_dir / FRAME_FILE).write_text(json.dumps(frame.to_dict(), indent=1))
         ctx.log.info(frame.describe())

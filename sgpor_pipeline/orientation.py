@@ -592,6 +592,8 @@ class ExportFrame:
     origin: str
     gps: dict[str, Any] | None = None  # the photos' GPS: the scale it gave (GpsScale.to_dict), or why not
     ground: dict[str, Any] | None = None  # the ground plane (GroundPlane.to_dict) or why none was used
+    # where the sfm stage moved the given cameras (sgpor_pipeline.sfm.conditioning_frame): sfm_from_input
+    given: Similarity | None = None
 
     @property
     def units(self) -> str:
@@ -602,15 +604,17 @@ class ExportFrame:
                 "scale_source": self.scale_source, "up_method": self.up_method,
                 "up_in_sfm_frame": self.up_sfm.tolist(), "origin": self.origin,
                 "export_from_sfm": self.transform.to_dict(), **({"gps": self.gps} if self.gps else {}),
-                **({"ground": self.ground} if self.ground else {})}
+                **({"ground": self.ground} if self.ground else {}),
+                **({"sfm_from_input": self.given.to_dict()} if self.given is not None else {})}
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> ExportFrame:
         """The frame :meth:`to_dict` wrote (``export_frame.json``)."""
-        sim = data["export_from_sfm"]
+        sim, given = data["export_from_sfm"], data.get("sfm_from_input")
         return cls(Similarity(sim["scale"], sim["rotation"], sim["translation"]),
                    np.asarray(data["up_in_sfm_frame"], np.float64), data["up_method"], data["units"] == "metres",
-                   data["scale_source"], data["origin"], data.get("gps"), data.get("ground"))
+                   data["scale_source"], data["origin"], data.get("gps"), data.get("ground"),
+                   Similarity(given["scale"], given["rotation"], given["translation"]) if given else None)
 
     def describe(self) -> str:
         gps = (f"; the photos' GPS was not used: {self.gps['reason']}"
@@ -651,7 +655,7 @@ def _nadir_by_gps(cameras: Sequence[Camera], gps: Mapping[str, Sequence[float | 
 def compute_export_frame(cameras: Sequence[Camera], settings: FrameSettings | None = None,
                          means: np.ndarray | None = None, opacities: np.ndarray | None = None,
                          gps: Mapping[str, Sequence[float | None] | None] | None = None,
-                         points: np.ndarray | None = None) -> ExportFrame:
+                         points: np.ndarray | None = None, given: Similarity | None = None) -> ExportFrame:
     """The export frame for a scene seen by ``cameras`` (registered ones; novel cameras are ignored).
 
     ``points`` (SfM frame: the SfM points, which lie on surfaces), or else the opaque ones of the
@@ -659,7 +663,9 @@ def compute_export_frame(cameras: Sequence[Camera], settings: FrameSettings | No
     (:func:`find_ground_plane`), which levels up (``up="auto"``) and places the floor for
     ``origin="floor"``; without a ground plane a low percentile of the opaque Gaussians' heights does,
     and without Gaussians the origin is the look-at point. ``gps`` (image name -> (latitude,
-    longitude, altitude)): the photos' GPS positions, for the scale when none is given.
+    longitude, altitude)): the photos' GPS positions, for the scale when none is given. ``given``: the
+    sfm stage's sfm_from_input where it moved the given cameras: a given ``scale`` is per unit of those
+    cameras, and without a scale the export is in their units.
     """
     settings = settings or FrameSettings()
     cams = [c for c in cameras if c.image is not None] or list(cameras)
@@ -689,8 +695,10 @@ def compute_export_frame(cameras: Sequence[Camera], settings: FrameSettings | No
     heading = first.cam_from_world[2, :3] if first is not None else None
     R = _rotation_to_z(up, heading)
 
+    unit = 1.0 / given.s if given is not None else 1.0  # the given cameras' units per SfM unit
     if settings.scale is not None:
-        s, source, metric = float(settings.scale), f"scale {settings.scale:g} m per SfM unit", True
+        per = "unit of the given cameras" if given is not None else "SfM unit"
+        s, source, metric = float(settings.scale) * unit, f"scale {settings.scale:g} m per {per}", True
     elif settings.known_distance is not None:
         a, b, metres = settings.known_distance
         d = float(np.linalg.norm(_find_camera(cams, a).center - _find_camera(cams, b).center))
@@ -699,7 +707,7 @@ def compute_export_frame(cameras: Sequence[Camera], settings: FrameSettings | No
                                 fix="pick two cameras further apart")
         s, source, metric = metres / d, f"{a} to {b} = {metres:g} m", True
     else:
-        s, source, metric = 1.0, "none", False
+        s, source, metric = unit, "none", False
     gps_info: dict[str, Any] | None = None
     fitted = None
     if gps and settings.scale is None and settings.known_distance is None:
@@ -749,4 +757,4 @@ def compute_export_frame(cameras: Sequence[Camera], settings: FrameSettings | No
                         azimuth_of_x_deg=fitted.azimuth_deg(R.T[:, 0]))
     if ground_info is not None and ground is not None:
         ground_info["camera_height"] = ground.camera_height * s  # export units
-    return ExportFrame(Similarity(s, R, t), up, how, metric, source, origin, gps_info, ground_info)
+    return ExportFrame(Similarity(s, R, t), up, how, metric, source, origin, gps_info, ground_info, given)

@@ -8,11 +8,13 @@ result is an error that names the command building it). Cameras come from any fi
 and are either in the run's frame (the SfM frame: the frame of the stage cache and of
 ``export/cameras/``), or in another frame that shares image names with the run's registered views:
 then a similarity (scale, rotation, translation) fitted to the shared cameras' centres
-(:func:`umeyama`) maps every camera of the file into the run's frame. A camera named like a run
-photo is then rendered at that photo's run pose (with ``fit.pose_refine``, SfM's corrected), and every
-other camera turned and moved as its nearest such cameras were (:func:`carry_run_corrections`): the
-Gaussians were fitted at the run's poses, and the fit's corrections share a small turn that novel
-cameras need too.
+(:func:`umeyama`) maps every camera of the file into the run's frame. A run whose given cameras the sfm
+stage moved (georeferenced, or kilometres: :func:`~sgpor_pipeline.sfm.conditioning_frame`) takes a file
+with fewer shared names as in the frame of those given cameras (``--align none``: the run's frame).
+A camera named like a run photo is then rendered at that photo's run pose (with ``fit.pose_refine``,
+SfM's corrected), and every other camera turned and moved as its nearest such cameras were
+(:func:`carry_run_corrections`): the Gaussians were fitted at the run's poses, and the fit's
+corrections share a small turn that novel cameras need too.
 
 Out (``output``): ``<camera>.png`` per camera (file names made safe), ``depth/<camera>.npy`` (float32
 z-depth in the cameras file's units, 0 = nothing rendered) on request, ``cameras.json`` (the cameras
@@ -81,7 +83,7 @@ def _mean_rotation(rotations: list[np.ndarray]) -> np.ndarray:
 class Alignment:
     """How the file's cameras were put into the run's frame."""
 
-    method: str  # "similarity" or "none"
+    method: str  # "similarity", "given" (the run's given cameras' frame) or "none"
     transform: Similarity  # run_from_file (identity for "none")
     shared: list[str] = field(default_factory=list)  # image names shared with the run's views
     rms: float | None = None  # centre residual after the transform, run units (shared cameras)
@@ -141,8 +143,12 @@ def fit_similarity(pairs: list[tuple[Camera, Camera]]) -> Similarity:
     return Similarity(s, R, dst.mean(0) - s * R @ src.mean(0))
 
 
-def align_cameras(file_cams: list[Camera], run_cams: list[Camera], mode: str = "auto") -> Alignment:
-    """Put ``file_cams`` into the run's frame (see :class:`Alignment`); ``mode``: auto, none, similarity."""
+def align_cameras(file_cams: list[Camera], run_cams: list[Camera], mode: str = "auto",
+                  given: Similarity | None = None) -> Alignment:
+    """Put ``file_cams`` into the run's frame (see :class:`Alignment`); ``mode``: auto, none, similarity.
+    ``given``: sfm_from_input of a run whose given cameras the sfm stage moved
+    (:func:`~sgpor_pipeline.sfm.conditioning_frame`); in ``auto`` a file without enough shared names is
+    then taken as in the frame of those given cameras."""
     if mode not in ALIGN_MODES:
         raise PipelineError(f"unknown alignment {mode!r}", fix=f"use one of {', '.join(ALIGN_MODES)}")
     pairs = shared_views(file_cams, run_cams)
@@ -152,6 +158,13 @@ def align_cameras(file_cams: list[Camera], run_cams: list[Camera], mode: str = "
                             f"images, the file has {len(pairs)}",
                             fix="name the cameras like the run's photos (their base names), or pass --align none "
                                 "if the cameras are already in the run's frame")
+    if mode == "auto" and len(pairs) < MIN_SHARED and given is not None:
+        al = Alignment("given", given, names, message=(
+            f"cameras taken as in the frame of the cameras given to the run ({len(pairs)} image name(s) shared; "
+            f"the run moved those by scale {given.s:g}, translation {np.array2string(given.t, precision=4)})"))
+        if pairs:
+            al.rms, al.max, al.relative, al.rotation_deg = _residuals(pairs, given)
+        return al
     if mode == "none" or len(pairs) < MIN_SHARED:
         ident = Similarity()
         if mode == "none":
@@ -235,6 +248,7 @@ def render_run(out: Path, cameras_path: Path, output: Path | None = None,
     from .imageio import write_png
     from .meshing import activated_tensors, render_view
     from .runner import stage_result
+    from .sfm import given_frame
     from .stages.fit import run_cameras_file
 
     p = params or RenderParams()
@@ -261,7 +275,7 @@ def render_run(out: Path, cameras_path: Path, output: Path | None = None,
     log.info(f"render: {len(file_cams)} camera(s) from {cameras_path}")
     model = read_ply(scene_dir / SCENE_FILE)
     log.info(f"render: {len(model):,} Gaussians of stage '{stage}' (key {scene_key[:10]}) of {out}")
-    al = align_cameras(file_cams, run_cams, p.align)
+    al = align_cameras(file_cams, run_cams, p.align, given_frame(sfm_dir))
     if al.relative is not None and al.relative > RESIDUAL_WARN:
         hint = ("pass --align similarity if the cameras are in another frame" if al.method == "none" else
                 "check that the file's camera names refer to the run's photos")

@@ -39,6 +39,7 @@ from .camera_io import colmap_cam_from_world, read_colmap_model
 from .config import added_param
 from .errors import PipelineError
 from .imageio import read_mask, read_rgb8, same_aspect, write_mask01, write_png
+from .orientation import Similarity
 from .scene import Camera, load_cameras, save_cameras
 from .views import View
 
@@ -70,6 +71,13 @@ MIN_PAIR_INLIERS = 15
 PAIR_CHECK_TOP = 2
 PAIR_CHECK_TOL_PX = 4.0
 PAIR_AGREEMENT = 0.5
+# Given cameras are moved into a better frame when theirs would break the float32 fit: centred on
+# them when their mean lies over FRAME_OFFSET_MAX times their spread from the origin (a georeferenced
+# model: UTM or ECEF coordinates in the millions, where float32 keeps half a unit), and scaled by a
+# power of ten when their spread lies outside FRAME_SPREAD (the rasterizer culls what is nearer than
+# 0.01 units: a scene given in kilometres rendered nothing). sfm.json records the similarity.
+FRAME_OFFSET_MAX = 100.0
+FRAME_SPREAD = (0.1, 1.0e4)
 
 Progress = Callable[..., Iterable]
 
@@ -229,6 +237,17 @@ def load_sfm(folder: Path, cameras_file: Path | None = None) -> SfmResult:
     summary = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
     cameras = load_cameras(Path(cameras_file) if cameras_file is not None else folder / CAMERAS_FILE)
     return SfmResult(folder, cameras, SfmPoints.load(folder / POINTS_FILE), summary)
+
+
+def given_frame(folder: Path) -> Similarity | None:
+    """sfm_from_input of an sfm stage folder whose given cameras were moved (:func:`conditioning_frame`),
+    else None."""
+    path = Path(folder) / SUMMARY_FILE
+    try:
+        sim = json.loads(path.read_text()).get("sfm_from_input")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return Similarity(sim["scale"], sim["rotation"], sim["translation"]) if sim else None
 
 
 # --------------------------------------------------------------------------------------------------
@@ -815,6 +834,27 @@ def estimate_cameras(ingest_dir: Path, views: Sequence[View], out_dir: Path, par
     return summary
 
 
+def conditioning_frame(cameras: Sequence[Camera]) -> tuple[Similarity, str] | None:
+    """``(sfm_from_input, why)`` for given cameras whose frame the fit cannot work in (see
+    :data:`FRAME_OFFSET_MAX`, :data:`FRAME_SPREAD`), or None when their frame is kept as it is.
+
+    The centre is the posed cameras' mean centre, the spread their RMS distance from it; cameras that
+    all sit at one point (a panorama) are only moved."""
+    centers = np.array([c.center for c in cameras if c.image is not None] or [c.center for c in cameras],
+                       np.float64)
+    mean = centers.mean(0)
+    spread = float(np.sqrt(((centers - mean) ** 2).sum(1).mean()))
+    offset = float(np.linalg.norm(mean))
+    far = offset > FRAME_OFFSET_MAX * spread
+    rescale = spread > 0 and not FRAME_SPREAD[0] <= spread <= FRAME_SPREAD[1]
+    if not (far or rescale):
+        return None
+    scale = float(10.0 ** -np.floor(np.log10(spread))) if rescale else 1.0  # the spread then in [1, 10)
+    reasons = ([f"sit {offset:.4g} units from their origin"] if far else []) + \
+        ([f"are {spread:.3g} units apart (scaled by {scale:g})"] if rescale else [])
+    return Similarity(scale, np.eye(3), -scale * mean), "the given cameras " + " and ".join(reasons)
+
+
 def import_known_cameras(ingest_dir: Path, views: Sequence[View], cameras: Sequence[Camera], out_dir: Path,
                          params: SfmParams, logger: logging.Logger = log, progress: Progress = _no_progress,
                          debug: bool = False) -> dict[str, Any]:
@@ -827,6 +867,12 @@ def import_known_cameras(ingest_dir: Path, views: Sequence[View], cameras: Seque
     (out_dir / IMAGES_DIR).mkdir(parents=True, exist_ok=True)
     options = undistort_options()
     out_cams: list[Camera] = []
+    frame = conditioning_frame(cameras)
+    if frame is not None:
+        sim, why = frame
+        cameras = [sim.camera(c) for c in cameras]
+        logger.info(f"sfm: {why}: the run works in a frame moved to their centre (sfm.json sfm_from_input; "
+                    f"exports and renders of cameras in the given frame account for it)")
     posed = [c for c in cameras if c.image is not None]
     save_cameras(out_dir / RAW_CAMERAS_FILE, posed)
     undistorted = 0
@@ -902,6 +948,8 @@ def import_known_cameras(ingest_dir: Path, views: Sequence[View], cameras: Seque
         "pair_check": None if check is None else {**check.to_dict(), "repair": None},
         "seconds": timings.seconds,
     }
+    if frame is not None:
+        summary["sfm_from_input"] = {**frame[0].to_dict(), "reason": frame[1]}
     points = _write_outputs(out_dir, out_cams, rec, summary)
     if len(points) == 0:
         logger.warning(f"sfm: no 3D point could be triangulated with the known cameras ({stats.with_features} of "

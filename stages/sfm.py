@@ -5,6 +5,10 @@ mapping; the largest model is kept, checked against each image's strongest verif
 again on only those pairs when it contradicts them: repeated textures) and undistorted to PINHOLE.
 With ``--cameras`` (ingest wrote ``cameras.json``): no pose estimation; distorted images are
 undistorted and points are triangulated from matched features with the known poses held fixed.
+Given cameras far from their frame's origin (georeferenced: UTM, ECEF) or at an extreme scale
+(kilometres) are first moved to their centre and scaled by a power of ten, since the fit works in
+float32 with a near plane of 0.01 units (``sfm.json`` ``sfm_from_input``; the export keeps the given
+cameras' units and ``sgpor-pipeline render`` takes camera files in the given frame).
 The work is in :mod:`sgpor_pipeline.sfm`.
 
 Out (read them with :func:`sgpor_pipeline.sfm.load_sfm`):
@@ -15,7 +19,8 @@ Out (read them with :func:`sgpor_pipeline.sfm.load_sfm`):
 - ``masks/<view>.png``: 0/1 masks undistorted with their image's mapping, for registered views that
   had a mask in ingest.
 - ``cameras.json``: :class:`~sgpor_pipeline.scene.Camera` list: registered views (PINHOLE,
-  ``image`` = view name, in ingest's order), then novel cameras (``image`` None) untouched.
+  ``image`` = view name, in ingest's order), then novel cameras (``image`` None) untouched (but for
+  ``sfm_from_input``).
 - ``points.npz``: ``xyz`` [P,3] float64, ``rgb`` [P,3] uint8, ``error`` [P] (pixels); observations as
   flat arrays ``obs_point`` [M], ``obs_view`` [M] (index into cameras.json's list), ``obs_xy`` [M,2]
   (pixels of the undistorted image, (0.5, 0.5) = centre of the top-left pixel).
@@ -24,7 +29,9 @@ Out (read them with :func:`sgpor_pipeline.sfm.load_sfm`):
   view (its ground truth) as its photo was mapped.
 - ``sfm.json``: mode (sfm / known_cameras), matcher, registered count, unregistered views, seconds
   per sub-step, point count, mean reprojection error, ``pair_check`` (pairs checked, those the model
-  contradicts, the repair's numbers) (also in the manifest's notes).
+  contradicts, the repair's numbers), ``sfm_from_input`` (only where the given cameras were moved: the
+  similarity as :meth:`~sgpor_pipeline.orientation.Similarity.to_dict` writes it, and why) (also in
+  the manifest's notes).
 - ``colmap/`` (only with ``keep_database = true``): database.db and the raw (distorted) models. The
   database lives in this build folder, so changed options never reuse a stale one.
 """
@@ -43,7 +50,9 @@ __all__ = ["SfmParams", "SfmStage"]
 
 class SfmStage(Stage):
     name = "sfm"
-    VERSION = 2  # 2: the model checked against each image's strongest pairs (SfmParams.pair_check)
+    # 2: the model checked against each image's strongest pairs (SfmParams.pair_check); 3: given cameras
+    # in a frame far from its origin or at an extreme scale are moved (sfm.conditioning_frame)
+    VERSION = 3
     Params = SfmParams
     inputs = ("ingest",)
     libraries = ("pycolmap",)

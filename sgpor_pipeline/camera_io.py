@@ -396,10 +396,40 @@ def read_llff_poses(path: str | Path, names: Sequence[str] | None = None, width:
     return cams
 
 
+def proper_poses(cameras: list[Camera], path: Path) -> list[Camera]:
+    """The cameras with rotations checked: a pose whose rotation carries a uniform scale (a camera
+    object scaled in Blender, say) is divided by it, which keeps its centre and its image (warned
+    once); a mirrored (left-handed) or sheared one is an error naming the camera. Without this the
+    scaled poses' centres came out scaled and the mirrored ones contradicted the photos."""
+    scaled = []
+    for cam in cameras:
+        R = cam.cam_from_world[:3, :3]
+        det = float(np.linalg.det(R))
+        k = math.copysign(abs(det) ** (1 / 3), det)
+        if not k > 1e-12 or not np.allclose(R @ R.T / (k * k), np.eye(3), atol=1e-4):
+            what = ("mirrored (a left-handed frame)" if k < -1e-12 else
+                    "not a rotation (sheared, scaled unevenly or singular)")
+            raise PipelineError(f"camera {cam.name!r}: its pose is {what}", path,
+                                fix="write each pose as a rotation and a translation (a right-handed frame; "
+                                    "for a transforms.json, camera-to-world in OpenGL axes)")
+        if abs(k - 1.0) > 1e-6:
+            cam.cam_from_world = cam.cam_from_world.copy()
+            cam.cam_from_world[:3, :4] /= k
+            scaled.append((cam.name, 1.0 / k))
+    if scaled:
+        log.warning(f"{path}: {len(scaled)} camera pose(s) carry a scale ({scaled[0][0]}: x{scaled[0][1]:.4g}); "
+                    "taken out, the cameras' positions kept")
+    return cameras
+
+
 def load_cameras_any(path: str | Path) -> list[Camera]:
     """Cameras from a COLMAP model folder, a transforms.json, an LLFF poses_bounds.npy or our
-    cameras.json (format detected)."""
+    cameras.json (format detected), their poses checked (:func:`proper_poses`)."""
     path = Path(path)
+    return proper_poses(_load_cameras_any(path), path)
+
+
+def _load_cameras_any(path: Path) -> list[Camera]:
     if not path.exists():
         raise PipelineError("camera file or folder does not exist", path, fix=_CAMERA_FIX)
     if path.is_dir():
@@ -407,7 +437,7 @@ def load_cameras_any(path: str | Path) -> list[Camera]:
             return read_colmap_model(path)
         for name in ("transforms.json", "cameras.json"):
             if (path / name).is_file():
-                return load_cameras_any(path / name)
+                return _load_cameras_any(path / name)
         raise PipelineError("folder holds no COLMAP model (cameras/images .bin or .txt, also looked in "
                             "sparse/0 and 0/) and no transforms.json", path, fix=_CAMERA_FIX)
     if path.suffix.lower() in (".bin", ".txt") and path.stem in ("cameras", "images", "points3D"):

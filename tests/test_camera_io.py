@@ -154,6 +154,31 @@ def test_opengl_to_opencv_conversion(tmp_path):
     assert np.allclose(cam.center, eye)
 
 
+def test_scaled_poses_are_normalised_and_mirrored_ones_refused(tmp_path, caplog):
+    cams = _cameras()
+    data = json.loads(write_transforms_json(cams, tmp_path / "transforms.json").read_text())
+    for fr in data["frames"]:  # a camera object scaled by 2.5 (Blender): the rotation columns too
+        m = np.array(fr["transform_matrix"])
+        m[:3, :3] *= 2.5
+        fr["transform_matrix"] = m.tolist()
+    (tmp_path / "scaled.json").write_text(json.dumps(data))
+    got = load_cameras_any(tmp_path / "scaled.json")
+    _assert_same(cams, got, tol=1e-9)  # the same centres, orientations and images
+    assert "5 camera pose(s) carry a scale" in caplog.text and "x2.5" in caplog.text
+    for fr in data["frames"]:  # one axis flipped: a left-handed frame
+        m = np.array(fr["transform_matrix"]) / 2.5
+        m[:3, 0] *= -1
+        fr["transform_matrix"] = m.tolist()
+    (tmp_path / "mirrored.json").write_text(json.dumps(data))
+    with pytest.raises(PipelineError, match="img_00.*mirrored"):
+        load_cameras_any(tmp_path / "mirrored.json")
+    sheared = [Camera(c.name, c.width, c.height, c.K, c.cam_from_world @ np.diag([1.0, 1.3, 1.0, 1.0]), c.image)
+               for c in cams]
+    save_cameras(tmp_path / "sheared.json", sheared)
+    with pytest.raises(PipelineError, match="not a rotation"):
+        load_cameras_any(tmp_path / "sheared.json")
+
+
 def test_camera_angle_x(tmp_path):
     c2w = np.eye(4).tolist()
     ax = 0.6911112070083618  # Blender NeRF lego

@@ -14,10 +14,12 @@ import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import cv2
 import numpy as np
 
+from sgpor_pipeline.config import added_param
 from sgpor_pipeline.dag import Stage, StageContext
 from sgpor_pipeline.errors import PipelineError, named
 from sgpor_pipeline.gps import read_gps
@@ -38,6 +40,9 @@ from sgpor_pipeline.views import View, save_views
 
 MIN_IMAGES = 3
 FULL_MASK_SHARE = 0.99  # every mask at least this full: the photos given as masks, not a scene to rebuild
+# A mask more than this full whose zero part reaches at most one side of the photo looks inverted (the
+# object painted black): a real object's surroundings reach three or four sides.
+INVERTED_SHARE = 0.5
 
 
 @dataclass
@@ -50,6 +55,10 @@ class IngestParams:
     # inpaint 245 s, the whole run to inpaint 11 min and 4.4 GB. At 4032 px they would be 6x that.
     # 1600 keeps SIFT's input as it was.
     max_size: int = 1600
+    # Which value of a mask is the object: "auto" takes non-zero (white) and stops the run when every
+    # mask looks inverted (INVERTED_SHARE; warns about some), "object" takes non-zero without that check,
+    # "inverted" takes zero (black) as the object.
+    mask_polarity: Literal["auto", "object", "inverted"] = added_param("auto")
 
 
 def _by_stem(paths: list[Path], what: str) -> dict[str, Path]:
@@ -116,8 +125,18 @@ def _link_or_copy(src: Path, dst: Path) -> None:
         shutil.copy2(src, dst)
 
 
-def build_view_item(image_path: Path, mask_path: Path | None, max_size: int, folder: Path) -> None:
-    """Normalise one photo (and its mask) into ``folder``: image.png, mask.png, info.json."""
+def looks_inverted(mask: np.ndarray) -> bool:
+    """Whether a bool mask looks painted the wrong way round (:data:`INVERTED_SHARE`)."""
+    if not INVERTED_SHARE < mask.mean() < 1.0:
+        return False
+    zero = ~mask
+    return sum(bool(edge.any()) for edge in (zero[0], zero[-1], zero[:, 0], zero[:, -1])) <= 1
+
+
+def build_view_item(image_path: Path, mask_path: Path | None, max_size: int, folder: Path,
+                    invert_mask: bool = False) -> None:
+    """Normalise one photo (and its mask, zero = object where ``invert_mask``) into ``folder``:
+    image.png, mask.png, info.json."""
     rgb = read_rgb8(image_path)
     h0, w0 = rgb.shape[:2]
     w, h = target_size(w0, h0, max_size)
@@ -126,6 +145,8 @@ def build_view_item(image_path: Path, mask_path: Path | None, max_size: int, fol
     info = {"width": w, "height": h, "source_width": w0, "source_height": h0, "mask_pixels": None}
     if mask_path is not None:
         mask = read_mask(mask_path)
+        if invert_mask:
+            mask = ~mask
         mh, mw = mask.shape
         if not same_aspect(mw, mh, w0, h0):
             raise PipelineError(
@@ -227,12 +248,14 @@ class IngestStage(Stage):
         unreadable: list[str] = []
         empty_masks: list[str] = []
         mask_share: dict[str, float] = {}
+        inverted: list[str] = []  # masks that look painted the wrong way round
+        invert = ctx.params.mask_polarity == "inverted"
         for stem, path in ctx.progress(sorted(images.items()), total=len(images), desc="ingest"):
             mask_path = masks.get(stem)
             key = {"image": ctx.file_digest(path), "mask": None if mask_path is None else ctx.file_digest(mask_path)}
             try:
                 item = ctx.cached_item(key, lambda folder, p=path, m=mask_path:
-                                       build_view_item(p, m, ctx.params.max_size, folder))
+                                       build_view_item(p, m, ctx.params.max_size, folder, invert))
             except UnreadableImageError as e:
                 unreadable.append(str(e).split(": ", 1)[0])
                 continue
@@ -245,6 +268,9 @@ class IngestStage(Stage):
                 if info["mask_pixels"] == 0:
                     empty_masks.append(stem)
                 mask_share[stem] = info["mask_pixels"] / max(info["width"] * info["height"], 1)
+                if (ctx.params.mask_polarity == "auto" and mask_share[stem] > INVERTED_SHARE
+                        and looks_inverted(read_mask(item / "mask.png"))):
+                    inverted.append(stem)
             gps = read_gps(path)  # (read here, not in the item: cheap, and items cached before it stay valid)
             views.append(View(stem, f"images/{stem}.png", mask_rel, info["width"], info["height"], path.name,
                               info["source_width"], info["source_height"], None if gps is None else list(gps)))
@@ -266,6 +292,15 @@ class IngestStage(Stage):
                                 "is left to rebuild the background from", path=mask_dir,
                                 fix="pass the folder of masks, not of photos: the object non-zero (white), the rest "
                                     "zero (black)")
+        polarity_fix = ("if the object is black (zero) in your masks: --set ingest.mask_polarity=inverted; "
+                        "to take them as they are: --set ingest.mask_polarity=object")
+        if masks and masked and len(inverted) == len([v for v in masked if v.name not in empty_masks]):
+            raise PipelineError(f"every mask looks inverted: more than {INVERTED_SHARE:.0%} of each photo is non-zero "
+                                "(the object) while the rest, reaching at most one side of the photo, looks like the "
+                                f"object ({named(inverted, 3)})", path=mask_dir, fix=polarity_fix)
+        if inverted:
+            ctx.log.warning(f"{len(inverted)} mask(s) look inverted (the object zero, the rest non-zero): "
+                            f"{named(inverted, 5)}; {polarity_fix}")
         if empty_masks:
             ctx.log.warning(f"{len(empty_masks)} mask(s) are empty; the object is taken as not visible there: "
                             f"{', '.join(empty_masks)}")

@@ -185,6 +185,33 @@ def _mask_with(box: tuple[int, int, int, int]) -> np.ndarray:
     return m
 
 
+def test_inverted_masks_are_caught_and_can_be_taken_as_they_are(tmp_path, caplog):
+    images = tmp_path / "images"
+    make_images(images)
+    masks = tmp_path / "masks"
+    masks.mkdir()
+    objects = {"view_00": (8, 20, 10, 25), "view_01": (10, 30, 12, 28)}  # (the second touches the bottom)
+    for name, box in objects.items():
+        write_png(masks / f"{name}.png", ~_mask_with(box))  # the object painted black
+    with pytest.raises(PipelineError, match="every mask looks inverted.*view_00.*mask_polarity=inverted"):
+        ingest(tmp_path, images, masks)
+    out = ingest(tmp_path, images, masks, overrides=['ingest.mask_polarity="inverted"'])
+    for name, box in objects.items():
+        np.testing.assert_array_equal(read_mask(out / "masks" / f"{name}.png"), _mask_with(box))
+    out = ingest(tmp_path, images, masks, overrides=['ingest.mask_polarity="object"'])  # as they are
+    assert read_mask(out / "masks" / "view_00.png").mean() > 0.6
+    # one inverted among right ones: warned and kept
+    write_png(masks / "view_01.png", _mask_with(objects["view_01"]))
+    caplog.set_level(logging.WARNING, logger="sgpor_pipeline")
+    ingest(tmp_path, images, masks)
+    assert "1 mask(s) look inverted" in caplog.text and "view_00" in caplog.text
+    # a real object filling most of the photo (its surroundings reach three sides) is no suspect
+    caplog.clear()
+    write_png(masks / "view_00.png", _mask_with((8, 30, 3, 37)))
+    ingest(tmp_path, images, masks)
+    assert "inverted" not in caplog.text
+
+
 def test_masks_named_after_their_photo_by_common_rules(tmp_path, caplog):
     images = tmp_path / "images"
     make_images(images)

@@ -132,9 +132,27 @@ def same_aspect(w0: int, h0: int, w1: int, h1: int) -> bool:
     return abs(w0 * h1 - w1 * h0) <= ASPECT_TOLERANCE * max(w0 * h1, w1 * h0)
 
 
+def _png_with_alpha(data: np.ndarray) -> bool:
+    """Whether encoded bytes are a PNG of colour type 4 or 6 (grey or RGB with alpha): IHDR's byte 25."""
+    return data.size > 25 and data[:8].tobytes() == b"\x89PNG\r\n\x1a\n" and int(data[25]) in (4, 6)
+
+
 def read_mask(path: Path) -> np.ndarray:
-    """A mask file as bool HxW: non-zero in any channel = object (EXIF orientation applied)."""
-    img = _decode(Path(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
+    """A mask file as bool HxW: non-zero in any channel = object (EXIF orientation applied); a PNG with
+    transparency that varies is its opaque part (alpha non-zero: strokes painted on a transparent
+    layer, or an object cut out by a background remover, whose colours would leave its black out)."""
+    path = Path(path)
+    try:
+        data = np.fromfile(path, dtype=np.uint8)
+    except OSError as e:
+        raise UnreadableImageError(f"{path}: {e}") from None
+    if _png_with_alpha(data):
+        img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+        if img is not None and img.ndim == 3 and img.shape[2] in (2, 4):
+            alpha = img[..., -1]
+            if alpha.min() != alpha.max():
+                return alpha != 0
+    img = _decode(path, cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
     if img.ndim == 3:
         return np.any(img != 0, axis=2)
     return img != 0

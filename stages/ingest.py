@@ -199,7 +199,7 @@ def import_cameras(path: Path, views: list[View]) -> list[Camera]:
 
 class IngestStage(Stage):
     name = "ingest"
-    VERSION = 1
+    VERSION = 2  # 2: a mask PNG with varying transparency is its opaque part (imageio.read_mask)
     Params = IngestParams
     raw_inputs = ("images", "masks", "cameras")
 

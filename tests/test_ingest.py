@@ -212,6 +212,28 @@ def test_inverted_masks_are_caught_and_can_be_taken_as_they_are(tmp_path, caplog
     assert "inverted" not in caplog.text
 
 
+def test_masks_with_transparency_are_their_opaque_part(tmp_path):
+    obj = _mask_with((5, 20, 8, 30))
+    rng = np.random.default_rng(0)
+    cutout = np.zeros((30, 40, 4), np.uint8)  # a background remover's cut-out: the object's colours, some black
+    cutout[..., :3] = rng.integers(0, 256, (30, 40, 3))
+    cutout[10:15, 10:20, :3] = 0
+    cutout[~obj, :3] = 0
+    cutout[..., 3] = obj * 255
+    strokes = np.full((30, 40, 4), 255, np.uint8)  # black strokes on a transparent layer stored white
+    strokes[..., 3] = 0
+    strokes[obj] = (0, 0, 0, 255)
+    opaque = np.zeros((30, 40, 4), np.uint8)  # an ordinary mask that happens to carry an opaque alpha
+    opaque[..., 3] = 255
+    opaque[obj, :3] = 255
+    for name, img in (("cutout", cutout), ("strokes", strokes), ("opaque", opaque)):
+        cv2.imwrite(str(tmp_path / f"{name}.png"), img)
+        np.testing.assert_array_equal(read_mask(tmp_path / f"{name}.png"), obj, err_msg=name)
+    grey_alpha = np.dstack([np.zeros((30, 40), np.uint8), obj.astype(np.uint8) * 255])
+    Image.fromarray(grey_alpha, "LA").save(tmp_path / "la.png")
+    np.testing.assert_array_equal(read_mask(tmp_path / "la.png"), obj)
+
+
 def test_masks_named_after_their_photo_by_common_rules(tmp_path, caplog):
     images = tmp_path / "images"
     make_images(images)

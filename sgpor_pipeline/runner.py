@@ -174,6 +174,10 @@ def run_pipeline(
             raise PipelineError("this is a video; the pipeline takes a folder of photos", path=run_inputs.images,
                                 fix=f"extract sharp frames first: sgpor-pipeline frames {run_inputs.images} photos/, "
                                     "then draw a mask on one or more of them")
+        if Path(run_inputs.images).is_file():
+            raise PipelineError("this is a file; the pipeline takes a folder of photos (at least 3 views of the "
+                                "scene)", path=run_inputs.images,
+                                fix=f"pass the folder that holds it: {Path(run_inputs.images).parent}")
         raise PipelineError("image folder not found", path=run_inputs.images,
                             fix="pass the folder that holds your photos")
     if preset is not None:

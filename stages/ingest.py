@@ -222,8 +222,14 @@ class IngestStage(Stage):
             photos = [p for p in photos if p not in named_masks]
         images = _by_stem(photos, "images")
         if not images:
-            raise PipelineError("no images found (JPEG, PNG, TIFF, BMP, WebP)", path=image_dir,
-                                fix="point the command at the folder that holds your photos")
+            nested = {d.name: len(list_images(d)) for d in sorted(Path(image_dir).iterdir())
+                      if d.is_dir() and not d.name.startswith(".")}
+            nested = {name: n for name, n in nested.items() if n}
+            where = (f"; its subfolders hold some: {named([f'{k} ({n})' for k, n in nested.items()], 3)}"
+                     if nested else "")
+            raise PipelineError(f"no images found (JPEG, PNG, TIFF, BMP, WebP){where}", path=image_dir,
+                                fix="point the command at the folder that holds your photos"
+                                    + (f", e.g. {Path(image_dir) / next(iter(nested))}" if nested else ""))
         masks: dict[str, Path] = {}
         if mask_dir is not None:
             if not Path(mask_dir).is_dir():

@@ -148,6 +148,11 @@ def test_fewer_than_three_usable_images(tmp_path):
     empty.mkdir()
     with pytest.raises(PipelineError, match="no images found"):
         ingest(tmp_path, empty)
+    make_images(empty / "day1")  # the photos one folder down: named
+    with pytest.raises(PipelineError, match=r"subfolders hold some: day1 \(4\).*e\.g\. .*day1"):
+        ingest(tmp_path, empty)
+    with pytest.raises(PipelineError, match="this is a file.*folder that holds it"):  # one photo passed
+        ingest(tmp_path, empty / "day1" / "view_00.png")
 
 
 def test_mask_errors(tmp_path, caplog):

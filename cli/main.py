@@ -68,7 +68,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("run", help="run or resume the pipeline on a folder of photos",
                        description="Run or resume the pipeline on a folder of photos.")
-    p.add_argument("images", type=Path, help="folder of photos (JPEG, PNG, TIFF)")
+    p.add_argument("images", type=Path, help="folder of photos (JPEG, PNG, TIFF, HEIC)")
     p.add_argument("--masks", type=Path, help="folder of object masks, same base names, non-zero = object; "
                                               "for all views or only some")
     p.add_argument("--cameras", type=Path, help="known cameras instead of SfM: a COLMAP model folder or a "

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from .imageio import HEIF_EXTENSIONS
 from .orientation import _rotation_to_z
 from .scene import Camera
 
@@ -47,8 +48,15 @@ def read_gps(path: str | Path) -> tuple[float, float, float | None] | None:
     from PIL import Image
 
     try:
-        with Image.open(path) as im:
-            gps = im.getexif().get_ifd(_GPS_IFD)
+        if Path(path).suffix.lower() in HEIF_EXTENSIONS:  # (PIL opens HEIF only with a plugin registered)
+            import pillow_heif
+
+            exif = Image.Exif()
+            exif.load(pillow_heif.open_heif(path).info.get("exif") or b"")
+            gps = exif.get_ifd(_GPS_IFD)
+        else:
+            with Image.open(path) as im:
+                gps = im.getexif().get_ifd(_GPS_IFD)
     except Exception:  # (an unreadable file is reported by the image reader, not here)
         return None
     if not gps or _LAT not in gps or _LON not in gps:

@@ -16,7 +16,8 @@ import numpy as np
 
 from sgpor_pipeline.errors import PipelineError
 
-IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp")
+HEIF_EXTENSIONS = (".heic", ".heif")  # decoded with pillow-heif: OpenCV has no HEIF decoder
+IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".webp", *HEIF_EXTENSIONS)
 
 
 def target_size(width: int, height: int, max_size: int) -> tuple[int, int]:
@@ -68,7 +69,33 @@ def opencv_logging(debug: bool) -> Iterator[None]:
         cv_logging.setLogLevel(old)
 
 
+def _decode_heif(path: Path) -> np.ndarray:
+    """A HEIC/HEIF photo as OpenCV would give it (BGR or BGRA uint8; 10/12-bit made 8-bit), its
+    rotation and mirroring applied (pillow-heif applies the container's transforms, which is where
+    phones keep the orientation)."""
+    try:
+        import pillow_heif
+    except ImportError:
+        raise PipelineError("HEIC/HEIF photos need the pillow-heif package", path=path,
+                            fix="pip install pillow-heif, or convert the photos to JPEG") from None
+    try:
+        heif = pillow_heif.open_heif(path, convert_hdr_to_8bit=True)
+        rgb = np.asarray(heif)
+    except Exception as e:  # (libheif raises its own error types)
+        raise UnreadableImageError(f"{path}: not a readable HEIF image ({e})") from None
+    if rgb.size == 0:
+        raise UnreadableImageError(f"{path}: not a readable HEIF image")
+    if rgb.ndim == 3 and rgb.shape[2] >= 3:
+        rgb = rgb[..., [2, 1, 0, 3][:rgb.shape[2]]]  # RGB(A) -> BGR(A)
+    return np.ascontiguousarray(rgb)
+
+
 def _decode(path: Path, flags: int) -> np.ndarray:
+    if path.suffix.lower() in HEIF_EXTENSIONS:
+        img = _decode_heif(path)
+        if flags != cv2.IMREAD_UNCHANGED and img.ndim == 3 and img.shape[2] == 4:
+            img = img[..., :3]  # (OpenCV's ANYCOLOR drops alpha too)
+        return img
     try:
         data = np.fromfile(path, dtype=np.uint8)  # works for non-ASCII paths, unlike cv2.imread
     except OSError as e:

@@ -227,7 +227,7 @@ class IngestStage(Stage):
             nested = {name: n for name, n in nested.items() if n}
             where = (f"; its subfolders hold some: {named([f'{k} ({n})' for k, n in nested.items()], 3)}"
                      if nested else "")
-            raise PipelineError(f"no images found (JPEG, PNG, TIFF, BMP, WebP){where}", path=image_dir,
+            raise PipelineError(f"no images found (JPEG, PNG, TIFF, BMP, WebP, HEIC){where}", path=image_dir,
                                 fix="point the command at the folder that holds your photos"
                                     + (f", e.g. {Path(image_dir) / next(iter(nested))}" if nested else ""))
         masks: dict[str, Path] = {}

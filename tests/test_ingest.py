@@ -60,6 +60,28 @@ def test_formats_exif_depth_grey_alpha(tmp_path):
     assert np.abs(rotated - np.rot90(smooth, k=1).astype(int)).mean() > 30  # not the other way round
 
 
+def test_heic_photos_from_a_phone(tmp_path):
+    """iPhone photos are HEIC by default: decoded with pillow-heif, the orientation and GPS kept."""
+    pillow_heif = pytest.importorskip("pillow_heif")
+    images = tmp_path / "images"
+    images.mkdir()
+    yy, xx = np.mgrid[0:48, 0:64]
+    smooth = np.dstack([xx * 4, yy * 5, 128 + 0 * xx]).astype(np.uint8)
+    for i in range(3):
+        exif = Image.Exif()
+        exif[0x0112] = 6  # rotate 90 degrees clockwise to display (a phone held upright)
+        exif[0x8825] = {1: "N", 2: (55.0, 41.0, 50.0 + i), 3: "E", 4: (13.0, 11.0, 43.0)}
+        pillow_heif.from_pillow(Image.fromarray(smooth)).save(images / f"IMG_{i:04d}.HEIC", quality=95,
+                                                             exif=exif.tobytes())
+    views = {v.name: v for v in load_views(ingest(tmp_path, images))}
+    assert sorted(views) == ["IMG_0000", "IMG_0001", "IMG_0002"]
+    v = views["IMG_0001"]
+    assert (v.width, v.height) == (48, 64) and v.source == "IMG_0001.HEIC"
+    got = read_rgb8(next((tmp_path / "out" / "cache" / "ingest").glob("*/images/IMG_0001.png"))).astype(int)
+    assert np.abs(got - np.rot90(smooth, k=-1)).mean() < 4  # HEVC loss only
+    assert v.gps[0] == pytest.approx(55 + 41 / 60 + 51 / 3600, abs=1e-6)
+
+
 def test_downscale_and_masks(tmp_path):
     images = tmp_path / "images"
     make_images(images, n=4, width=80, height=60)

@@ -11,7 +11,8 @@ A stage is a small class (DESIGN.md section 3)::
 
 Optional class methods: ``wanted`` (an optional stage runs by default with these inputs),
 ``check_inputs`` (raise a PipelineError when the run's inputs cannot serve the stage: asked of every
-stage before the first one runs), ``key_extra``, ``upstream``, ``optional_inputs``.
+stage before the first one runs), ``check_upstream`` (the same for an earlier stage's result, asked as
+soon as it exists), ``key_extra``, ``upstream``, ``optional_inputs``.
 
 Stages and exporters are found through the entry-point groups ``sgpor_pipeline.stages`` and
 ``sgpor_pipeline.exporters``; the built-in ones register the same way as a third party's.
@@ -198,6 +199,12 @@ class Stage:
         """Raise a PipelineError when the run's inputs cannot serve this stage. The runner asks every
         stage it is about to run before the first one starts, so a missing input is reported at once,
         not after the stages before it (a fit of minutes) have run."""
+
+    @classmethod
+    def check_upstream(cls, params: Any, upstream: str, folder: Path) -> None:
+        """Raise a PipelineError when the result of ``upstream``, a stage this run planned before this
+        one, cannot serve this stage. Asked as soon as that stage has its result (built or cached), so
+        the run stops after the stage whose result dooms it, not after the costly ones in between."""
 
     def run(self, ctx: StageContext) -> None:  # pragma: no cover - the contract
         raise NotImplementedError

@@ -223,6 +223,8 @@ def run_pipeline(
             result.outcomes[name] = outcome
             if cls.materialize_to:
                 materialize(outcome.path, out / cls.materialize_to, outcome.key)
+            for later in selected[selected.index(name) + 1:]:
+                stages[later].check_upstream(config[later], name, outcome.path)
         memo.save()
         run_record["finished"] = time.time()
         (out / RUN_FILE).write_text(json.dumps(run_record, indent=1))

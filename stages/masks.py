@@ -171,6 +171,13 @@ class MasksStage(Stage):
                             fix=f"pass --masks DIR{found}: masks named like the photos, non-zero = the object, "
                                 "for one photo or more; or --until fit to reconstruct the scene only")
 
+    @classmethod
+    def check_upstream(cls, params: MasksParams, upstream: str, folder: Path) -> None:
+        """Right after SfM, before the fit: a mask painted only on photos SfM could not register leaves
+        no object to select."""
+        if upstream == "sfm":
+            _read_given_masks(load_sfm(folder), params.max_given, None, params.given_views)
+
     def run(self, ctx: StageContext) -> None:
         p = ctx.params
         sel_params = _selection_params(p)
@@ -274,18 +281,25 @@ def _read_given_masks(sfm: SfmResult, max_given: int, masks_path: Path | None,
                       only: Sequence[str] = ()) -> list[tuple[Camera, np.ndarray]]:
     """The posed views' non-empty given masks (of the views ``only`` names, when it names any; the first
     ``max_given``, 0 = all); PipelineError if none."""
-    named = set(only)
+    wanted = set(only)
     given = [(c, read_mask(sfm.mask_path(c.image))) for c in sfm.posed
-             if sfm.mask_path(c.image) is not None and (not named or c.image in named)]
+             if sfm.mask_path(c.image) is not None and (not wanted or c.image in wanted)]
     given = [(c, m) for c, m in given if m.any()]
-    if named:
-        unknown = sorted(named - {c.image for c, _ in given})
+    if wanted:
+        unknown = sorted(wanted - {c.image for c, _ in given})
         if unknown:
             raise PipelineError(f"masks.given_views names views without a given (non-empty) mask: {unknown}",
                                 path=masks_path, fix="name views whose photo has a mask, or leave it empty")
     if max_given > 0:
         given = given[:max_given]
     if not given:
+        lost = sfm.summary.get("unregistered") or []
+        if lost:  # (their masks, if any, were not carried: the photos have no pose to carry them with)
+            posed = [c.image for c in sfm.posed]
+            raise PipelineError(f"no photo SfM registered has a non-empty object mask; {len(lost)} photo(s) did not "
+                                f"register ({named(lost, 5)}), and a mask painted there cannot be used",
+                                path=masks_path, fix=f"paint the object in one of the registered photos, e.g. "
+                                                     f"{named(posed, 3)}")
         raise PipelineError("no view has a non-empty object mask", path=masks_path,
                             fix="pass --masks with the object painted in at least one photo")
     return given

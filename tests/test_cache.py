@@ -172,6 +172,27 @@ def test_failed_stage_keeps_finished_ones(tmp_path, image_dir, toy_stages):
     assert fixed.hits == ["ingest", "toy_stats"] and fixed.ran == ["toy_slow", "toy_report"]
 
 
+def test_a_later_stage_stops_the_run_on_an_earlier_result(tmp_path, image_dir, toy_stages):
+    """check_upstream: a planned stage refuses an earlier stage's result as soon as it exists, before the
+    stages between run; the result that doomed the run stays cached."""
+    seen = []
+
+    class Picky(toy_stages["toy_report"]):
+        @classmethod
+        def check_upstream(cls, params, upstream, folder):
+            seen.append(upstream)
+            if upstream == "toy_stats":
+                raise PipelineError(f"cannot use {folder.name}", fix="paint it again")
+
+    out = tmp_path / "out"
+    with pytest.raises(PipelineError, match="cannot use"):
+        run(out, image_dir, dict(toy_stages, toy_report=Picky))
+    assert seen == ["ingest", "toy_stats"]  # toy_slow never ran
+    assert not (out / "cache" / "toy_slow").is_dir() or not any((out / "cache" / "toy_slow").iterdir())
+    again = run(out, image_dir, toy_stages)
+    assert again.hits == ["ingest", "toy_stats"] and again.ran == ["toy_slow", "toy_report"]
+
+
 def test_status_and_clean(tmp_path, image_dir, toy_stages):
     out = tmp_path / "out"
     run(out, image_dir, toy_stages, until="toy_slow")

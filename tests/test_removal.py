@@ -969,3 +969,32 @@ def test_a_view_whose_render_lost_the_object_takes_its_mask_from_the_lifted_surf
     # (GrabCut's additions checked against the given view's cone, which reads this view's depth, the
     # floaters': 0.59)
     assert iou(found, mask) > 0.7, iou(found, mask)
+
+
+def test_a_mask_only_on_photos_sfm_lost_stops_the_run_before_the_fit(tmp_path):
+    """MasksStage.check_upstream on the sfm result: the object painted only in photos that did not
+    register names them and the registered ones to paint instead (asked before the fit runs)."""
+    import json
+
+    from sgpor_pipeline.errors import PipelineError
+    from sgpor_pipeline.imageio import write_png
+    from sgpor_pipeline.scene import Camera, save_cameras
+    from sgpor_pipeline.sfm import SfmPoints
+    from sgpor_pipeline.stages.masks import MasksParams, MasksStage
+
+    sfm = tmp_path / "sfm"
+    (sfm / "masks").mkdir(parents=True)
+    K = np.array([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]])
+    save_cameras(sfm / "cameras.json", [Camera(f"IMG_{i}", 64, 48, K, np.eye(4), image=f"IMG_{i}") for i in (1, 2, 3)])
+    e = np.zeros(0)
+    SfmPoints(np.zeros((0, 3)), np.zeros((0, 3), np.uint8), e, e.astype(np.int64), e.astype(np.int64),
+              np.zeros((0, 2))).save(sfm / "points.npz")
+    (sfm / "sfm.json").write_text(json.dumps({"mode": "sfm", "registered": 3, "images": 4, "unregistered": ["IMG_0"]}))
+    write_png(sfm / "masks" / "IMG_2.png", np.zeros((48, 64), bool))  # (an empty mask counts as none)
+    with pytest.raises(PipelineError, match=r"1 photo\(s\) did not register \(IMG_0\).*e\.g\. IMG_1, IMG_2, IMG_3"):
+        MasksStage.check_upstream(MasksParams(), "sfm", sfm)
+    MasksStage.check_upstream(MasksParams(), "ingest", sfm)  # (only the sfm result is checked)
+    mask = np.zeros((48, 64), bool)
+    mask[10:20, 10:30] = True
+    write_png(sfm / "masks" / "IMG_3.png", mask)
+    MasksStage.check_upstream(MasksParams(), "sfm", sfm)  # a registered photo has it: the run goes on

@@ -268,6 +268,11 @@ class Similarity:
         return {"scale": self.s, "rotation": self.R.tolist(), "translation": self.t.tolist(),
                 "matrix": self.matrix.tolist()}
 
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> Similarity:
+        """The similarity :meth:`to_dict` wrote."""
+        return cls(data["scale"], data["rotation"], data["translation"])
+
 
 def umeyama(src: np.ndarray, dst: np.ndarray, scale: bool = True) -> Similarity:
     """The similarity ``x -> s R x + t`` minimising ``sum |s R src_i + t - dst_i|^2`` (Umeyama 1991).
@@ -610,11 +615,11 @@ class ExportFrame:
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> ExportFrame:
         """The frame :meth:`to_dict` wrote (``export_frame.json``)."""
-        sim, given = data["export_from_sfm"], data.get("sfm_from_input")
-        return cls(Similarity(sim["scale"], sim["rotation"], sim["translation"]),
+        given = data.get("sfm_from_input")
+        return cls(Similarity.from_dict(data["export_from_sfm"]),
                    np.asarray(data["up_in_sfm_frame"], np.float64), data["up_method"], data["units"] == "metres",
                    data["scale_source"], data["origin"], data.get("gps"), data.get("ground"),
-                   Similarity(given["scale"], given["rotation"], given["translation"]) if given else None)
+                   Similarity.from_dict(given) if given else None)
 
     def describe(self) -> str:
         gps = (f"; the photos' GPS was not used: {self.gps['reason']}"

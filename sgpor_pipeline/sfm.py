@@ -247,7 +247,7 @@ def given_frame(folder: Path) -> Similarity | None:
         sim = json.loads(path.read_text()).get("sfm_from_input")
     except (OSError, ValueError, AttributeError):
         return None
-    return Similarity(sim["scale"], sim["rotation"], sim["translation"]) if sim else None
+    return Similarity.from_dict(sim) if sim else None
 
 
 # --------------------------------------------------------------------------------------------------

@@ -90,16 +90,21 @@ def _decode_heif(path: Path) -> np.ndarray:
     return np.ascontiguousarray(rgb)
 
 
-def _decode(path: Path, flags: int) -> np.ndarray:
+def _read_bytes(path: Path) -> np.ndarray:
+    try:
+        return np.fromfile(path, dtype=np.uint8)  # works for non-ASCII paths, unlike cv2.imread
+    except OSError as e:
+        raise UnreadableImageError(f"{path}: {e}") from None
+
+
+def _decode(path: Path, flags: int, data: np.ndarray | None = None) -> np.ndarray:
+    """The image file at ``path`` decoded with OpenCV's ``flags``; ``data``: its bytes, when read already."""
     if path.suffix.lower() in HEIF_EXTENSIONS:
         img = _decode_heif(path)
         if flags != cv2.IMREAD_UNCHANGED and img.ndim == 3 and img.shape[2] == 4:
             img = img[..., :3]  # (OpenCV's ANYCOLOR drops alpha too)
         return img
-    try:
-        data = np.fromfile(path, dtype=np.uint8)  # works for non-ASCII paths, unlike cv2.imread
-    except OSError as e:
-        raise UnreadableImageError(f"{path}: {e}") from None
+    data = _read_bytes(path) if data is None else data
     img = cv2.imdecode(data, flags) if data.size else None
     if img is None or img.size == 0:
         raise UnreadableImageError(f"{path}: not a readable image")
@@ -169,17 +174,14 @@ def read_mask(path: Path) -> np.ndarray:
     transparency that varies is its opaque part (alpha non-zero: strokes painted on a transparent
     layer, or an object cut out by a background remover, whose colours would leave its black out)."""
     path = Path(path)
-    try:
-        data = np.fromfile(path, dtype=np.uint8)
-    except OSError as e:
-        raise UnreadableImageError(f"{path}: {e}") from None
-    if _png_with_alpha(data):
+    data = None if path.suffix.lower() in HEIF_EXTENSIONS else _read_bytes(path)
+    if data is not None and _png_with_alpha(data):
         img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
         if img is not None and img.ndim == 3 and img.shape[2] in (2, 4):
             alpha = img[..., -1]
             if alpha.min() != alpha.max():
                 return alpha != 0
-    img = _decode(path, cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR)
+    img = _decode(path, cv2.IMREAD_ANYDEPTH | cv2.IMREAD_ANYCOLOR, data)  # (the bytes read once)
     if img.ndim == 3:
         return np.any(img != 0, axis=2)
     return img != 0

@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 from sgpor_pipeline.errors import PipelineError
-from sgpor_pipeline.imageio import UnreadableImageError, list_images, read_rgb8, target_size
+from sgpor_pipeline.imageio import UnreadableImageError, list_images, read_rgb8, target_size, write_bgr
 
 VIDEO_EXTENSIONS = (".mp4", ".mov", ".m4v", ".avi", ".mkv", ".webm", ".mts", ".3gp")
 CONVERT = "convert it to MP4 (H.264), e.g. ffmpeg -i IN -c:v libx264 out.mp4"
@@ -160,7 +160,10 @@ def extract_frames(video: Path, out_dir: Path, params: FrameParams | None = None
             frame = cv2.resize(frame, size, interpolation=cv2.INTER_AREA)
         path = out_dir / f"frame_{index:0{digits}d}.{p.format}"
         args = [cv2.IMWRITE_JPEG_QUALITY, 95] if p.format == "jpg" else []
-        if not cv2.imwrite(str(path), frame, args):
-            raise PipelineError("cannot write a frame", path=path, fix="check the folder's permissions and free space")
+        try:
+            write_bgr(path, frame, args)
+        except OSError as e:
+            raise PipelineError(f"cannot write a frame ({e})", path=path,
+                                fix="check the folder's permissions and free space") from e
         written.append(path)
     return written

@@ -8,7 +8,7 @@ Masks: any channel count and bit depth, non-zero in any channel = object.
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 import cv2
@@ -195,26 +195,29 @@ def write_png(path: Path, rgb: np.ndarray) -> None:
     arr = to_uint8(arr)
     if arr.ndim == 3:
         arr = arr[:, :, ::-1]
-    ok, buf = cv2.imencode(".png", np.ascontiguousarray(arr))
+    write_bgr(path, arr, ext=".png")
+
+
+def write_bgr(path: str | Path, image: np.ndarray, params: Sequence[int] = (), ext: str | None = None) -> None:
+    """Write an OpenCV-ordered (BGR or grey) uint8 image, encoded as ``ext`` (default: ``path``'s
+    suffix) with cv2.imencode's ``params`` (e.g. JPEG quality). Encoded in memory and written by
+    Python: unlike cv2.imwrite, safe for non-ASCII paths on every platform, as :func:`read_image`
+    reads them."""
+    ext = ext or Path(path).suffix
+    ok, buf = cv2.imencode(ext, np.ascontiguousarray(image), list(params))
     if not ok:
-        raise OSError(f"{path}: PNG encoding failed")
+        raise OSError(f"{path}: {ext} encoding failed")
     Path(path).write_bytes(buf.tobytes())
 
 
 def write_mask01(path: Path, mask: np.ndarray) -> None:
     """A mask as a 0/1 single-channel PNG (the cache format)."""
-    ok, buf = cv2.imencode(".png", np.asarray(mask, dtype=bool).astype(np.uint8))
-    if not ok:
-        raise OSError(f"{path}: PNG encoding failed")
-    Path(path).write_bytes(buf.tobytes())
+    write_bgr(path, np.asarray(mask, dtype=bool).astype(np.uint8), ext=".png")
 
 
 def write_labels(path: Path, labels: np.ndarray) -> None:
     """A uint8 label map (values kept, e.g. the inpaint stage's 0/1/2 ``filled_from``) as a PNG."""
-    ok, buf = cv2.imencode(".png", np.ascontiguousarray(labels, dtype=np.uint8))
-    if not ok:
-        raise OSError(f"{path}: PNG encoding failed")
-    Path(path).write_bytes(buf.tobytes())
+    write_bgr(path, np.asarray(labels, dtype=np.uint8), ext=".png")
 
 
 def read_labels(path: Path) -> np.ndarray:

@@ -794,10 +794,10 @@ def save_scene(scene: SyntheticScene, folder: str | Path) -> Path:
     (nerfstudio), ``background.ply`` / ``object.ply`` (true geometry) and ``scene.json`` (parameters,
     object bounds).
     """
-    import cv2
     import open3d as o3d
 
     from .camera_io import write_transforms_json
+    from .imageio import write_png
 
     folder = Path(folder)
     for sub in ("images", "masks", "groundtruth", "depth", "depth_gt"):
@@ -806,11 +806,15 @@ def save_scene(scene: SyntheticScene, folder: str | Path) -> Path:
         name = cam.name
         for sub, img in (("images", scene.images[i]), ("groundtruth", scene.images_gt[i])):
             path = folder / sub / f"{name}.png"
-            if not cv2.imwrite(str(path), _to_u8(img)[..., ::-1]):
-                raise PipelineError("could not write image", path, fix="check the folder is writable")
+            try:
+                write_png(path, _to_u8(img))
+            except OSError as e:
+                raise PipelineError(f"could not write image ({e})", path, fix="check the folder is writable") from e
         path = folder / "masks" / f"{name}.png"
-        if not cv2.imwrite(str(path), scene.masks[i].astype(np.uint8) * 255):
-            raise PipelineError("could not write mask", path, fix="check the folder is writable")
+        try:
+            write_png(path, scene.masks[i].astype(bool))
+        except OSError as e:
+            raise PipelineError(f"could not write mask ({e})", path, fix="check the folder is writable") from e
         np.save(folder / "depth" / f"{name}.npy", scene.depth[i].astype(np.float32))
         np.save(folder / "depth_gt" / f"{name}.npy", scene.depth_gt[i].astype(np.float32))
     save_cameras(folder / "cameras.json", scene.cameras)

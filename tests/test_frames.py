@@ -45,6 +45,24 @@ def test_the_sharpest_frame_of_each_stretch(tmp_path):
     assert len(idx) == 5 and idx == sorted(idx) and all(6 * s <= i < 6 * (s + 1) for s, i in enumerate(idx))
 
 
+
+def test_frames_written_to_a_non_ascii_folder(tmp_path):
+    # encoded in memory and written by Python (cv2.imwrite cannot open such paths on Windows): the
+    # same pixels as the video's frame, in the format asked for
+    video = tmp_path / "walk.avi"
+    _write_video(video, sharp={3, 17, 21})
+    cap = cv2.VideoCapture(str(video))
+    for _ in range(4):
+        ok, frame3 = cap.read()
+    cap.release()
+    out = tmp_path / "fotos ü 写真"
+    png = extract_frames(video, out / "png", FrameParams(count=3, candidates=10, format="png"))
+    assert png[0].name == "frame_00003.png"
+    decoded = cv2.imdecode(np.fromfile(png[0], np.uint8), cv2.IMREAD_COLOR)
+    assert np.array_equal(decoded, frame3)
+    jpg = extract_frames(video, out / "jpg", FrameParams(count=3, candidates=10))
+    assert jpg[0].read_bytes() == cv2.imencode(".jpg", frame3, [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes()
+
 def test_frame_errors(tmp_path):
     with pytest.raises(PipelineError, match="video not found"):
         extract_frames(tmp_path / "none.mp4", tmp_path / "out")

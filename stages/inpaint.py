@@ -200,6 +200,9 @@ class InpaintParams:
     metric: Literal["cosine", "l2"] = "cosine"
     top_k: int = 5
     rerank: int = 16
+    # The re-ranking's alignment search coarse to fine: SBMParams.shift_step (-1: every 2nd shift, then
+    # around the best, from a search radius of 5 px: photos above about 800 px; 1 = every shift)
+    shift_step: int = added_param(-1)
     blend: Literal["poisson", "feather"] = "poisson"
     order: Literal["onion", "priority"] = added_param("onion")  # fill order inside a view (SBMParams.order)
     priority_share: float = added_param(0.25)
@@ -468,7 +471,8 @@ class InpaintParams:
                          source_stride=self.source_stride, max_sources=self.max_sources, margin=self.margin,
                          rerank_margin=self.rerank_margin,
                          cells=self.cells, features=self.features, dino_model=self.dino_model,
-                         metric=self.metric, top_k=self.top_k, rerank=self.rerank, blend=self.blend,
+                         metric=self.metric, top_k=self.top_k, rerank=self.rerank, shift_step=self.shift_step,
+                         blend=self.blend,
                          order=self.order, priority_share=self.priority_share, levels=self.levels,
                          guide_weight=self.guide_weight, paste_top=self.paste_top,
                          paste_temperature=self.paste_temperature, depth_weight=self.depth_weight,
@@ -580,8 +584,9 @@ class InpaintStage(Stage):
     # (plane_lattice; the version marks the results of its development versions stale); 20: the plane
     # texture's hole filled again from its smooth completion (plane_smooth_guide); 21: structure lines from
     # colour edges too, and borders that graze the hole (StructureParams colour, graze); 22: borders joined
-    # through the hole from their two entries (StructureParams paired)
-    VERSION = 22
+    # through the hole from their two entries (StructureParams paired); 23: the re-ranking's alignment
+    # search coarse to fine from a radius of 5 px (shift_step; photos above about 800 px)
+    VERSION = 23
     Params = InpaintParams
     inputs = ("remove",)
     libraries = ("torch",)

@@ -55,7 +55,9 @@ class RefineParams:
 
 class RefineStage(Stage):
     name = "refine"
-    VERSION = 2  # 2: with max_rounds = 0 no sources are retrieved for another inpainter's fill
+    # 2: with max_rounds = 0 no sources are retrieved for another inpainter's fill; 3: the alignment
+    # search coarse to fine from a radius of 5 px (SBMParams.shift_step)
+    VERSION = 3
     Params = RefineParams
     inputs = ("inpaint", "remove")
     libraries = ("torch", "kornia")

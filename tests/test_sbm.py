@@ -37,6 +37,7 @@ from sgpor_pipeline.removal.sbm import (
     agreeing_rim,
     block_log_depth,
     build_source_bank,
+    coarse_shift_step,
     feather,
     fsr_inpaint,
     inpaint_view,
@@ -439,6 +440,86 @@ def test_masked_ssd_of_8bit_views_is_that_of_their_padded_float_views():
         _raster_cpu.masked_ssd_u8(cur, mask, tpos, win, views8, valid, bad, r, pad, UINT8_TO_FLOAT, SENTINEL, 1)
     with pytest.raises(ValueError, match="validity"):
         _raster_cpu.masked_ssd_u8(cur, mask, tpos, win, views8, valid[:2], cand, r, pad, UINT8_TO_FLOAT, SENTINEL, 1)
+
+
+@pytest.mark.skipif(not _raster_cpu.available(), reason="the cpu kernel is not built")
+def test_masked_ssd_at_every_other_shift_is_the_exhaustive_search_subsampled():
+    """step 2 (a coarse search's first pass) gives the exhaustive costs at the even shifts, bit for bit,
+    for float and 8-bit views; a step that does not divide the range 2r is refused."""
+    from sgpor_pipeline.imageio import to_uint8
+    from sgpor_pipeline.removal.sbm import SENTINEL, UINT8_TO_FLOAT
+
+    rng = np.random.default_rng(8)
+    win, r = 19, 6  # 13 shifts an axis: more than one group of 8 accumulators, and 7 at step 2
+    views = [texture(80, 90, seed=s) for s in range(2)]
+    cur = texture(50, 50, seed=4)
+    mask = (rng.random((50, 50)) * (rng.random((50, 50)) > 0.3)).astype(np.float32)
+    tpos = rng.integers(0, 50 - win, (5, 2))
+    cand = np.stack([rng.integers(0, 2, (5, 3)), rng.integers(0, 80 - win - 2 * r, (5, 3)),
+                     rng.integers(0, 90 - win - 2 * r, (5, 3))], axis=-1)
+    full = _raster_cpu.masked_ssd(cur, mask, tpos, win, views, cand, r, threads=2)
+    for step in (2, 3, 4):
+        got = _raster_cpu.masked_ssd(cur, mask, tpos, win, views, cand, r, threads=2, step=step)
+        assert got.shape == (5, 3, 12 // step + 1, 12 // step + 1)
+        assert np.array_equal(got, full[:, :, ::step, ::step]), step
+    views8 = [to_uint8(v) for v in views]
+    valid = [np.ones(v.shape[:2], bool) for v in views]
+    full8 = _raster_cpu.masked_ssd_u8(cur, mask, tpos, win, views8, valid, cand, r, 0, UINT8_TO_FLOAT, SENTINEL, 2)
+    got8 = _raster_cpu.masked_ssd_u8(cur, mask, tpos, win, views8, valid, cand, r, 0, UINT8_TO_FLOAT, SENTINEL, 2,
+                                     step=2)
+    assert np.array_equal(got8, full8[:, :, ::2, ::2])
+    with pytest.raises(ValueError, match="multiple of the step"):
+        _raster_cpu.masked_ssd(cur, mask, tpos, win, views, cand, r, threads=1, step=5)
+
+
+def test_coarse_shift_step():
+    assert coarse_shift_step(3, -1) == 1 and coarse_shift_step(4, -1) == 1  # the benchmark's, kitchen's radius
+    assert coarse_shift_step(5, -1) == 2 and coarse_shift_step(10, -1) == 2
+    assert coarse_shift_step(7, 3) == 2 and coarse_shift_step(6, 3) == 3  # a divisor of 2r: both ends searched
+    assert coarse_shift_step(1, 4) == 2 and coarse_shift_step(0, 2) == 1 and coarse_shift_step(7, 1) == 1
+    with pytest.raises(PipelineError, match="shift_step"):
+        SBMParams(shift_step=0).validate()
+
+
+@pytest.mark.parametrize("kernel", [True, False])
+def test_coarse_to_fine_shift_search(scene, kernel, monkeypatch):
+    """The coarse to fine alignment search evaluates every other shift and every shift next to the best
+    free one of those, with the exhaustive search's costs there (+inf elsewhere); its best shift is the
+    exhaustive one for most candidates and never costs less; the targets' ranked sources mostly agree."""
+    from sgpor_pipeline.removal import sbm
+
+    if kernel and not _raster_cpu.available():
+        pytest.skip("the cpu kernel is not built")
+    if not kernel:
+        monkeypatch.setattr(_raster_cpu, "available", lambda: False)
+    names, renders, holes = scene_inputs(scene)
+    bank = build_source_bank(names, renders, list(scene.masks), holes, SBMParams(source_stride=9))
+    targets = target_positions(holes[0], 15, 5, 0.1)
+    known = ~holes[0]
+    r = bank.stride // 2 + 1
+    assert r == 5 and coarse_shift_step(r, -1) == 2  # the default searches this radius coarse to fine
+    pos, _, _, _ = match_blocks(renders[0], known, targets, bank, SBMParams(shift_step=1, rerank=0, top_k=16))
+    layout = bank.features.layout
+    P = layout.pad + 15
+    img_p = cv2.copyMakeBorder(renders[0], P, P, P, P, cv2.BORDER_CONSTANT, value=(0, 0, 0))
+    known_p = cv2.copyMakeBorder(known.astype(np.float32), P, P, P, P, cv2.BORDER_CONSTANT, value=0)
+    corners = targets - layout.pad + P
+    free = sbm._free_shifts(bank, pos, r)
+    full = sbm._shift_costs(bank, img_p, known_p, corners, pos, layout.pad, layout.window, r, 2, free, 1)
+    c2f = sbm._shift_costs(bank, img_p, known_p, corners, pos, layout.pad, layout.window, r, 2, free, 2)
+    done = np.isfinite(c2f)
+    if kernel:  # (OpenCV's correlation by DFT differs in the last digits with the region's extent)
+        assert np.array_equal(c2f[done], full[done])
+    np.testing.assert_allclose(c2f[done], full[done], rtol=1e-4, atol=1e-3)
+    assert done[:, :, ::2, ::2].sum() == np.isfinite(full[:, :, ::2, ::2]).sum()
+    assert done.reshape(*done.shape[:2], -1).sum(2).max() == 36 + 8  # 6 x 6 coarse, the 8 around the best
+    best_full = np.where(free, full, np.inf).reshape(*full.shape[:2], -1)
+    best_c2f = np.where(free, c2f, np.inf).reshape(*full.shape[:2], -1)
+    assert (best_c2f.min(2) >= best_full.min(2) * (1 - 1e-5)).all()
+    assert (best_c2f.argmin(2) == best_full.argmin(2)).mean() > 0.9  # (0.95)
+    a = match_blocks(renders[0], known, targets, bank, SBMParams(shift_step=1))
+    b = match_blocks(renders[0], known, targets, bank, SBMParams())
+    assert len(targets) > 50 and (a[0][:, 0] == b[0][:, 0]).all(axis=1).mean() > 0.85  # (0.94)
 
 
 @pytest.mark.skipif(not _raster_cpu.available(), reason="the cpu kernel is not built")

@@ -2,8 +2,9 @@
 //
 // For each target t and each of its KC candidates j, the weighted sum of squared differences of the
 // target's template (a win x win window of the current image) against the candidate's region at
-// every shift (dy, dx) in [0, 2r] x [0, 2r]:
-//   out[t, j, dy, dx] = sum_{u, w, ch} mask[u, w]^2 * (region[dy + u, dx + w, ch] - templ[u, w, ch])^2,
+// every shift (dy, dx) in [0, 2r] x [0, 2r] that is a multiple of `step` (2r a multiple of step):
+//   out[t, j, a, b] = sum_{u, w, ch} mask[u, w]^2 * (region[a step + u, b step + w, ch] - templ[u, w, ch])^2,
+// a, b in [0, 2r / step]. step > 1 is the coarse pass of a coarse-to-fine search (sbm.py).
 // cv2.matchTemplate's TM_SQDIFF with a mask (its weights are the mask squared), computed directly.
 // cv2 computes it by DFT correlations of the expanded square, which is the slow part of a large
 // hole's SBM (a 45 x 45 template and 9 x 9 shifts: most of the time goes to transforms and call
@@ -36,13 +37,13 @@ inline float hsum(const vf& v) {
   return s;
 }
 
-// ng (<= G) outputs at shifts (dy, dx0 .. dx0 + ng - 1): G accumulators stay in registers while each
-// template chunk is loaded once. buf: the candidate's region, rows Lr floats apart, zero beyond its
+// ng (<= G) outputs at shifts (dy, dx0), (dy, dx0 + st), ..., (dy, dx0 + (ng - 1) st): G accumulators
+// stay in registers while each template chunk is loaded once. buf: the candidate's region, rows Lr floats apart, zero beyond its
 // data, so that every read of the G lanes' windows stays inside.
 template <int G>
 inline void ssd_shifts(const float* buf, int64_t Lr, const float* tm, const float* m2, int Lp,
-                       const int* rows, const int* lo, const int* hi, int nrows, int dy, int dx0, int ng,
-                       float* o) {
+                       const int* rows, const int* lo, const int* hi, int nrows, int dy, int dx0, int st,
+                       int ng, float* o) {
   vf acc[G];
   for (int g = 0; g < G; ++g) acc[g] = vf{} ;
   for (int k = 0; k < nrows; ++k) {
@@ -56,7 +57,7 @@ inline void ssd_shifts(const float* buf, int64_t Lr, const float* tm, const floa
       loadu(m, M + i);
       for (int g = 0; g < G; ++g) {
         vf d;
-        loadu(d, R + i + 3 * g);
+        loadu(d, R + i + 3 * st * g);
         d -= t;
         acc[g] += m * d * d;
       }
@@ -119,17 +120,17 @@ struct ByteViews {
 // cur: the current image, template corner of target t at (tpos[2t], tpos[2t+1]); mask: one channel,
 // same layout; source: the views (FloatViews or ByteViews), candidate j's region corner at
 // (cand[3(t KC + j) + 1], + 2) of view cand[3(t KC + j)] (-1: no candidate, out = +inf). The caller
-// keeps every window inside its (padded) image.
+// keeps every window inside its (padded) image and 2r a multiple of step.
 template <class Source>
-inline void masked_ssd(int T, int KC, int win, int r, const float* cur, int64_t cur_stride,
+inline void masked_ssd(int T, int KC, int win, int r, int step, const float* cur, int64_t cur_stride,
                        const float* mask, int64_t mask_stride, const int32_t* tpos, const Source& source,
                        const int32_t* cand, float* out, int nthreads) {
   constexpr int G = 8;  // shifts per pass (8 accumulators + 3 temporaries: no spills with AVX)
-  const int side = 2 * r + 1;
+  const int side = 2 * r / step + 1;                     // shifts per axis
   const int L = 3 * win;                                 // floats in a template row
   const int Lp = (L + kLanes - 1) / kLanes * kLanes;     // padded with zero weight
   const int groups = (side + G - 1) / G;
-  const int64_t Lr = Lp + 3 * int64_t(groups * G);       // region row, with room for every lane's read
+  const int64_t Lr = Lp + 3 * int64_t(step) * groups * G;  // region row, with room for every lane's read
   const int rh = win + 2 * r, rw3 = 3 * (win + 2 * r);   // region rows, floats per region row
 #pragma omp parallel num_threads(nthreads)
   {
@@ -175,7 +176,8 @@ inline void masked_ssd(int T, int KC, int win, int r, const float* cur, int64_t 
         for (int dy = 0; dy < side; ++dy)
           for (int g = 0; g < groups; ++g)
             ssd_shifts<G>(buf.data(), Lr, tm.data(), m2.data(), Lp, rows.data(), lo.data(), hi.data(),
-                          int(rows.size()), dy, g * G, std::min(G, side - g * G), o + dy * side + g * G);
+                          int(rows.size()), dy * step, g * G * step, step, std::min(G, side - g * G),
+                          o + dy * side + g * G);
       }
     }
   }

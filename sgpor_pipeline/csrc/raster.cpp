@@ -79,8 +79,8 @@ int bwd_ch(int CH, int C, int N, int W, int H, const void* pk, const int64_t* to
 
 #define SGPOR_API extern "C" __attribute__((visibility("default")))
 
-SGPOR_API int sgpor_abi_version() { return 7; }  // 3: sgpor_ssim_fwd / _bwd; 4: SH in two row arrays; 5: masked_ssd; 7: raster_bwd train mask
-// 6: masked_ssd_u8
+SGPOR_API int sgpor_abi_version() { return 8; }  // 3: sgpor_ssim_fwd / _bwd; 4: SH in two row arrays; 5: masked_ssd; 7: raster_bwd train mask
+// 6: masked_ssd_u8; 8: masked_ssd's shift step
 
 SGPOR_API int sgpor_cpu_level() {
 #if defined(__x86_64__) || defined(__i386__)
@@ -234,19 +234,19 @@ SGPOR_API int sgpor_max_threads() {
   }
 
 SGPOR_DEFINE(float, f32)
-SGPOR_API void sgpor_masked_ssd_f32(int T, int KC, int win, int r, const float* cur, int64_t cur_stride,
+SGPOR_API void sgpor_masked_ssd_f32(int T, int KC, int win, int r, int step, const float* cur, int64_t cur_stride,
                                     const float* mask, int64_t mask_stride, const int32_t* tpos,
                                     const float* const* views, const int64_t* vstride,
                                     const int32_t* cand, float* out, int nthreads) {
-  match::masked_ssd(T, KC, win, r, cur, cur_stride, mask, mask_stride, tpos, match::FloatViews{views, vstride},
+  match::masked_ssd(T, KC, win, r, step, cur, cur_stride, mask, mask_stride, tpos, match::FloatViews{views, vstride},
                     cand, out, nthreads);
 }
-SGPOR_API void sgpor_masked_ssd_u8(int T, int KC, int win, int r, const float* cur, int64_t cur_stride,
+SGPOR_API void sgpor_masked_ssd_u8(int T, int KC, int win, int r, int step, const float* cur, int64_t cur_stride,
                                    const float* mask, int64_t mask_stride, const int32_t* tpos,
                                    const uint8_t* const* views, const uint8_t* const* valid,
                                    const int32_t* height, const int32_t* width, int pad, const float* lut,
                                    float sentinel, const int32_t* cand, float* out, int nthreads) {
-  match::masked_ssd(T, KC, win, r, cur, cur_stride, mask, mask_stride, tpos,
+  match::masked_ssd(T, KC, win, r, step, cur, cur_stride, mask, mask_stride, tpos,
                     match::ByteViews{views, valid, height, width, pad, lut, sentinel}, cand, out, nthreads);
 }
 SGPOR_DEFINE(double, f64)

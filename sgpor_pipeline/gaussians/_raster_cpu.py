@@ -109,7 +109,7 @@ def _open(path: Path) -> ctypes.CDLL:
     # sgpor_pipeline/__init__.py sets it before torch is imported through the package.
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     lib = ctypes.CDLL(str(path))
-    if lib.sgpor_abi_version() != 7:
+    if lib.sgpor_abi_version() != 8:
         raise OSError(f"{path.name}: unexpected ABI version")
     for base, (res, args) in _SIGNATURES.items():
         for suf in ("f32", "f64"):
@@ -123,9 +123,9 @@ def _open(path: Path) -> ctypes.CDLL:
         fn.restype = _I64
         fn.argtypes = [_P, _I64]
     lib.sgpor_masked_ssd_f32.restype = None
-    lib.sgpor_masked_ssd_f32.argtypes = [_I, _I, _I, _I, _P, _I64, _P, _I64, _P, _P, _P, _P, _P, _I]
+    lib.sgpor_masked_ssd_f32.argtypes = [_I, _I, _I, _I, _I, _P, _I64, _P, _I64, _P, _P, _P, _P, _P, _I]
     lib.sgpor_masked_ssd_u8.restype = None
-    lib.sgpor_masked_ssd_u8.argtypes = [_I, _I, _I, _I, _P, _I64, _P, _I64, _P, _P, _P, _P, _P, _I, _P,
+    lib.sgpor_masked_ssd_u8.argtypes = [_I, _I, _I, _I, _I, _P, _I64, _P, _I64, _P, _P, _P, _P, _P, _I, _P,
                                         ctypes.c_float, _P, _P, _I]
     return lib
 
@@ -214,26 +214,33 @@ def ssim_backward(x: torch.Tensor, y: torch.Tensor, mom: torch.Tensor, wmap: tor
 
 
 def masked_ssd(cur: np.ndarray, mask: np.ndarray, tpos: np.ndarray, win: int, views: list[np.ndarray],
-               cand: np.ndarray, r: int, threads: int) -> np.ndarray:
+               cand: np.ndarray, r: int, threads: int, step: int = 1) -> np.ndarray:
     """cv2.matchTemplate's TM_SQDIFF with a mask, for many templates and candidates at once
     (csrc/match.h): target t's template is ``cur[y:y+win, x:x+win]`` (HxWx3 float32) at
     ``tpos[t] = (y, x)``, weighted by ``mask[y:y+win, x:x+win]`` squared (HxW float32); candidate j is
     the region ``views[v][cy:cy+win+2r, cx:cx+win+2r]`` for ``cand[t, j] = (v, cy, cx)`` (v -1: none,
-    +inf). Every window must lie inside its image. Returns [T, KC, 2r+1, 2r+1] float32: the sum over
-    the window and channels of mask^2 (region - template)^2 at each shift."""
+    +inf). Every window must lie inside its image. Returns [T, KC, n, n] float32, n = 2r / step + 1:
+    the sum over the window and channels of mask^2 (region - template)^2 at each shift that is a
+    multiple of ``step`` (2r must be one: step > 1 is a coarse search's first pass)."""
     if not available():
         raise RuntimeError(f"the cpu kernel is not loaded: {load_error()}")
     arrays = [np.ascontiguousarray(v, np.float32) for v in views]
     cur, mask, tpos, cand = _ssd_inputs(cur, mask, tpos, win, arrays, cand, r, [a.shape[:2] for a in arrays])
     T, KC = cand.shape[:2]
-    side = 2 * r + 1
+    side = _shifts_per_axis(r, step)
     out = np.empty((T, KC, side, side), np.float32)
     ptrs = (ctypes.c_void_p * max(len(arrays), 1))(*[a.ctypes.data for a in arrays])
     strides = np.array([a.shape[1] * 3 for a in arrays] or [0], np.int64)
-    _lib.sgpor_masked_ssd_f32(T, KC, win, r, cur.ctypes.data, cur.shape[1] * 3, mask.ctypes.data, mask.shape[1],
-                              tpos.ctypes.data, ctypes.addressof(ptrs), strides.ctypes.data, cand.ctypes.data,
-                              out.ctypes.data, max(1, int(threads)))
+    _lib.sgpor_masked_ssd_f32(T, KC, win, r, int(step), cur.ctypes.data, cur.shape[1] * 3, mask.ctypes.data,
+                              mask.shape[1], tpos.ctypes.data, ctypes.addressof(ptrs), strides.ctypes.data,
+                              cand.ctypes.data, out.ctypes.data, max(1, int(threads)))
     return out
+
+
+def _shifts_per_axis(r: int, step: int) -> int:
+    if r < 0 or step < 1 or (2 * r) % step:
+        raise ValueError(f"the shift range 2r = {2 * r} must be a non-negative multiple of the step {step}")
+    return 2 * r // step + 1
 
 
 def _ssd_inputs(cur: np.ndarray, mask: np.ndarray, tpos: np.ndarray, win: int, views: list[np.ndarray],
@@ -264,7 +271,7 @@ def _ssd_inputs(cur: np.ndarray, mask: np.ndarray, tpos: np.ndarray, win: int, v
 
 def masked_ssd_u8(cur: np.ndarray, mask: np.ndarray, tpos: np.ndarray, win: int, views: list[np.ndarray],
                   valid: list[np.ndarray], cand: np.ndarray, r: int, pad: int, lut: np.ndarray, sentinel: float,
-                  threads: int) -> np.ndarray:
+                  threads: int, step: int = 1) -> np.ndarray:
     """:func:`masked_ssd` with 8-bit source views (HxWx3 uint8) and their validity (HxW bool): the
     candidates' corners are in the views padded by ``pad`` on every side, and a region pixel reads
     ``sentinel`` outside its view or where it is not valid, ``lut[value]`` (float32 [256]) elsewhere.
@@ -281,17 +288,17 @@ def masked_ssd_u8(cur: np.ndarray, mask: np.ndarray, tpos: np.ndarray, win: int,
     padded = [(a.shape[0] + 2 * pad + 1, a.shape[1] + 2 * pad + 1) for a in arrays]  # (as SourceBank.padded)
     cur, mask, tpos, cand = _ssd_inputs(cur, mask, tpos, win, arrays, cand, r, padded)
     T, KC = cand.shape[:2]
-    side = 2 * r + 1
+    side = _shifts_per_axis(r, step)
     out = np.empty((T, KC, side, side), np.float32)
     n = max(len(arrays), 1)
     ptrs = (ctypes.c_void_p * n)(*[a.ctypes.data for a in arrays])
     vptrs = (ctypes.c_void_p * n)(*[m.ctypes.data for m in oks])
     heights = np.array([a.shape[0] for a in arrays] or [0], np.int32)
     widths = np.array([a.shape[1] for a in arrays] or [0], np.int32)
-    _lib.sgpor_masked_ssd_u8(T, KC, win, r, cur.ctypes.data, cur.shape[1] * 3, mask.ctypes.data, mask.shape[1],
-                             tpos.ctypes.data, ctypes.addressof(ptrs), ctypes.addressof(vptrs), heights.ctypes.data,
-                             widths.ctypes.data, int(pad), lut.ctypes.data, float(sentinel), cand.ctypes.data,
-                             out.ctypes.data, max(1, int(threads)))
+    _lib.sgpor_masked_ssd_u8(T, KC, win, r, int(step), cur.ctypes.data, cur.shape[1] * 3, mask.ctypes.data,
+                             mask.shape[1], tpos.ctypes.data, ctypes.addressof(ptrs), ctypes.addressof(vptrs),
+                             heights.ctypes.data, widths.ctypes.data, int(pad), lut.ctypes.data, float(sentinel),
+                             cand.ctypes.data, out.ctypes.data, max(1, int(threads)))
     return out
 
 

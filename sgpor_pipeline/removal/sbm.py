@@ -56,6 +56,9 @@ ORDERS = ("onion", "priority")
 LABEL_PENALTY = 4e6  # retrieval score lost by a source of another structure cell (below everything else)
 OTHER_CELL_WEIGHT = 1e-3  # paste weight of a pasted pixel whose source lies in another structure cell
 SENTINEL = -1.0  # colour of invalid source pixels during re-ranking (never matches real colours)
+# From this alignment search radius on, the search is coarse to fine by default (SBMParams.shift_step):
+# the benchmark's photos (320 px, radius 3) and mip360 kitchen (520 px, radius 4) keep every shift.
+COARSE_SHIFT_RADIUS = 5
 UINT8_TO_FLOAT = to_float32(np.arange(256, dtype=np.uint8))  # (the kernel reads 8-bit views through it)
 
 
@@ -86,6 +89,10 @@ class SBMParams:
     top_k: int = 5  # candidates kept per target block (RPR's next-best sources)
     rerank: int = 16  # feature shortlist re-ranked by masked colour SSD; 0 = pure feature retrieval
     shift: int = -1  # alignment search radius in pixels while re-ranking; -1 = source_stride // 2 + 1
+    # The alignment search coarse to fine: every shift_step-th shift, then around the best of them
+    # (_shift_costs); -1 = 2 from a radius of COARSE_SHIFT_RADIUS (photos above about 800 px: the
+    # source grid's stride, and so the radius, grows with the pixels), else 1 (every shift).
+    shift_step: int = -1
     blend: str = "poisson"  # "poisson" or "feather"
     # How far into the hole the Poisson blend's correction reaches: 0 = everywhere (its membrane spreads
     # any offset between the rim and the pasted blocks over the whole hole); > 0 = it fades as
@@ -187,6 +194,9 @@ class SBMParams:
         if self.rerank_margin < -1:
             raise PipelineError(f"rerank_margin must be >= -1 (got {self.rerank_margin})",
                                 fix="use -1 (the feature context's window) or a margin in pixels")
+        if self.shift_step == 0 or self.shift_step < -1:
+            raise PipelineError(f"shift_step must be >= 1 or -1 (got {self.shift_step})",
+                                fix="use -1 (automatic), 1 (every shift) or 2")
         if self.top_k < 1:
             raise PipelineError("top_k must be >= 1", fix="use e.g. 5")
         if self.rerank_threads < 0:
@@ -736,26 +746,55 @@ class SBMResult:
                 "sim": self.sim.astype(np.float32)}
 
 
-def _shift_costs(bank: SourceBank, cur_p: np.ndarray, known_p: np.ndarray, corners: np.ndarray, pos: np.ndarray,
-                 pad: int, win: int, r: int, threads: int) -> np.ndarray:
-    """Masked colour SSD [T,kc,2r+1,2r+1] of each target's context window (top-left ``corners`` [T,2] in
-    the padded ``cur_p``, weighted by ``known_p``) against its candidates ``pos`` [T,kc,3] (view, y, x)
-    at every shift within +-r (cv2.matchTemplate TM_SQDIFF with a mask). By the cpu kernel's
-    :func:`~sgpor_pipeline.gaussians._raster_cpu.masked_ssd` where it is built (6-8x faster on kitchen's
-    45 px windows), else by OpenCV, targets in parallel (it releases the GIL)."""
+def _free_shifts(bank: SourceBank, pos: np.ndarray, r: int) -> np.ndarray:
+    """[T,kc,2r+1,2r+1]: whether candidate ``pos`` [T,kc,3] (view, y, x) shifted by (dy - r, dx - r) is a
+    free source block (a corner off the view is not)."""
+    side = 2 * r + 1
+    ok = np.zeros(pos.shape[:2] + (side, side), bool)
+    ar = np.arange(side)
+    for v in np.unique(pos[..., 0]):
+        if v < 0:
+            continue
+        sel = pos[..., 0] == v
+        fp = bank.free_padded(int(v), r)
+        ok[sel] = fp[pos[sel][:, 1, None, None] + ar[None, :, None], pos[sel][:, 2, None, None] + ar[None, None, :]]
+    return ok
+
+
+def coarse_shift_step(r: int, step: int) -> int:
+    """The coarse pass's step for a search radius ``r``: ``step`` (-1: 2 from a radius of
+    COARSE_SHIFT_RADIUS, else 1), lowered to the largest divisor of 2r, so the coarse grid holds both
+    ends of the range."""
+    if step < 0:
+        step = 2 if r >= COARSE_SHIFT_RADIUS else 1
+    step = max(1, min(step, 2 * r))
+    while step > 1 and (2 * r) % step:
+        step -= 1
+    return step
+
+
+def _ssd_at_shifts(bank: SourceBank, cur_p: np.ndarray, known_p: np.ndarray, corners: np.ndarray, pos: np.ndarray,
+                   pad: int, win: int, r: int, threads: int, step: int = 1) -> np.ndarray:
+    """Masked colour SSD [T,kc,n,n], n = 2r / step + 1, of each target's context window (top-left
+    ``corners`` [T,2] in the padded ``cur_p``, weighted by ``known_p``) against its candidates ``pos``
+    [T,kc,3] (view, y, x) at the shifts -r, -r + step, ..., r on each axis (cv2.matchTemplate TM_SQDIFF
+    with a mask). By the cpu kernel's :func:`~sgpor_pipeline.gaussians._raster_cpu.masked_ssd` where it
+    is built (6-8x faster on kitchen's 45 px windows), else by OpenCV, targets in parallel (it releases
+    the GIL)."""
     from sgpor_pipeline.gaussians import _raster_cpu
 
     PP = pad + r  # a region (the window at every shift) of a source block at (y, x) is padded[y:, x:]
     if _raster_cpu.available() and all(im.dtype == np.uint8 for im in bank.images):
         # the kernel pads the 8-bit views itself: no float copy of every source view (12 bytes a pixel)
         return _raster_cpu.masked_ssd_u8(cur_p, known_p, corners, win, bank.images, bank.valid, pos, r, PP,
-                                         UINT8_TO_FLOAT, SENTINEL, threads)
+                                         UINT8_TO_FLOAT, SENTINEL, threads, step)
     used = np.unique(pos[..., 0])
     if _raster_cpu.available():
         views = [bank.padded(v, PP) if v in used else np.zeros((1, 1, 3), np.float32) for v in range(len(bank.images))]
-        return _raster_cpu.masked_ssd(cur_p, known_p, corners, win, views, pos, r, threads)
+        return _raster_cpu.masked_ssd(cur_p, known_p, corners, win, views, pos, r, threads, step)
     for v in used:  # fill the caches before the threads read them
-        bank.padded(int(v), PP)
+        if v >= 0:
+            bank.padded(int(v), PP)
     side = 2 * r + 1
     res = np.empty(pos.shape[:2] + (side, side), np.float32)
 
@@ -764,6 +803,9 @@ def _shift_costs(bank: SourceBank, cur_p: np.ndarray, known_p: np.ndarray, corne
         templ = cur_p[y0:y0 + win, x0:x0 + win]
         mask3 = np.repeat(known_p[y0:y0 + win, x0:x0 + win, None], 3, axis=2)
         for j, (v, sy, sx) in enumerate(pos[t].tolist()):
+            if v < 0:
+                res[t, j] = np.inf
+                continue
             region = bank.padded(v, PP)[sy:sy + win + 2 * r, sx:sx + win + 2 * r]  # corners sy-r .. sy+r
             res[t, j] = cv2.matchTemplate(region, templ, cv2.TM_SQDIFF, mask=mask3)
 
@@ -773,10 +815,43 @@ def _shift_costs(bank: SourceBank, cur_p: np.ndarray, known_p: np.ndarray, corne
     else:
         for t in range(len(pos)):
             one(t)
+    return res[:, :, ::step, ::step]
+
+
+def _shift_costs(bank: SourceBank, cur_p: np.ndarray, known_p: np.ndarray, corners: np.ndarray, pos: np.ndarray,
+                 pad: int, win: int, r: int, threads: int, free: np.ndarray, step: int = 1) -> np.ndarray:
+    """Masked colour SSD [T,kc,2r+1,2r+1] of each target's context window against its candidates at the
+    shifts within +-r (:func:`_ssd_at_shifts`). With ``step`` > 1 (a divisor of 2r) a coarse to fine
+    search: every step-th shift on each axis, then every shift within step - 1 of the best coarse one
+    that is a free block (``free``, :func:`_free_shifts`); the shifts not evaluated cost +inf. Lund +
+    box at 1024 px (r = 7): step 2 evaluates 73 of 225 shifts; a candidate's best shift was the
+    exhaustive one for 95 % of the candidates (its cost 0.05 % higher on average), and each target's
+    best candidate the same for 98.8 % of the targets."""
+    if step == 1:
+        return _ssd_at_shifts(bank, cur_p, known_p, corners, pos, pad, win, r, threads)
+    coarse = _ssd_at_shifts(bank, cur_p, known_p, corners, pos, pad, win, r, threads, step)
+    T, kc, n = coarse.shape[:3]
+    side = 2 * r + 1
+    res = np.full((T, kc, side, side), np.inf, np.float32)
+    res[:, :, ::step, ::step] = coarse
+    score = np.where(free[:, :, ::step, ::step], coarse, np.inf).reshape(T, kc, -1)
+    cy, cx = np.divmod(score.argmin(axis=2), n)  # (no free finite shift: the first; its costs stay +inf)
+    m = 2 * step - 1  # the fine window: within step - 1 of the coarse best, kept inside the range
+    y0 = np.clip(cy * step - (step - 1), 0, side - m)
+    x0 = np.clip(cx * step - (step - 1), 0, side - m)
+    fine_pos = pos.copy()
+    valid = pos[..., 0] >= 0
+    fine_pos[..., 1] += np.where(valid, y0, 0)
+    fine_pos[..., 2] += np.where(valid, x0, 0)
+    # a region at shift y0 starts y0 rows into the candidate's: the same padded view, radius step - 1
+    fine = _ssd_at_shifts(bank, cur_p, known_p, corners, fine_pos, pad + r - (step - 1), win, step - 1, threads)
+    ar = np.arange(m)
+    res[np.arange(T)[:, None, None, None], np.arange(kc)[None, :, None, None],
+        y0[..., None, None] + ar[:, None], x0[..., None, None] + ar[None, :]] = fine
     return res
 
 
-def _best_shifts(bank: SourceBank, res: np.ndarray, pos: np.ndarray, sims: np.ndarray, msum: np.ndarray, r: int,
+def _best_shifts(free: np.ndarray, res: np.ndarray, pos: np.ndarray, sims: np.ndarray, msum: np.ndarray, r: int,
                  k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Each candidate at its best free shift, the candidates ranked by colour cost per valid pixel: from
     the SSD ``res`` [T,kc,side,side] of candidates ``pos`` [T,kc,3] with feature similarities ``sims``
@@ -787,13 +862,8 @@ def _best_shifts(bank: SourceBank, res: np.ndarray, pos: np.ndarray, sims: np.nd
     known context (``msum`` < 1) keeps the feature ranking (cost NaN). Returns (positions [T,k,3],
     cost [T,k], similarity [T,k])."""
     T, kc, side = res.shape[0], res.shape[1], res.shape[2]
-    ok = np.zeros(res.shape, bool)  # the shifted corner must be a free source block (off the view: not)
-    ar = np.arange(side)
-    for v in np.unique(pos[..., 0]):
-        sel = pos[..., 0] == v
-        fp = bank.free_padded(int(v), r)
-        ok[sel] = fp[pos[sel][:, 1, None, None] + ar[None, :, None], pos[sel][:, 2, None, None] + ar[None, None, :]]
-    flat = np.where(ok & np.isfinite(res), res, np.inf).reshape(T, kc, -1)
+    # the shifted corner must be a free source block (``free``: :func:`_free_shifts`)
+    flat = np.where(free & np.isfinite(res), res, np.inf).reshape(T, kc, -1)
     best = flat.argmin(axis=2)
     dy, dx = np.divmod(best, side)
     shifted = np.stack([pos[..., 0], pos[..., 1] + dy - r, pos[..., 2] + dx - r], axis=-1)
@@ -875,14 +945,16 @@ def match_blocks(image: np.ndarray, known: np.ndarray, targets: np.ndarray, bank
         cpos = bank.pos[idx].astype(np.int64)  # [T,kc,3] (view, y, x)
         msum = known_p[corners[:, 0, None, None] + np.arange(rwin)[None, :, None],
                        corners[:, 1, None, None] + np.arange(rwin)[None, None, :]].sum(axis=(1, 2), dtype=np.float64)
+        free = _free_shifts(bank, cpos, r)
         res = _shift_costs(bank, img_p, known_p, corners, cpos, rpad, rwin, r,
-                           params.rerank_threads or max(1, torch.get_num_threads()))
+                           params.rerank_threads or max(1, torch.get_num_threads()), free,
+                           coarse_shift_step(r, params.shift_step))
         if target_label is not None and bank.block_label is not None:
             # a cell with fewer sources than the shortlist: the others' blocks (ranked after them) stay
             # last here too, unless no source of its own cell was found at all
             other = other_cells(bank.block_label[idx], np.asarray(target_label).reshape(-1, 1))
             res[other & ~other.all(axis=1, keepdims=True)] = np.inf
-        p_, c_, s_ = _best_shifts(bank, res, cpos, sc, msum, r, kk)
+        p_, c_, s_ = _best_shifts(free, res, cpos, sc, msum, r, kk)
         pos[:, :p_.shape[1]], cost[:, :p_.shape[1]], sim[:, :p_.shape[1]] = p_, c_, s_
     else:
         pos[:, :idx.shape[1]] = bank.pos[idx[:, :kk]]

@@ -513,6 +513,11 @@ def test_coarse_to_fine_shift_search(scene, kernel, monkeypatch):
     np.testing.assert_allclose(c2f[done], full[done], rtol=1e-4, atol=1e-3)
     assert done[:, :, ::2, ::2].sum() == np.isfinite(full[:, :, ::2, ::2]).sum()
     assert done.reshape(*done.shape[:2], -1).sum(2).max() == 36 + 8  # 6 x 6 coarse, the 8 around the best
+    for step in (5, 10):  # coarser steps: their fine windows (the whole range at step 2r) inside the range
+        other = sbm._shift_costs(bank, img_p, known_p, corners, pos, layout.pad, layout.window, r, 2, free, step)
+        seen = np.isfinite(other)
+        np.testing.assert_allclose(other[seen], full[seen], rtol=1e-4, atol=1e-3)
+        assert step == 5 or np.array_equal(seen, np.isfinite(full))
     best_full = np.where(free, full, np.inf).reshape(*full.shape[:2], -1)
     best_c2f = np.where(free, c2f, np.inf).reshape(*full.shape[:2], -1)
     assert (best_c2f.min(2) >= best_full.min(2) * (1 - 1e-5)).all()

@@ -835,16 +835,17 @@ def _shift_costs(bank: SourceBank, cur_p: np.ndarray, known_p: np.ndarray, corne
     res = np.full((T, kc, side, side), np.inf, np.float32)
     res[:, :, ::step, ::step] = coarse
     score = np.where(free[:, :, ::step, ::step], coarse, np.inf).reshape(T, kc, -1)
-    cy, cx = np.divmod(score.argmin(axis=2), n)  # (no free finite shift: the first; its costs stay +inf)
-    m = 2 * step - 1  # the fine window: within step - 1 of the coarse best, kept inside the range
+    cy, cx = np.divmod(score.argmin(axis=2), n)  # (no free coarse shift: the first, as good as any)
+    m = min(2 * step - 1, side)  # the fine window: within step - 1 of the coarse best, kept inside the range
+    h = (m - 1) // 2
     y0 = np.clip(cy * step - (step - 1), 0, side - m)
     x0 = np.clip(cx * step - (step - 1), 0, side - m)
     fine_pos = pos.copy()
     valid = pos[..., 0] >= 0
     fine_pos[..., 1] += np.where(valid, y0, 0)
     fine_pos[..., 2] += np.where(valid, x0, 0)
-    # a region at shift y0 starts y0 rows into the candidate's: the same padded view, radius step - 1
-    fine = _ssd_at_shifts(bank, cur_p, known_p, corners, fine_pos, pad + r - (step - 1), win, step - 1, threads)
+    # a region at shift y0 starts y0 rows into the candidate's: the same padded view, radius h
+    fine = _ssd_at_shifts(bank, cur_p, known_p, corners, fine_pos, pad + r - h, win, h, threads)
     ar = np.arange(m)
     res[np.arange(T)[:, None, None, None], np.arange(kc)[None, :, None, None],
         y0[..., None, None] + ar[:, None], x0[..., None, None] + ar[None, :]] = fine

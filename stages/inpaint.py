@@ -118,6 +118,7 @@ from sgpor_pipeline.removal.sbm import (
     high_pass,
     membrane_fill,
     require_fsr,
+    shift_search,
 )
 from sgpor_pipeline.removal.structure import FREE, StructureParams, draw_lines, structure_cells
 from sgpor_pipeline.scene import Camera
@@ -1092,7 +1093,10 @@ class InpaintStage(Stage):
             "projected": sum(s["projected"] for s in summary.values()),
             "inpainted": sum(s["inpainted"] for s in summary.values()),
             "seconds_views": sum(s["seconds"] for s in summary.values()),
+            # (shift_radius / shift_step: the views' re-ranking alignment search, shift_search)
             "sources": None if bank_obj is None else {"blocks": len(bank_obj), "stride": bank_obj.stride,
+                                                      "shift_radius": shift_search(sbm, bank_obj.stride)[0],
+                                                      "shift_step": shift_search(sbm, bank_obj.stride)[1],
                                                       "seconds": state.get("bank_seconds")},
             # view_structure: the views with lines through their holes, and how many (when the views ran)
             "view_structure": state.get("view_lines"),

@@ -449,6 +449,8 @@ def test_inpaint_stage_lifts_the_objects_shadow_in_every_view(tmp_path, shadow):
     ctx = StageContext.standalone(tmp_path / "lift", "inpaint", InpaintParams(), {"remove": remove})
     InpaintStage().run(ctx)
     report = json.loads((ctx.out_dir / "inpaint.json").read_text())
+    src = report["sources"]  # small photos: the re-ranking searches every shift
+    assert src["shift_radius"] == src["stride"] // 2 + 1 and src["shift_step"] == 1, src
     found = report["plane"]["shadow"]
     assert 0.2 < found["strength"] < 0.7, found
     assert (ctx.out_dir / "plane" / "shading.png").is_file()

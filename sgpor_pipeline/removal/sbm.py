@@ -773,6 +773,12 @@ def coarse_shift_step(r: int, step: int) -> int:
     return step
 
 
+def shift_search(params: SBMParams, source_stride: int) -> tuple[int, int]:
+    """(radius, coarse step) of the re-ranking's alignment search over a source grid of this stride."""
+    r = params.shift if params.shift >= 0 else source_stride // 2 + 1
+    return r, coarse_shift_step(r, params.shift_step)
+
+
 def _ssd_at_shifts(bank: SourceBank, cur_p: np.ndarray, known_p: np.ndarray, corners: np.ndarray, pos: np.ndarray,
                    pad: int, win: int, r: int, threads: int, step: int = 1) -> np.ndarray:
     """Masked colour SSD [T,kc,n,n], n = 2r / step + 1, of each target's context window (top-left
@@ -912,7 +918,7 @@ def match_blocks(image: np.ndarray, known: np.ndarray, targets: np.ndarray, bank
     rpad, rwin = pad, win
     if params.rerank_margin >= 0:
         rpad, rwin = params.rerank_margin, s + 2 * params.rerank_margin
-    r = params.shift if params.shift >= 0 else bank.stride // 2 + 1
+    r, step = shift_search(params, bank.stride)
     targets = np.asarray(targets, np.int64).reshape(-1, 2)
     nt = len(targets)
     kk = min(k, len(bank))
@@ -948,8 +954,7 @@ def match_blocks(image: np.ndarray, known: np.ndarray, targets: np.ndarray, bank
                        corners[:, 1, None, None] + np.arange(rwin)[None, None, :]].sum(axis=(1, 2), dtype=np.float64)
         free = _free_shifts(bank, cpos, r)
         res = _shift_costs(bank, img_p, known_p, corners, cpos, rpad, rwin, r,
-                           params.rerank_threads or max(1, torch.get_num_threads()), free,
-                           coarse_shift_step(r, params.shift_step))
+                           params.rerank_threads or max(1, torch.get_num_threads()), free, step)
         if target_label is not None and bank.block_label is not None:
             # a cell with fewer sources than the shortlist: the others' blocks (ranked after them) stay
             # last here too, unless no source of its own cell was found at all

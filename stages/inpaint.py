@@ -1073,6 +1073,7 @@ class InpaintStage(Stage):
                 summary[name]["relit"] = relit
                 relit_pixels += relit
         bank_obj = state.get("bank")
+        shift_radius, shift_step = shift_search(sbm, bank_obj.stride) if bank_obj is not None else (None, None)
         if shading is not None:
             ctx.log.info(f"inpaint: the object's contact shadow lifted from {relit_pixels} pixels outside the "
                          f"holes (strength {plane_info['shadow'].get('strength', 0.0):.2f})")
@@ -1095,8 +1096,7 @@ class InpaintStage(Stage):
             "seconds_views": sum(s["seconds"] for s in summary.values()),
             # (shift_radius / shift_step: the views' re-ranking alignment search, shift_search)
             "sources": None if bank_obj is None else {"blocks": len(bank_obj), "stride": bank_obj.stride,
-                                                      "shift_radius": shift_search(sbm, bank_obj.stride)[0],
-                                                      "shift_step": shift_search(sbm, bank_obj.stride)[1],
+                                                      "shift_radius": shift_radius, "shift_step": shift_step,
                                                       "seconds": state.get("bank_seconds")},
             # view_structure: the views with lines through their holes, and how many (when the views ran)
             "view_structure": state.get("view_lines"),

@@ -38,8 +38,8 @@ inline float hsum(const vf& v) {
 }
 
 // ng (<= G) outputs at shifts (dy, dx0), (dy, dx0 + st), ..., (dy, dx0 + (ng - 1) st): G accumulators
-// stay in registers while each template chunk is loaded once. buf: the candidate's region, rows Lr floats apart, zero beyond its
-// data, so that every read of the G lanes' windows stays inside.
+// stay in registers while each template chunk is loaded once. buf: the candidate's region, rows Lr
+// floats apart, zero beyond its data, so that every read of the G lanes' windows stays inside.
 template <int G>
 inline void ssd_shifts(const float* buf, int64_t Lr, const float* tm, const float* m2, int Lp,
                        const int* rows, const int* lo, const int* hi, int nrows, int dy, int dx0, int st,

@@ -846,10 +846,9 @@ def _shift_costs(bank: SourceBank, cur_p: np.ndarray, known_p: np.ndarray, corne
     h = (m - 1) // 2
     y0 = np.clip(cy * step - (step - 1), 0, side - m)
     x0 = np.clip(cx * step - (step - 1), 0, side - m)
-    fine_pos = pos.copy()
-    valid = pos[..., 0] >= 0
-    fine_pos[..., 1] += np.where(valid, y0, 0)
-    fine_pos[..., 2] += np.where(valid, x0, 0)
+    fine_pos = pos.copy()  # (a missing candidate, view -1, stays missing whatever its corner)
+    fine_pos[..., 1] += y0
+    fine_pos[..., 2] += x0
     # a region at shift y0 starts y0 rows into the candidate's: the same padded view, radius h
     fine = _ssd_at_shifts(bank, cur_p, known_p, corners, fine_pos, pad + r - h, win, h, threads)
     ar = np.arange(m)

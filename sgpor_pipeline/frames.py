@@ -39,9 +39,13 @@ class FrameParams:
     format: str = "jpg"  # "jpg" (quality 95) or "png"
 
 
-def sharpness(frame: np.ndarray, size: int = 480) -> float:
-    """Variance of the Laplacian of the frame's grey image shrunk to ``size`` px (higher = sharper)."""
-    grey = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY) if frame.ndim == 3 else frame
+def sharpness(frame: np.ndarray, size: int = 480, rgb: bool = False) -> float:
+    """Variance of the Laplacian of the frame's grey image shrunk to ``size`` px (higher = sharper).
+    A colour frame is BGR as OpenCV decodes video, or RGB with ``rgb``."""
+    if frame.ndim == 3:
+        grey = cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY if rgb else cv2.COLOR_BGR2GRAY)
+    else:
+        grey = frame
     scale = size / max(grey.shape)
     if scale < 1:
         grey = cv2.resize(grey, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
@@ -104,7 +108,7 @@ def select_photos(folder: Path, out_dir: Path, params: FrameParams | None = None
     def scored() -> Iterable[tuple[int, float, Path]]:
         for i in (progress or _no_progress)(sorted(looks), total=len(looks), desc="photos"):
             try:
-                yield looks[i], sharpness(read_rgb8(photos[i]), p.sharpness_size), photos[i]
+                yield looks[i], sharpness(read_rgb8(photos[i]), p.sharpness_size, rgb=True), photos[i]
             except UnreadableImageError:
                 continue  # (ingest names unreadable files; here they are only not chosen)
 
@@ -124,6 +128,11 @@ def extract_frames(video: Path, out_dir: Path, params: FrameParams | None = None
         raise PipelineError("video not found", path=video, fix="check the path")
     cap = cv2.VideoCapture(str(video))
     if not cap.isOpened():
+        if not str(Path(video).resolve()).isascii():  # OpenCV's video reader takes narrow paths (Windows: ANSI)
+            raise PipelineError("cannot open this video: unknown format, damaged file, or its path's non-ASCII "
+                                "characters (OpenCV's video reader cannot open those on Windows)", path=video,
+                                fix="move or rename it to a path of plain ASCII characters; if that fails, "
+                                    + CONVERT)
         raise PipelineError("cannot open this video (unknown format or damaged file)", path=video, fix=CONVERT)
     try:
         total = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))

@@ -27,6 +27,9 @@ def test_sharpness_prefers_detail():
     rng = np.random.default_rng(1)
     img = rng.integers(0, 256, (60, 80, 3), dtype=np.uint8)
     assert sharpness(img) > sharpness(cv2.GaussianBlur(img, (0, 0), 2.0)) > 0
+    # photos are read as RGB, video frames decoded as BGR: the same grey image either way
+    assert sharpness(img, rgb=True) == sharpness(np.ascontiguousarray(img[..., ::-1]))
+    assert sharpness(img, rgb=True) != sharpness(img)
 
 
 def test_the_sharpest_frame_of_each_stretch(tmp_path):
@@ -72,6 +75,12 @@ def test_frame_errors(tmp_path):
         extract_frames(bad, tmp_path / "out")
     with pytest.raises(PipelineError, match="count >= 3"):
         extract_frames(bad, tmp_path / "out", FrameParams(count=2))
+    # a path OpenCV's reader may not take (Windows): the message says so and names the fix
+    named = tmp_path / "vidéo.mp4"
+    named.write_bytes(b"not a video at all")
+    with pytest.raises(PipelineError, match="non-ASCII") as e:
+        extract_frames(named, tmp_path / "out")
+    assert "rename" in str(e.value)
 
 
 def test_run_on_a_video_names_the_frames_command(tmp_path, capsys):

@@ -508,9 +508,8 @@ def test_coarse_to_fine_shift_search(scene, kernel, monkeypatch):
     full = sbm._shift_costs(bank, img_p, known_p, corners, pos, layout.pad, layout.window, r, 2, free, 1)
     c2f = sbm._shift_costs(bank, img_p, known_p, corners, pos, layout.pad, layout.window, r, 2, free, 2)
     done = np.isfinite(c2f)
-    if kernel:  # (OpenCV's correlation by DFT differs in the last digits with the region's extent)
-        assert np.array_equal(c2f[done], full[done])
-    np.testing.assert_allclose(c2f[done], full[done], rtol=1e-4, atol=1e-3)
+    # (without the kernel both passes read OpenCV's exhaustive search, which takes every shift anyway)
+    assert np.array_equal(c2f[done], full[done])
     assert done[:, :, ::2, ::2].sum() == np.isfinite(full[:, :, ::2, ::2]).sum()
     assert done.reshape(*done.shape[:2], -1).sum(2).max() == 36 + 8  # 6 x 6 coarse, the 8 around the best
     for step in (5, 10):  # coarser steps: their fine windows (the whole range at step 2r) inside the range

@@ -17,6 +17,7 @@
 #include <cstdint>
 #include <cstring>
 #include <limits>
+#include <type_traits>
 #include <vector>
 
 namespace sgpor {
@@ -174,10 +175,26 @@ inline void masked_ssd(int T, int KC, int win, int r, int step, const float* cur
         }
         source.fill(c, rh, rw3, buf.data(), Lr);
         for (int dy = 0; dy < side; ++dy)
-          for (int g = 0; g < groups; ++g)
-            ssd_shifts<G>(buf.data(), Lr, tm.data(), m2.data(), Lp, rows.data(), lo.data(), hi.data(),
-                          int(rows.size()), dy * step, g * G * step, step, std::min(G, side - g * G),
-                          o + dy * side + g * G);
+          for (int g = 0; g < groups; ++g) {
+            const int ng = std::min(G, side - g * G);
+            // as many accumulators as outputs: a fine pass's 3 shifts a row no longer pay for 8
+            // (each output's sum is the same whichever G computes it)
+            auto run = [&](auto n) {
+              ssd_shifts<decltype(n)::value>(buf.data(), Lr, tm.data(), m2.data(), Lp, rows.data(), lo.data(),
+                                             hi.data(), int(rows.size()), dy * step, g * G * step, step, ng,
+                                             o + dy * side + g * G);
+            };
+            switch (ng) {
+              case 1: run(std::integral_constant<int, 1>{}); break;
+              case 2: run(std::integral_constant<int, 2>{}); break;
+              case 3: run(std::integral_constant<int, 3>{}); break;
+              case 4: run(std::integral_constant<int, 4>{}); break;
+              case 5: run(std::integral_constant<int, 5>{}); break;
+              case 6: run(std::integral_constant<int, 6>{}); break;
+              case 7: run(std::integral_constant<int, 7>{}); break;
+              default: run(std::integral_constant<int, G>{}); break;
+            }
+          }
       }
     }
   }

@@ -18,6 +18,7 @@ from sgpor_pipeline.removal.features import (
     CellLayout,
     ClassicalBackend,
     block_descriptors,
+    cell_means,
     make_backend,
 )
 from sgpor_pipeline.removal.multiview import (
@@ -80,6 +81,35 @@ def scene_inputs(scene):
 
 
 # -------------------------------------------------------------------------------------------- features
+
+
+@pytest.mark.parametrize("channels", [24, 6, 1])
+def test_cell_means_are_masked_means_over_each_cell(channels):
+    """Each cell's mean over its valid pixels and its valid fraction (0 below min_valid), for blocks
+    inside, across the border and off the image (outside pixels count as invalid), any channel count."""
+    rng = np.random.default_rng(channels)
+    h, w = 40, 52
+    maps = rng.random((h, w, channels), dtype=np.float32)
+    valid = rng.random((h, w)) > 0.3
+    valid[:, 30:] = False  # a hole: cells in it get weight 0
+    layout = CellLayout(9, 3, 3)  # 5 px cells, a 15 px window from 3 px before the block's corner
+    pos = np.array([[0, 0], [10, 12], [h - 9, w - 9], [-6, 20], [25, 26], [31, 2]])
+    means, weights = cell_means(maps, valid, pos, layout, min_valid=0.25)
+    assert means.shape == (len(pos), 9, channels) and weights.shape == (len(pos), 9)
+    assert means.dtype == np.float32 and weights.dtype == np.float32
+    c = layout.cell
+    for n, (y, x) in enumerate(pos):
+        for k, (dy, dx) in enumerate(layout.cell_offsets()):
+            ys, xs = np.meshgrid(np.arange(y + dy, y + dy + c), np.arange(x + dx, x + dx + c), indexing="ij")
+            inside = (ys >= 0) & (ys < h) & (xs >= 0) & (xs < w)
+            ok = np.zeros((c, c), bool)
+            ok[inside] = valid[ys[inside], xs[inside]]
+            frac = ok.sum() / (c * c)
+            assert weights[n, k] == pytest.approx(frac if frac >= 0.25 else 0.0, abs=1e-6)
+            if ok.any():
+                want = maps[ys[ok], xs[ok]].mean(axis=0)
+                np.testing.assert_allclose(means[n, k], want, rtol=1e-4, atol=1e-5)
+    assert (weights[4] == 0).any() and (weights[3, :3] == 0).all()  # the hole's cells, the rows above
 
 
 def test_classical_maps_and_descriptors_shape_dtype_norm():

@@ -369,21 +369,19 @@ def cell_means(maps: np.ndarray, valid: np.ndarray, positions: np.ndarray, layou
     c = layout.cell
     pad = layout.window + c
     v = valid.astype(np.float32)
-    mv = maps * v[:, :, None]
-    mvp = cv2.copyMakeBorder(mv, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0)
     vp = cv2.copyMakeBorder(v, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0)
-    if mvp.ndim == 2:
-        mvp = mvp[:, :, None]
-    sums = np.empty(mvp.shape, np.float32)
-    for i in range(0, r, 4):  # OpenCV filters at most 4 channels at a time reliably
-        sub = np.ascontiguousarray(mvp[:, :, i:i + 4])
-        f = cv2.boxFilter(sub, -1, (c, c), anchor=(0, 0), normalize=False, borderType=cv2.BORDER_CONSTANT)
-        sums[:, :, i:i + 4] = f.reshape(f.shape[0], f.shape[1], -1)
-    cnt = cv2.boxFilter(vp, -1, (c, c), anchor=(0, 0), normalize=False, borderType=cv2.BORDER_CONSTANT)
     offs = layout.cell_offsets()  # [C,2]
     yy = positions[:, None, 0] + offs[None, :, 0] + pad
     xx = positions[:, None, 1] + offs[None, :, 1] + pad
-    s = sums[yy, xx]  # [N,C,R]
+    s = np.empty(yy.shape + (r,), np.float32)  # [N,C,R]
+    for i in range(0, r, 4):  # OpenCV filters at most 4 channels at a time reliably
+        # each group of channels masked, padded and filtered on its own, contiguous from the start:
+        # no full-image copies of all channels (the sums are the same)
+        mv = maps[:, :, i:i + 4] * v[:, :, None]
+        mvp = cv2.copyMakeBorder(mv, pad, pad, pad, pad, cv2.BORDER_CONSTANT, value=0)
+        f = cv2.boxFilter(mvp, -1, (c, c), anchor=(0, 0), normalize=False, borderType=cv2.BORDER_CONSTANT)
+        s[..., i:i + 4] = f.reshape(f.shape[0], f.shape[1], -1)[yy, xx]
+    cnt = cv2.boxFilter(vp, -1, (c, c), anchor=(0, 0), normalize=False, borderType=cv2.BORDER_CONSTANT)
     n = cnt[yy, xx]  # [N,C]
     frac = n / float(c * c)
     means = s / np.maximum(n, 1e-6)[..., None]

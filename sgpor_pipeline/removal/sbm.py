@@ -415,25 +415,54 @@ def top_lowest_index(score: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.T
     lower column first, and kept before a higher one at the k-th place.
 
     ``torch.topk`` says nothing of which equal scores it keeps or in what order, and repeated blocks
-    (flat walls, a synthetic texture's tiles) tie exactly. The (k+1)-th score shows the rows with a
-    tie across the k-th place (rare): those are redone one by one.
+    (flat walls, a synthetic texture's tiles, blown-out sky) tie exactly. The (k+1)-th score shows the
+    rows with a tie across the k-th place; those keep the scores above the k-th (all among topk's k)
+    and the tied ones of the lowest columns, looked for in a window of the first 4k columns (a flat
+    wall's blocks all tie: there they are) that doubles until it holds enough of them.
     """
     import torch
 
     s, i = torch.topk(score, min(k + 1, score.shape[1]), dim=1)
-    if s.shape[1] > k:
-        redo = torch.nonzero(s[:, k] == s[:, k - 1]).flatten().tolist() if k > 0 else []
+    if s.shape[1] <= k:
         s, i = s[:, :k], i[:, :k]
-        for r in redo:
-            row, kth = score[r], s[r, -1]
-            above = torch.nonzero(row > kth).flatten()
-            tied = torch.nonzero(row == kth).flatten()[:k - len(above)]  # (nonzero: ascending)
-            i[r] = torch.cat([above, tied])
-            s[r] = row[i[r]]
+    else:
+        redo = torch.nonzero(s[:, k] == s[:, k - 1]).flatten() if k > 0 else torch.zeros(0, dtype=torch.int64)
+        s, i = s[:, :k], i[:, :k]
+        if len(redo):
+            i[redo] = _tied_at_kth(score, s, i, redo, k)
+            s[redo] = score[redo[:, None], i[redo]]
     i, order = torch.sort(i, dim=1)
     s = torch.gather(s, 1, order)
     s, order = torch.sort(s, dim=1, descending=True, stable=True)
     return s, torch.gather(i, 1, order)
+
+
+def _tied_at_kth(score: torch.Tensor, s: torch.Tensor, i: torch.Tensor, rows: torch.Tensor, k: int) -> torch.Tensor:
+    """top_lowest_index's columns [len(rows),k] for rows tied across the k-th place (any order)."""
+    import torch
+
+    kth = s[rows, k - 1:k]
+    above = s[rows] > kth  # (fewer than k: the k-th itself is not)
+    n_above = above.sum(1)
+    need = k - n_above  # >= 1 tied columns, the lowest
+    above_cols = torch.gather(i[rows], 1, torch.sort(above.to(torch.int8), dim=1, descending=True, stable=True)[1])
+    tied_cols = torch.empty(len(rows), k, dtype=torch.int64)
+    n = score.shape[1]
+    todo = torch.arange(len(rows))
+    w = min(n, 4 * k)
+    while len(todo):
+        eq = score[rows[todo], :w] == kth[todo]
+        found = eq.sum(1) >= need[todo]
+        if w == n:  # (every row has at least ``need`` tied columns in all)
+            found[:] = True
+        done = todo[found]
+        key = eq[found].to(torch.float32) * torch.arange(w, 0, -1, dtype=torch.float32)  # lower column first
+        tied_cols[done] = torch.topk(key, k, dim=1).indices
+        todo = todo[~found]
+        w = min(n, 2 * w)
+    j = torch.arange(k)[None, :]
+    from_tied = torch.gather(tied_cols, 1, (j - n_above[:, None]).clamp_min(0))
+    return torch.where(j < n_above[:, None], above_cols, from_tied)
 
 
 def retrieve(bank: SourceBank, desc: Descriptors, k: int, metric: str = "cosine", chunk: int = 16384,

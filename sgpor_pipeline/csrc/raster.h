@@ -828,10 +828,10 @@ inline T lane_sum(const T* a) {
 // of the Gaussian's columns in the tile lies inside its footprint (sigma <= thr); r0 > r1 when no row
 // is left. Those rows change nothing in either pass (alpha 0), but the bounding box of a thin tilted
 // Gaussian holds many of them: at lund's 1024 px, a fifth of the rows evaluated and 15 % of the
-// entries (both passes 19 % faster without them). A row is dropped only when the minimum of sigma
-// over its segment, in closed form, exceeds thr by a margin far above the rounding of the lanes' own
-// sigma (1e-5 of the terms' magnitude): the lanes' in/out decisions, and so both passes' results,
-// are unchanged bit for bit. (ha, hb, hc, thr: sigma * log2(e), as the passes compute them.)
+// entries (forward 23 %, backward 26 % faster without them). A row is dropped only when the minimum
+// of sigma over its segment, in closed form, exceeds thr by a margin far above the rounding of the
+// lanes' own sigma (1e-5 of the terms' magnitude): the lanes' in/out decisions, and so both passes'
+// results, are unchanged bit for bit. (ha, hb, hc, thr: sigma * log2(e), as the passes compute them.)
 template <typename T, int TS>
 inline void trim_rows(int X0, int Y0, int gx0, int gx1, T u, T v, T ha, T hb, T hc, T thr, int& r0, int& r1) {
   const int jl = std::max(gx0 - X0, 0), jh = std::min(gx1 - X0, TS - 1);

@@ -423,14 +423,11 @@ def top_lowest_index(score: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.T
     import torch
 
     s, i = torch.topk(score, min(k + 1, score.shape[1]), dim=1)
-    if s.shape[1] <= k:
-        s, i = s[:, :k], i[:, :k]
-    else:
-        redo = torch.nonzero(s[:, k] == s[:, k - 1]).flatten() if k > 0 else torch.zeros(0, dtype=torch.int64)
-        s, i = s[:, :k], i[:, :k]
-        if len(redo):
-            i[redo] = _tied_at_kth(score, s, i, redo, k)
-            s[redo] = score[redo[:, None], i[redo]]
+    redo = torch.nonzero(s[:, k] == s[:, k - 1]).flatten() if s.shape[1] > k > 0 else []
+    s, i = s[:, :k], i[:, :k]
+    if len(redo):
+        i[redo] = _tied_at_kth(score, s, i, redo, k)
+        s[redo] = score[redo[:, None], i[redo]]
     i, order = torch.sort(i, dim=1)
     s = torch.gather(s, 1, order)
     s, order = torch.sort(s, dim=1, descending=True, stable=True)

@@ -6,10 +6,11 @@ The kernel (``sgpor_pipeline/csrc/raster.cpp``) is compiled once per x86-64 micr
 level (``x86-64-v2``: SSE4.2, ``-v3``: AVX2+FMA, ``-v4``: AVX-512) into
 ``sgpor_pipeline/_raster_kernel_<level>*.so``; at run time the loader picks the best level the CPU
 supports, so a wheel stays portable. The builds with FMA (v3, v4) give bitwise the same results
-(SIMD lanes are summed in a fixed tree, not in the vector width's order; tested), so AVX2 and
-AVX-512 machines get the same renders and gradients; v2 has no FMA and rounds its multiply-adds differently
-(``-ffp-contract=off`` would make it agree too, at +10-20 % kernel time, measured). Other
-architectures get one generic build. Environment:
+(SIMD lanes are summed in a fixed tree, not in the vector width's order, and the kernel is built
+with ``-ffp-contract=off``: the multiply-adds that fuse are written out, ``csrc/fmadd.h``; tested
+where a CPU runs both), so AVX2 and AVX-512 machines get the same renders and gradients; v2 has no
+FMA and rounds those multiply-adds differently. Other architectures get one generic build.
+Environment:
 
 * ``SGPOR_KERNEL_NATIVE=1`` adds a ``-march=native`` build, preferred at run time (not portable).
 * ``SGPOR_KERNEL_LEVELS=v3,v4`` restricts the x86-64 levels built (default: all three).
@@ -35,13 +36,13 @@ COMMON_FLAGS = [
     "-fno-math-errno",
     "-ffinite-math-only",
     "-fno-signed-zeros",
-    "-ffp-contract=fast",
+    "-ffp-contract=off",  # the multiply-adds that fuse are written out: csrc/fmadd.h
     "-fvisibility=hidden",
     "-DNDEBUG",
     "-g0",
 ]
 CSRC = "sgpor_pipeline/csrc"
-DEPENDS = [f"{CSRC}/raster.h", f"{CSRC}/ssim.h", f"{CSRC}/match.h", f"{CSRC}/raster.cpp"]
+DEPENDS = [f"{CSRC}/{name}" for name in ("raster.h", "ssim.h", "match.h", "fmadd.h", "raster.cpp")]
 
 
 def _kernel(suffix: str, march: list[str]) -> Extension:

@@ -24,6 +24,8 @@
 #include <type_traits>
 #include <vector>
 
+#include "fmadd.h"
+
 #ifdef _OPENMP
 #include <omp.h>
 #endif
@@ -94,12 +96,12 @@ inline float exp2_kernel(float x) {
   const float n = std::floor(x + 0.5f);
   const float r = x - n;  // [-0.5, 0.5]
   float p = 1.535336188319500e-4f;
-  p = p * r + 1.339887440266574e-3f;
-  p = p * r + 9.618437357674640e-3f;
-  p = p * r + 5.550332471162809e-2f;
-  p = p * r + 2.402264791363012e-1f;
-  p = p * r + 6.931472028550421e-1f;
-  p = p * r + 1.0f;
+  p = fmadd(p, r, 1.339887440266574e-3f);
+  p = fmadd(p, r, 9.618437357674640e-3f);
+  p = fmadd(p, r, 5.550332471162809e-2f);
+  p = fmadd(p, r, 2.402264791363012e-1f);
+  p = fmadd(p, r, 6.931472028550421e-1f);
+  p = fmadd(p, r, 1.0f);
   const int32_t bits = (static_cast<int32_t>(n) + 127) << 23;
   float scale;
   std::memcpy(&scale, &bits, sizeof(scale));
@@ -134,18 +136,18 @@ inline float log_kernel(float x) {
   m = lt ? m + m - 1.0f : m - 1.0f;
   const float z = m * m;
   float y = 7.0376836292e-2f;
-  y = y * m - 1.1514610310e-1f;
-  y = y * m + 1.1676998740e-1f;
-  y = y * m - 1.2420140846e-1f;
-  y = y * m + 1.4249322787e-1f;
-  y = y * m - 1.6668057665e-1f;
-  y = y * m + 2.0000714765e-1f;
-  y = y * m - 2.4999993993e-1f;
-  y = y * m + 3.3333331174e-1f;
+  y = fmadd(y, m, -1.1514610310e-1f);
+  y = fmadd(y, m, 1.1676998740e-1f);
+  y = fmadd(y, m, -1.2420140846e-1f);
+  y = fmadd(y, m, 1.4249322787e-1f);
+  y = fmadd(y, m, -1.6668057665e-1f);
+  y = fmadd(y, m, 2.0000714765e-1f);
+  y = fmadd(y, m, -2.4999993993e-1f);
+  y = fmadd(y, m, 3.3333331174e-1f);
   y = y * m * z;
-  y += ef * -2.12194440e-4f;
-  y += -0.5f * z;
-  return m + y + ef * 0.693359375f;
+  y = fmadd(ef, -2.12194440e-4f, y);
+  y = fmadd(-0.5f, z, y);
+  return fmadd(ef, 0.693359375f, m + y);
 }
 inline double log_kernel(double x) { return std::log(x); }
 
@@ -943,7 +945,7 @@ void raster_fwd(int C, int N, int W, int H, const GaussPix<T, CH>* gp, const int
         for (int j = 0; j < TS; ++j) {
           const int p = p0 + j;
           const T dx = px[j] - u;
-          const T sig2 = (ha * dx + by) * dx + cy;  // sigma * log2(e)
+          const T sig2 = fmadd(fmadd(ha, dx, by), dx, cy);  // sigma * log2(e)
           const T al = std::min(T(kAlphaMax), o * exp2_kernel(-std::min(sig2, T(kSigmaLog2Max))));
           const T Tcur = Tr[p];
           const bool in = (sig2 <= thrl[j]) & (al >= T(kAlphaMin)) & (Tcur > T(0));
@@ -952,11 +954,11 @@ void raster_fwd(int C, int N, int W, int H, const GaussPix<T, CH>* gp, const int
           const bool stop = in & (tT < T(kTMin));  // stop before adding this Gaussian
           const T a = stop ? T(0) : a0;
           const T w = opaque(a * Tcur, zero);
-          for (int ch = 0; ch < CA; ++ch) acc[ch][p] += w * f[ch];
+          for (int ch = 0; ch < CA; ++ch) acc[ch][p] = fmadd(w, f[ch], acc[ch][p]);
           Tr[p] = stop ? -Tcur : tT;
           last[p] = a > T(0) ? kk : last[p];
           if constexpr (MED) med[p] = (a > T(0)) & (Tcur > T(0.5)) & (tT <= T(0.5)) ? f[CH - 1] : med[p];
-          csum[j] += w * msk[p];
+          csum[j] = fmadd(w, msk[p], csum[j]);
         }
       }
       crec[isect[s].gen] = lane_sum<T, TS>(csum);
@@ -1059,7 +1061,6 @@ void raster_bwd(int C, int N, int W, int H, const GaussPix<T, CH>* gp, const int
       kmax = std::max(kmax, m);
     }
     const int64_t s0 = tile_off[ct], s1 = tile_off[ct + 1];
-    const uint64_t zero = runtime_zero();  // see opaque()
     // With a grad_mask, the entries in front of the frontmost trained one need no pass: an entry's
     // gradient depends only on itself and the entries behind it (a tile with no trained entry at
     // all is skipped whole). Their records are zero, as those behind the last contributing entry.
@@ -1118,7 +1119,7 @@ void raster_bwd(int C, int N, int W, int H, const GaussPix<T, CH>* gp, const int
           for (int j = 0; j < TS; ++j) {
             const int p = p0 + j;
             const T dx = px[j] - u;
-            const T sig2 = (ha * dx + by) * dx + cy;  // as in the forward
+            const T sig2 = fmadd(fmadd(ha, dx, by), dx, cy);  // as in the forward
             const T G = exp2_kernel(-std::min(sig2, T(kSigmaLog2Max)));
             const T oG = o * G;
             const T al = std::min(T(kAlphaMax), oG);
@@ -1129,12 +1130,12 @@ void raster_bwd(int C, int N, int W, int H, const GaussPix<T, CH>* gp, const int
             const T Tb = Tcur * inv_om;  // transmittance in front of this Gaussian
             const T w = a * Tb;
             T F = 0;
-            for (int ch = 0; ch < CH; ++ch) F += dC[ch][p] * f[ch];
+            for (int ch = 0; ch < CH; ++ch) F = fmadd(dC[ch][p], f[ch], F);
             if constexpr (kGrad) {
               // dL/dalpha = (sum_ch dC (T_behind f - S_behind) + dL/dA T_final) / (1 - alpha)
-              const T dal = inv_om * (dAf[p] + Tcur * F - D1[p]);
-              D1[p] += w * F;
-              for (int ch = 0; ch < CH; ++ch) acc[6 + ch][j] += w * dC[ch][p];
+              const T dal = inv_om * (fmadd(Tcur, F, dAf[p]) - D1[p]);
+              D1[p] = fmadd(w, F, D1[p]);
+              for (int ch = 0; ch < CH; ++ch) acc[6 + ch][j] = fmadd(w, dC[ch][p], acc[6 + ch][j]);
               Tc[p] = Tb;
               const bool live = in & (oG <= T(kAlphaMax));  // a clamped alpha passes no gradient
               const T dsig = live ? -a * dal : T(0);
@@ -1143,9 +1144,9 @@ void raster_bwd(int C, int N, int W, int H, const GaussPix<T, CH>* gp, const int
               const T t1 = dsig * dy;
               acc[0][j] += dsig;
               acc[1][j] += t1;
-              acc[4][j] += t1 * dy;
+              acc[4][j] = fmadd(t1, dy, acc[4][j]);
             } else {
-              D1[p] += w * F;
+              D1[p] = fmadd(w, F, D1[p]);
               Tc[p] = Tb;
             }
           }
@@ -1159,14 +1160,13 @@ void raster_bwd(int C, int N, int W, int H, const GaussPix<T, CH>* gp, const int
       for (int i = 0; i < NA; ++i)
         for (int j = 0; j < TS; ++j) acc[i][j] = 0;
       rows_pass(std::true_type{});
-      // opaque(): these products must not fuse into lane_sum's first additions (an FMA there
-      // would round differently from one vector width to another: v3 and v4 must agree)
+      // the dx factors (dx is constant down a column; -ffp-contract=off: none fuses into lane_sum)
 #pragma omp simd
       for (int j = 0; j < TS; ++j) {
         const T dx = px[j] - u;
-        acc[2][j] = opaque(acc[0][j] * dx * dx, zero);
-        acc[3][j] = opaque(acc[1][j] * dx, zero);
-        acc[0][j] = opaque(acc[0][j] * dx, zero);
+        acc[2][j] = acc[0][j] * dx * dx;
+        acc[3][j] = acc[1][j] * dx;
+        acc[0][j] = acc[0][j] * dx;
       }
       T sum[NA];
       for (int i = 0; i < NA; ++i) sum[i] = lane_sum<T, TS>(acc[i]);

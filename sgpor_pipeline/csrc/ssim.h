@@ -14,6 +14,8 @@
 #include <cstdint>
 #include <vector>
 
+#include "fmadd.h"
+
 namespace sgpor {
 namespace ssim {
 
@@ -70,7 +72,7 @@ void blur_plane(const T* src, T* dst, int H, int W, const T* g, T* row, T* tmp) 
       const T gk = g[k];
       const T* rk = row + k;
 #pragma omp simd
-      for (int j = 0; j < W; ++j) t[j] += rk[j] * gk;
+      for (int j = 0; j < W; ++j) t[j] = fmadd(rk[j], gk, t[j]);
     }
   }
   for (int i = 0; i < H; ++i) {
@@ -81,7 +83,7 @@ void blur_plane(const T* src, T* dst, int H, int W, const T* g, T* row, T* tmp) 
       const T gk = g[k];
       const T* tk = tmp + int64_t(reflect(i + k - kPad, H)) * W;
 #pragma omp simd
-      for (int j = 0; j < W; ++j) d[j] += tk[j] * gk;
+      for (int j = 0; j < W; ++j) d[j] = fmadd(tk[j], gk, d[j]);
     }
   }
 }
@@ -97,7 +99,7 @@ void blur_adjoint_plane(const T* src, T* dst, int H, int W, const T* g, T* rowpa
       const T gk = g[k];
       T* t = tmp + int64_t(i + k) * W;
 #pragma omp simd
-      for (int j = 0; j < W; ++j) t[j] += s[j] * gk;
+      for (int j = 0; j < W; ++j) t[j] = fmadd(s[j], gk, t[j]);
     }
   }
   for (int p = 0; p < kPad; ++p) {  // padded row p is row kPad - p; padded row H + kPad + q is H - 2 - q
@@ -116,7 +118,7 @@ void blur_adjoint_plane(const T* src, T* dst, int H, int W, const T* g, T* rowpa
       const T gk = g[k];
       T* a = rowpad + k;
 #pragma omp simd
-      for (int j = 0; j < W; ++j) a[j] += t[j] * gk;
+      for (int j = 0; j < W; ++j) a[j] = fmadd(t[j], gk, a[j]);
     }
     T* d = dst + int64_t(r) * W;
     for (int j = 0; j < W; ++j) d[j] = rowpad[j + kPad];

@@ -343,14 +343,35 @@ def test_bitwise_identical_across_thread_counts(dtype):
 
 
 def _level_probe(path: str) -> None:
-    """Renders and backpropagates a scene with the kernel variant the environment selects
-    (``SGPOR_KERNEL``), for both tile sizes; saves everything (run in a subprocess)."""
+    """Everything the kernel computes, with the variant the environment selects (``SGPOR_KERNEL``):
+    renders and gradients for both tile sizes (also with a gradient mask, and the median depth), the
+    fused SSIM and its gradient, the masked SSD; saves it all (run in a subprocess)."""
+    import numpy as np
+
     torch.set_num_threads(1)
     out = {"kernel": _raster_cpu.kernel_name()}
+    scene = random_scene(2000, 96, 64, seed=21, sigma_px=2.0, sh_degree=2)
     for tile in (8, 16):
-        scene = random_scene(2000, 96, 64, seed=21, sigma_px=2.0, sh_degree=2)
         res = run(scene, "cpu", tile_size=tile, render_mode="RGB+D")
         out.update({f"{k}_{tile}": v for k, v in res.items() if k != "backend" and v is not None})
+        res = run(scene, "cpu", tile_size=tile, render_mode="RGB", grad_mask=torch.arange(2000) % 4 == 0)
+        out.update({f"masked_{k}_{tile}": v for k, v in res.items() if k != "backend" and v is not None})
+        with torch.no_grad():
+            median, alpha, meta = rasterization(**scene, backend="cpu", render_mode="MD", tile_size=tile)
+        out.update({f"median_{tile}": median, f"median_contrib_{tile}": meta["contrib"]})
+    g = torch.Generator().manual_seed(4)
+    x, y = torch.rand(2, 3, 48, 64, generator=g)
+    y = (0.7 * x + 0.3 * y).contiguous()
+    total, mom = _raster_cpu.ssim_forward(x, y, None, 1)
+    out["ssim"] = torch.tensor(total)
+    out["ssim_grad"] = _raster_cpu.ssim_backward(x, y, mom, None, 0.5, 1)
+    rng = np.random.default_rng(3)
+    views = [rng.random((50, 60, 3), dtype=np.float32) for _ in range(2)]
+    cand = np.stack([rng.integers(0, 2, (5, 3)), rng.integers(0, 50 - 21 - 6, (5, 3)),
+                     rng.integers(0, 60 - 21 - 6, (5, 3))], axis=-1)
+    out["ssd"] = torch.from_numpy(_raster_cpu.masked_ssd(
+        rng.random((40, 40, 3), dtype=np.float32), rng.random((40, 40), dtype=np.float32),
+        rng.integers(0, 40 - 21, (5, 2)), 21, views, cand, 3, threads=1))
     torch.save(out, path)
 
 

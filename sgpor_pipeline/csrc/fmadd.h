@@ -1,4 +1,4 @@
-// fmadd(): the kernel's only fused multiply-adds (raster.h, ssim.h, match.h).
+// fmadd(): the fused multiply-adds of raster.h and ssim.h (match.h lets gcc fuse its one; see there).
 #pragma once
 
 #include <cmath>

@@ -187,6 +187,38 @@ class SplatExporter(Exporter):
                      f"{time.perf_counter() - t0:.1f} s")
 
 
+class GltfExporter(Exporter):
+    """``scene.glb``: the Gaussians as glTF's ``KHR_gaussian_splatting`` point primitive (every SH degree
+    the model has, :mod:`sgpor_pipeline.splat_gltf`) and the run's cameras as glTF cameras, in glTF's
+    frame: the export frame rotated so that its +Z (up) is glTF's +Y (:data:`GLTF_FROM_ZUP`), SH rotated
+    with it; same units as the export frame."""
+
+    name = "gltf"
+    VERSION = 1
+    needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE)
+    optional_needs = (GPS_STAGE,)
+    description = "the Gaussians as scene.glb (glTF KHR_gaussian_splatting, Y up, full SH) with the cameras"
+
+    def export(self, ctx: StageContext, out_dir: Path) -> None:
+        from sgpor_pipeline.orientation import GLTF_FROM_ZUP, Similarity, scene_center_radius
+        from sgpor_pipeline.splat_gltf import write_splat_glb
+
+        t0 = time.perf_counter()
+        model, frame, cameras = scene_in_export_frame(ctx, out_dir)
+        y_up = Similarity(1.0, GLTF_FROM_ZUP)
+        cams = [y_up.camera(frame.transform.camera(c))
+                for c in registered(cameras) + [c for c in cameras if c.image is None]]
+        try:
+            radius = scene_center_radius(registered(cams) or cams)[1] if cams else 1.0
+        except Exception:  # degenerate rigs: the cameras' spread
+            radius = float(np.ptp([c.center for c in cams], axis=0).max()) if len(cams) > 1 else 1.0
+        path = write_splat_glb(out_dir / "scene.glb", transform_model(model, y_up), cams,
+                               znear=max(1e-4, 0.005 * radius),
+                               extras={"sgpor_units": frame.units, "sgpor_up": "+Y (export frame's +Z)"})
+        ctx.log.info(f"gltf: {len(model)} Gaussians (SH degree {model.max_sh_degree}), {len(cams)} cameras -> "
+                     f"{path.name} ({_mb(path)}) in {time.perf_counter() - t0:.1f} s")
+
+
 # --------------------------------------------------------------------------------------------------
 # the removed object as its own asset
 
@@ -234,7 +266,8 @@ class ObjectExporter(Exporter):
     """
 
     name = "object"
-    VERSION = 3  # 2: object.glb's normals of unit length; 3: the scene mesh's radius (SfM points)
+    VERSION = 4  # 2: object.glb's normals of unit length; 3: the scene mesh's radius (SfM points); 4: object.glb's
+    # vertex colours linear (glTF's COLOR_0)
     needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE, "remove")
     optional_needs = (GPS_STAGE,)
     description = "the removed object as object/object.ply and object/object.glb (export frame)"

@@ -1,7 +1,7 @@
 """mesh: a coloured triangle mesh of the scene, fused from depth rendered from the Gaussians.
 
-``mesh.glb`` (glTF: Y up, as glTF requires), ``mesh.obj`` and ``mesh.ply`` (export frame: Z up),
-all with vertex colours. How the mesh is made: :mod:`sgpor_pipeline.meshing`.
+``mesh.glb`` (glTF: Y up and linear vertex colours, as glTF requires), ``mesh.obj`` and ``mesh.ply``
+(export frame: Z up, sRGB vertex colours). How the mesh is made: :mod:`sgpor_pipeline.meshing`.
 """
 
 from __future__ import annotations
@@ -16,8 +16,9 @@ from typing import Any
 import numpy as np
 
 from sgpor_pipeline.dag import Exporter, StageContext
+from sgpor_pipeline.imageio import srgb_to_linear
 from sgpor_pipeline.meshing import MeshData, MeshSettings, mesh_from_gaussians, unit_normals
-from sgpor_pipeline.orientation import ExportFrame
+from sgpor_pipeline.orientation import GLTF_FROM_ZUP, ExportFrame
 from sgpor_pipeline.scene import Camera
 
 from .gaussians import (
@@ -33,14 +34,12 @@ from .gaussians import (
     scene_radius,
 )
 
-#: glTF is Y up: (x, y, z) in the Z-up export frame -> (x, z, -y)
-GLTF_FROM_ZUP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 MESH_FILE = "mesh.ply"
 GLTF_ARRAY_BUFFER = 34962  # a buffer view's target: vertex attributes
 GLTF_ELEMENT_ARRAY_BUFFER = 34963  # ... indices
 
 
-def _trimesh(mesh: MeshData, rotation: np.ndarray | None = None):
+def _trimesh(mesh: MeshData, rotation: np.ndarray | None = None, linear_colours: bool = False):
     import trimesh
 
     v = np.asarray(mesh.vertices, np.float64)
@@ -48,7 +47,8 @@ def _trimesh(mesh: MeshData, rotation: np.ndarray | None = None):
     if rotation is not None:
         v = v @ rotation.T
         n = n @ rotation.T
-    rgba = np.concatenate([np.clip(np.round(mesh.colors * 255), 0, 255).astype(np.uint8),
+    colours = srgb_to_linear(mesh.colors) if linear_colours else mesh.colors
+    rgba = np.concatenate([np.clip(np.round(colours * 255), 0, 255).astype(np.uint8),
                            np.full((len(v), 1), 255, np.uint8)], axis=1)
     return trimesh.Trimesh(v, np.asarray(mesh.faces, np.int64), vertex_normals=n, vertex_colors=rgba, process=False)
 
@@ -81,11 +81,14 @@ def glb_with_buffer_targets(glb: bytes) -> bytes:
 
 def write_mesh(mesh: MeshData, folder: Path, stem: str = "mesh",
                formats: Sequence[str] = ("glb", "obj", "ply")) -> list[Path]:
-    """Write a mesh given in the Z-up export frame: ``.glb`` rotated to Y up, ``.obj``/``.ply`` as is."""
+    """Write a mesh given in the Z-up export frame: ``.glb`` rotated to Y up with its vertex colours
+    linear (glTF's COLOR_0; the photos' sRGB values read as linear look washed out in glTF viewers),
+    ``.obj``/``.ply`` as is (sRGB colours)."""
     written = []
     for fmt in formats:
         path = Path(folder) / f"{stem}.{fmt}"
-        tm = _trimesh(mesh, GLTF_FROM_ZUP if fmt in ("glb", "gltf") else None)
+        gltf = fmt in ("glb", "gltf")  # Y up, and vertex colours linear as glTF defines them
+        tm = _trimesh(mesh, GLTF_FROM_ZUP if gltf else None, linear_colours=gltf)
         if fmt == "obj":
             data = tm.export(file_type="obj", include_color=True, include_normals=True)
             path.write_text(data)
@@ -129,9 +132,10 @@ def _make_mesh(ctx: StageContext, model, cameras) -> MeshData:
 
 class MeshExporter(Exporter):
     name = "mesh"
-    VERSION = 4  # 2: unit normals everywhere (glTF requires them; a decimation fold left zeros); GLB buffer targets;
+    VERSION = 5  # 2: unit normals everywhere (glTF requires them; a decimation fold left zeros); GLB buffer targets;
     # 3: decimated by fast-simplification (meshing.decimate); 4: the scene radius from the SfM points where the
-    # viewing axes mislead (forward-facing captures: statue's mesh had lost all beyond 45 units), one canonical order
+    # viewing axes mislead (forward-facing captures: statue's mesh had lost all beyond 45 units), one canonical order;
+    # 5: mesh.glb's vertex colours linear (glTF's COLOR_0)
     needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE)
     optional_needs = (GPS_STAGE,)
     description = "a coloured mesh (TSDF of rendered depth) as mesh.glb (Y up), mesh.obj and mesh.ply (Z up)"

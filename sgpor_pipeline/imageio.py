@@ -138,6 +138,13 @@ def luminance(img: np.ndarray) -> np.ndarray:
     return img[..., :3] @ np.array([0.299, 0.587, 0.114], np.float32) if img.ndim == 3 else img
 
 
+def srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    """sRGB-encoded values (the photos', and so the fitted colours') to linear light, both in [0, 1]
+    (IEC 61966-2-1): glTF stores vertex colours (COLOR_0) linear."""
+    c = np.clip(np.asarray(c, np.float64), 0.0, 1.0)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
 def read_rgb8(path: Path) -> np.ndarray:
     """An image file as uint8 RGB HxWx3, EXIF orientation applied, alpha dropped."""
     # ANYDEPTH|ANYCOLOR keeps 16 bits and grey, applies the EXIF orientation and drops alpha.

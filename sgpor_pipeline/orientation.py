@@ -221,6 +221,10 @@ def rotate_sh(shN: np.ndarray, R: np.ndarray) -> np.ndarray:
 # similarity transforms
 
 
+#: glTF is right-handed with +Y up: (x, y, z) in the Z-up export frame -> (x, z, -y) (a rotation)
+GLTF_FROM_ZUP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+
+
 @dataclass
 class Similarity:
     """``x -> s R x + t`` (export_from_sfm when used for the export frame)."""

@@ -720,9 +720,13 @@ def test_mesh_files_glb_is_y_up_with_colours(tmp_path):
     glb = trimesh.load(tmp_path / "mesh.glb", force="mesh", process=False)
     assert np.allclose(glb.vertices, v @ GLTF_FROM_ZUP.T, atol=1e-6)  # Z up -> Y up
     assert np.allclose(GLTF_FROM_ZUP @ [0, 0, 1], [0, 1, 0])
-    for mesh in (glb, trimesh.load(tmp_path / "mesh.obj", force="mesh", process=False)):
+    from sgpor_pipeline.imageio import srgb_to_linear
+
+    # glTF's vertex colours are linear; OBJ's (and PLY's) are the photos' sRGB values
+    for mesh, want in ((glb, srgb_to_linear(c)), (trimesh.load(tmp_path / "mesh.obj", force="mesh", process=False), c)):
         assert mesh.visual.kind == "vertex"
-        assert np.abs(mesh.visual.vertex_colors[:, :3] / 255.0 - c[:len(mesh.vertices)]).max() < 1 / 255 + 1e-6
+        assert np.abs(mesh.visual.vertex_colors[:, :3] / 255.0 - want[:len(mesh.vertices)]).max() < 1 / 255 + 1e-6
+    assert np.allclose(srgb_to_linear(np.array([0.0, 0.04045, 0.5, 1.0])), [0.0, 0.04045 / 12.92, 0.21404114, 1.0])
     back = read_mesh_ply(tmp_path / "mesh.ply")
     assert np.allclose(back.vertices, v) and np.array_equal(back.faces, f)
     assert np.abs(back.colors - c).max() < 1 / 255 + 1e-6
@@ -1051,3 +1055,151 @@ def test_report_says_where_each_views_mask_came_from(tmp_path):
     assert "lifted (the render lost the object), confidence 0.00" in lines[cams[2].image]
     html = ViewsSection(columns=[]).render(rc)
     assert all(lines[c.image] in html for c in cams)
+
+
+# --------------------------------------------------------------------------------------------------
+# glTF KHR_gaussian_splatting (scene.glb)
+
+# The extension's SH basis written out from its specification (Appendix A: real SH with the
+# Condon-Shortley phase), independently of the rasterizer's eval_sh.
+_KHR_SH = [
+    lambda x, y, z: 0.28209479177387814 * np.ones_like(x),
+    lambda x, y, z: -0.4886025119029199 * y, lambda x, y, z: 0.4886025119029199 * z,
+    lambda x, y, z: -0.4886025119029199 * x,
+    lambda x, y, z: 1.0925484305920792 * x * y, lambda x, y, z: -1.0925484305920792 * y * z,
+    lambda x, y, z: 0.31539156525252005 * (2 * z * z - x * x - y * y),
+    lambda x, y, z: -1.0925484305920792 * x * z, lambda x, y, z: 0.5462742152960396 * (x * x - y * y),
+    lambda x, y, z: -0.5900435899266435 * y * (3 * x * x - y * y), lambda x, y, z: 2.890611442640554 * x * y * z,
+    lambda x, y, z: -0.4570457994644658 * y * (4 * z * z - x * x - y * y),
+    lambda x, y, z: 0.3731763325901154 * z * (2 * z * z - 3 * x * x - 3 * y * y),
+    lambda x, y, z: -0.4570457994644658 * x * (4 * z * z - x * x - y * y),
+    lambda x, y, z: 1.445305721320277 * z * (x * x - y * y),
+    lambda x, y, z: -0.5900435899266435 * x * (x * x - 3 * y * y),
+]
+
+
+def _khr_colour(sh: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Colour [N,3] of Gaussians with SH [N,K,3] (DC first) seen along unit directions d [N,3]."""
+    basis = np.stack([f(d[:, 0], d[:, 1], d[:, 2]) for f in _KHR_SH[:sh.shape[1]]], 1)  # [N,K]
+    return (basis[:, :, None] * sh).sum(1) + 0.5
+
+
+def test_splat_glb_follows_khr_gaussian_splatting(tmp_path):
+    """Every attribute as the extension defines it, read from the raw GLB: linear scales, sigmoid
+    opacities, (x, y, z, w) unit rotations, SH per coefficient, POSITION bounds, aligned views, a linear
+    COLOR_0 fallback; and the reader gives the same values back."""
+    from sgpor_pipeline.imageio import srgb_to_linear
+    from sgpor_pipeline.splat_gltf import read_splat_glb, write_splat_glb
+
+    m = random_model(301, 3, seed=11)
+    p = m.numpy()
+    path = write_splat_glb(tmp_path / "s.glb", m)
+    doc, binary = _glb_chunks(path)
+    assert doc["asset"]["version"] == "2.0" and doc["extensionsUsed"] == ["KHR_gaussian_splatting"]
+    assert "extensionsRequired" not in doc  # a viewer without it still shows the points
+    prim = doc["meshes"][0]["primitives"][0]
+    assert prim["mode"] == 0
+    ext = prim["extensions"]["KHR_gaussian_splatting"]
+    assert ext["kernel"] == "ellipse" and ext["colorSpace"] == "srgb_rec709_display"
+
+    def accessor(name):
+        acc = doc["accessors"][prim["attributes"][name]]
+        view = doc["bufferViews"][acc["bufferView"]]
+        assert view["byteOffset"] % 4 == 0 and view["target"] == 34962 and acc["count"] == len(m)
+        n = {"SCALAR": 1, "VEC3": 3, "VEC4": 4}[acc["type"]]
+        dtype = np.float32 if acc["componentType"] == 5126 else np.uint8
+        return acc, np.frombuffer(binary, dtype, n * len(m), view["byteOffset"]).reshape(len(m), n)
+
+    k = "KHR_gaussian_splatting:"
+    acc, pos = accessor("POSITION")
+    assert np.array_equal(pos, p["means"]) and acc["min"] == pos.min(0).tolist() and acc["max"] == pos.max(0).tolist()
+    _, scale = accessor(k + "SCALE")
+    assert np.allclose(scale, np.exp(p["scales"]), rtol=1e-6) and (scale > 0).all()
+    _, opacity = accessor(k + "OPACITY")
+    assert np.allclose(opacity[:, 0], 1 / (1 + np.exp(-p["opacities"].astype(np.float64))), atol=1e-7)
+    _, rot = accessor(k + "ROTATION")
+    q = p["quats"] / np.linalg.norm(p["quats"], axis=1, keepdims=True)
+    assert np.allclose(rot, q[:, [1, 2, 3, 0]], atol=1e-6)
+    assert np.allclose(quat_to_matrix(rot[:, [3, 0, 1, 2]].astype(np.float64)), quat_to_matrix(q), atol=1e-6)
+    _, dc = accessor(k + "SH_DEGREE_0_COEF_0")
+    assert np.array_equal(dc, p["sh0"][:, 0])
+    coeff = 0
+    for degree in (1, 2, 3):
+        for n in range(2 * degree + 1):
+            _, c = accessor(f"{k}SH_DEGREE_{degree}_COEF_{n}")
+            assert np.array_equal(c, p["shN"][:, coeff]), (degree, n)
+            coeff += 1
+    assert f"{k}SH_DEGREE_4_COEF_0" not in prim["attributes"] and coeff == 15
+    acc, color = accessor("COLOR_0")
+    assert acc["componentType"] == 5121 and acc["normalized"] and acc["type"] == "VEC4"
+    want = srgb_to_linear(SH_C0 * p["sh0"][:, 0].astype(np.float64) + 0.5)
+    assert np.abs(color[:, :3] / 255.0 - want).max() <= 0.5 / 255 + 1e-9
+    assert np.abs(color[:, 3] / 255.0 - opacity[:, 0]).max() <= 0.5 / 255 + 1e-7
+    assert len(binary) == doc["buffers"][0]["byteLength"] and len(binary) % 4 == 0
+
+    back = read_splat_glb(path)
+    assert back["sh_degree"] == 3 and back["sh"].shape == (len(m), 16, 3)
+    assert np.array_equal(back["means"], p["means"]) and np.array_equal(back["sh"][:, 1:], p["shN"])
+    assert np.allclose(back["quats"], q, atol=1e-6) and back["cameras"] == []
+
+    m0 = random_model(5, 0, seed=12)  # degree 0: the DC alone
+    back0 = read_splat_glb(write_splat_glb(tmp_path / "d0.glb", m0))
+    assert back0["sh_degree"] == 0 and back0["sh"].shape == (5, 1, 3)
+
+
+def test_splat_glb_refuses_a_broken_model(tmp_path):
+    from sgpor_pipeline.splat_gltf import write_splat_glb
+
+    m = random_model(10, 1, seed=13)
+    m.params["scales"].data[3, 1] = float("nan")
+    with pytest.raises(ValueError, match=r"bad\.glb: 1 Gaussians have a non-finite scale"):
+        write_splat_glb(tmp_path / "bad.glb", m)
+    assert not list(tmp_path.iterdir())  # nothing half-written
+
+
+def test_gltf_exporter_is_the_scene_in_y_up_with_its_view_dependent_colour(tmp_path):
+    """scene.glb holds the export frame's Gaussians rotated to glTF's +Y up: positions and rotations
+    turn with the frame, and the colour the extension's SH formulas give along a direction in the glTF
+    frame is the fitted model's colour along that direction (the SH rotated with the frame); its
+    cameras stand where the export frame's do and look the same way."""
+    from sgpor_pipeline.exporters.gaussians import GltfExporter, PlyExporter, export_frame
+    from sgpor_pipeline.gaussians._raster_common import eval_sh
+    from sgpor_pipeline.orientation import GLTF_FROM_ZUP
+    from sgpor_pipeline.splat_gltf import read_splat_glb
+
+    cams = small_cameras(3)
+    cams.append(Camera("novel_a", 64, 48, cams[0].K, look_at(np.array([0.0, -3.0, 2.0]), np.zeros(3))))
+    m = random_model(200, 3, seed=14, spread=0.5)
+    ctx = make_run(tmp_path, m, cams)
+    out = ctx.out_dir
+    PlyExporter().export(ctx, out)
+    GltfExporter().export(ctx, out)
+    ply = read_ply(out / "scene.ply").numpy()  # the export frame, Z up
+    glb = read_splat_glb(out / "scene.glb")
+    assert np.allclose(glb["means"], ply["means"].astype(np.float64) @ GLTF_FROM_ZUP.T, atol=1e-5)
+    R_ply = quat_to_matrix(ply["quats"] / np.linalg.norm(ply["quats"], axis=1, keepdims=True))
+    assert np.allclose(quat_to_matrix(glb["quats"].astype(np.float64)), GLTF_FROM_ZUP @ R_ply, atol=1e-5)
+    assert np.allclose(glb["scales"], np.exp(ply["scales"]), rtol=1e-5)
+
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(len(m), 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)  # directions in the export frame
+    sh_ply = np.concatenate([ply["sh0"], ply["shN"]], 1)
+    want = eval_sh(3, torch.from_numpy(d), torch.from_numpy(sh_ply.astype(np.float64))).numpy() + 0.5
+    got = _khr_colour(glb["sh"].astype(np.float64), d @ GLTF_FROM_ZUP.T)
+    assert np.abs(got - want).max() < 1e-4
+    # (and the SH did change: read unrotated, the colours would differ)
+    assert np.abs(_khr_colour(sh_ply.astype(np.float64), d @ GLTF_FROM_ZUP.T) - want).max() > 0.05
+
+    frame = export_frame(ctx, m, cams, out)
+    assert [c["name"] for c, _ in glb["cameras"]] == [c.name for c in cams]
+    for (gl_cam, node), cam in zip(glb["cameras"], cams):
+        e = frame.transform.camera(cam)
+        assert np.allclose(node["translation"], GLTF_FROM_ZUP @ e.center, atol=1e-6)
+        R = quat_to_matrix(np.array(node["rotation"])[[3, 0, 1, 2]])
+        forward = e.world_from_cam[:3, :3] @ [0, 0, 1]  # OpenCV looks along +z
+        assert np.allclose(R @ [0, 0, -1], GLTF_FROM_ZUP @ forward, atol=1e-6)  # glTF looks along -z
+        assert np.allclose(R @ [0, 1, 0], GLTF_FROM_ZUP @ (e.world_from_cam[:3, :3] @ [0, -1, 0]), atol=1e-6)
+        assert math.isclose(gl_cam["perspective"]["yfov"], 2 * math.atan(cam.height / (2 * cam.K[1, 1])))
+        assert gl_cam["perspective"]["aspectRatio"] == cam.width / cam.height
+    assert glb["cameras"][-1][1]["extras"].get("sgpor_image") is None  # the novel camera

@@ -1,7 +1,9 @@
 """Gaussians: ``scene.ply`` (INRIA 3DGS layout, read by SuperSplat and most splat viewers) and
 ``scene.splat`` (antimatter15's 32-byte records), both in the export frame (Z up, metres when a
 scale is known; see :mod:`sgpor_pipeline.orientation`), plus ``export_frame.json`` with the similarity
-from the SfM frame (the frame of ``cameras/`` and of the stage cache) to the export frame.
+from the SfM frame (the frame of ``cameras/`` and of the stage cache) to the export frame; ``scene.glb``
+(glTF ``KHR_gaussian_splatting``, with the cameras) and ``scene.spz`` (Niantic's compressed format),
+both in that frame turned to +Y up, as their formats define.
 
 This module is also the one place that says where the exporters read the scene from
 (:data:`SCENE_STAGE`), and holds the writers of the removed object's own asset
@@ -187,6 +189,19 @@ class SplatExporter(Exporter):
                      f"{time.perf_counter() - t0:.1f} s")
 
 
+def scene_y_up(ctx: StageContext, out_dir: Path) -> tuple[Any, ExportFrame, list[Camera]]:
+    """(GaussianModel, the export frame, the run's cameras: registered then novel) in the export frame
+    turned so that its +Z (up) is +Y (:data:`~sgpor_pipeline.orientation.GLTF_FROM_ZUP`), the SH
+    rotated with it: glTF's frame and SPZ's (RUB: x right, y up, z back)."""
+    from sgpor_pipeline.orientation import GLTF_FROM_ZUP, Similarity
+
+    model, frame, cameras = scene_in_export_frame(ctx, out_dir)
+    y_up = Similarity(1.0, GLTF_FROM_ZUP)
+    ordered = registered(cameras) + [c for c in cameras if c.image is None]
+    cams = [y_up.camera(frame.transform.camera(c)) for c in ordered]
+    return transform_model(model, y_up), frame, cams
+
+
 class GltfExporter(Exporter):
     """``scene.glb``: the Gaussians as glTF's ``KHR_gaussian_splatting`` point primitive (every SH degree
     the model has, :mod:`sgpor_pipeline.splat_gltf`) and the run's cameras as glTF cameras, in glTF's
@@ -200,23 +215,45 @@ class GltfExporter(Exporter):
     description = "the Gaussians as scene.glb (glTF KHR_gaussian_splatting, Y up, full SH) with the cameras"
 
     def export(self, ctx: StageContext, out_dir: Path) -> None:
-        from sgpor_pipeline.orientation import GLTF_FROM_ZUP, Similarity, scene_center_radius
+        from sgpor_pipeline.orientation import scene_center_radius
         from sgpor_pipeline.splat_gltf import write_splat_glb
 
         t0 = time.perf_counter()
-        model, frame, cameras = scene_in_export_frame(ctx, out_dir)
-        y_up = Similarity(1.0, GLTF_FROM_ZUP)
-        cams = [y_up.camera(frame.transform.camera(c))
-                for c in registered(cameras) + [c for c in cameras if c.image is None]]
+        model, frame, cams = scene_y_up(ctx, out_dir)
         try:
             radius = scene_center_radius(registered(cams) or cams)[1] if cams else 1.0
         except Exception:  # degenerate rigs: the cameras' spread
             radius = float(np.ptp([c.center for c in cams], axis=0).max()) if len(cams) > 1 else 1.0
-        path = write_splat_glb(out_dir / "scene.glb", transform_model(model, y_up), cams,
+        path = write_splat_glb(out_dir / "scene.glb", model, cams,
                                znear=max(1e-4, 0.005 * radius),
                                extras={"sgpor_units": frame.units, "sgpor_up": "+Y (export frame's +Z)"})
         ctx.log.info(f"gltf: {len(model)} Gaussians (SH degree {model.max_sh_degree}), {len(cams)} cameras -> "
                      f"{path.name} ({_mb(path)}) in {time.perf_counter() - t0:.1f} s")
+
+
+class SpzExporter(Exporter):
+    """``scene.spz``: the Gaussians in Niantic's compressed ``.spz`` (version 3, about a tenth of the PLY;
+    :mod:`sgpor_pipeline.spz_io`), every SH degree up to 3, in SPZ's frame (RUB: the export frame turned
+    so that its +Z is +Y, as :func:`scene_y_up`); the positions' fixed point keeps 12 fraction bits
+    (0.24 mm in metres) unless the scene reaches beyond 2048 units."""
+
+    name = "spz"
+    VERSION = 1
+    needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE)
+    optional_needs = (GPS_STAGE,)
+    description = "the Gaussians as scene.spz (Niantic's compressed format, version 3, Y up, full SH)"
+
+    def export(self, ctx: StageContext, out_dir: Path) -> None:
+        from sgpor_pipeline.spz_io import FRACTIONAL_BITS, read_spz_header, write_spz
+
+        t0 = time.perf_counter()
+        model, _, _ = scene_y_up(ctx, out_dir)
+        path = write_spz(out_dir / "scene.spz", model, fractional_bits=None)
+        bits = read_spz_header(path).fractional_bits
+        coarser = (f"; positions to {2.0 ** -bits:.3g} units ({bits} fraction bits: the scene is too large "
+                   f"for {FRACTIONAL_BITS})" if bits < FRACTIONAL_BITS else "")
+        ctx.log.info(f"spz: {len(model)} Gaussians (SH degree {model.max_sh_degree}) -> {path.name} ({_mb(path)}) "
+                     f"in {time.perf_counter() - t0:.1f} s{coarser}")
 
 
 # --------------------------------------------------------------------------------------------------

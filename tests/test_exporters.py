@@ -1,4 +1,5 @@
-"""Exporters: Gaussians (PLY, .splat), mesh, USD, renders, report; the export frame.
+"""Exporters: Gaussians (PLY, .splat, glTF KHR_gaussian_splatting, .spz), mesh, USD, renders, report; the
+export frame.
 
 Everything runs on generated data (no fit): Gaussians are built directly from a synthetic scene's
 true geometry, so the mesh can be compared with the truth.
@@ -1203,3 +1204,29 @@ def test_gltf_exporter_is_the_scene_in_y_up_with_its_view_dependent_colour(tmp_p
         assert math.isclose(gl_cam["perspective"]["yfov"], 2 * math.atan(cam.height / (2 * cam.K[1, 1])))
         assert gl_cam["perspective"]["aspectRatio"] == cam.width / cam.height
     assert glb["cameras"][-1][1]["extras"].get("sgpor_image") is None  # the novel camera
+
+
+def test_spz_exporter_is_the_y_up_scene_compressed(tmp_path):
+    """scene.spz holds scene.glb's Gaussians (the same +Y-up frame, SH rotated) to the format's
+    quantisation, and is several times smaller than scene.ply."""
+    from sgpor_pipeline.exporters.gaussians import GltfExporter, PlyExporter, SpzExporter
+    from sgpor_pipeline.splat_gltf import read_splat_glb
+    from sgpor_pipeline.spz_io import read_spz, read_spz_header
+
+    cams = small_cameras(3)
+    m = random_model(400, 3, seed=15, spread=0.5)
+    ctx = make_run(tmp_path, m, cams)
+    out = ctx.out_dir
+    for exporter in (PlyExporter(), GltfExporter(), SpzExporter()):
+        exporter.export(ctx, out)
+    glb, spz = read_splat_glb(out / "scene.glb"), read_spz(out / "scene.spz")
+    assert read_spz_header(out / "scene.spz").fractional_bits == 12 and spz["sh_degree"] == 3
+    assert np.abs(spz["means"] - glb["means"]).max() <= 2.0 ** -13 + 1e-6
+    assert np.abs(np.exp(spz["scales"]) / glb["scales"] - 1).max() < 0.035  # log steps of 1/16
+    assert np.abs(spz["opacities"] - glb["opacities"]).max() <= 0.5 / 255 + 1e-6
+    R = quat_to_matrix(spz["quats"].astype(np.float64))
+    assert np.abs(R - quat_to_matrix(glb["quats"].astype(np.float64))).max() < 1e-2
+    dc = np.clip(glb["sh"][:, 0], -0.5 / 0.15, 0.5 / 0.15)  # (the format's byte range)
+    assert np.abs(spz["sh0"][:, 0] - dc).max() <= 0.5 / (0.15 * 255) + 1e-6
+    assert np.abs(spz["shN"] - np.clip(glb["sh"][:, 1:], -1, 127 / 128)).max() <= 8.5 / 128
+    assert (out / "scene.spz").stat().st_size * 3 < (out / "scene.ply").stat().st_size

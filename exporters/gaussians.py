@@ -339,7 +339,8 @@ def frame_matrix(out_dir: Path) -> np.ndarray | None:
 
 
 def export_external(ply: Path, cameras_json: Path, out_dir: Path,
-                    formats: tuple[str, ...] = ("ply", "splat", "mesh", "usd", "renders"), params: Any = None) -> Path:
+                    formats: tuple[str, ...] = ("ply", "splat", "spz", "gltf", "mesh", "usd", "renders"),
+                    params: Any = None) -> Path:
     """Run exporters on Gaussians from another trainer: an INRIA-layout PLY (any SH degree) and the
     cameras it was trained with (a ``cameras.json`` of :mod:`sgpor_pipeline.scene`, same frame).
 

@@ -913,9 +913,13 @@ def test_export_of_a_ply_from_another_trainer(tmp_path):
     cams = small_cameras(3)
     save_cameras(tmp_path / "cameras.json", cams)
     out = export_external(tmp_path / "other.ply", tmp_path / "cameras.json", tmp_path / "out",
-                          formats=("ply", "splat", "renders"))
+                          formats=("ply", "splat", "spz", "gltf", "renders"))
     assert read_ply(out / "scene.ply").max_sh_degree == 2
     assert (out / "scene.splat").stat().st_size == 32 * 100
+    from sgpor_pipeline.splat_gltf import read_splat_glb
+    from sgpor_pipeline.spz_io import read_spz
+
+    assert read_spz(out / "scene.spz")["sh_degree"] == 2 and read_splat_glb(out / "scene.glb")["sh_degree"] == 2
     assert all((out / "renders" / f"{c.image}.png").is_file() for c in cams)
 
 

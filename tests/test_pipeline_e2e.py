@@ -37,7 +37,8 @@ def test_every_stage_runs_and_exports(finished_run):
     assert set(STAGES) <= set(discover_stages())
     assert [s for s in STAGES if s in result.ran] == STAGES
     export = out / "export"
-    for name in ("scene.ply", "scene.splat", "mesh.glb", "scene.usda", "scene.usdz", "report.html"):
+    for name in ("scene.ply", "scene.splat", "scene.spz", "scene.glb", "mesh.glb", "scene.usda", "scene.usdz",
+                 "report.html"):
         assert (export / name).is_file(), name
     assert len(list((export / "renders").glob("*.png"))) == 10
     metrics = json.loads((result.path("evaluate") / "metrics.json").read_text())

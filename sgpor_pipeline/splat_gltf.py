@@ -117,12 +117,14 @@ def gltf_camera(cam: Camera, znear: float) -> tuple[dict[str, Any], dict[str, An
 
 def build_glb(attributes: dict[str, np.ndarray], cameras: list[Camera] | None = None, znear: float = 0.01,
               generator: str = "sgpor-pipeline", extras: dict[str, Any] | None = None) -> bytes:
-    """The GLB bytes of one splat primitive (``attributes`` from :func:`splat_attributes`) and cameras."""
+    """The GLB bytes of one splat primitive (``attributes`` from :func:`splat_attributes`) and cameras.
+    Without Gaussians (everything deleted) there is no primitive, since glTF forbids empty accessors."""
+    count = len(next(iter(attributes.values()))) if attributes else 0
     blob = bytearray()
     accessors: list[dict[str, Any]] = []
     views: list[dict[str, Any]] = []
     prim_attrs: dict[str, int] = {}
-    for name, a in attributes.items():
+    for name, a in attributes.items() if count else ():
         a = np.ascontiguousarray(a)
         kind = "SCALAR" if a.ndim == 1 else f"VEC{a.shape[1]}"
         blob += b"\0" * (-len(blob) % 4)  # every view starts 4-byte aligned
@@ -132,45 +134,44 @@ def build_glb(attributes: dict[str, np.ndarray], cameras: list[Camera] | None = 
                                "componentType": UNSIGNED_BYTE if a.dtype == np.uint8 else FLOAT}
         if a.dtype == np.uint8:
             acc["normalized"] = True
-        if name == "POSITION" and len(a):  # required for POSITION
+        if name == "POSITION":  # required for POSITION
             acc["min"] = [float(v) for v in a.min(0)]
             acc["max"] = [float(v) for v in a.max(0)]
         prim_attrs[name] = len(accessors)
         accessors.append(acc)
     blob += b"\0" * (-len(blob) % 4)
-    primitive = {"attributes": prim_attrs, "mode": MODE_POINTS,
-                 "extensions": {EXTENSION: {"kernel": "ellipse", "colorSpace": "srgb_rec709_display",
-                                            "projection": "perspective", "sortingMethod": "cameraDistance"}}}
-    nodes: list[dict[str, Any]] = [{"name": "Gaussians", "mesh": 0}]
-    doc: dict[str, Any] = {
-        "asset": {"version": "2.0", "generator": generator},
-        "extensionsUsed": [EXTENSION],
-        "scene": 0,
-        "meshes": [{"name": "Gaussians", "primitives": [primitive]}],
-        "accessors": accessors,
-        "bufferViews": views,
-        "buffers": [{"byteLength": len(blob)}],
-    }
+    doc: dict[str, Any] = {"asset": {"version": "2.0", "generator": generator}, "scene": 0}
     if extras:
         doc["asset"]["extras"] = extras
+    nodes: list[dict[str, Any]] = []
+    roots: list[int] = []
+    if count:
+        primitive = {"attributes": prim_attrs, "mode": MODE_POINTS,
+                     "extensions": {EXTENSION: {"kernel": "ellipse", "colorSpace": "srgb_rec709_display",
+                                                "projection": "perspective", "sortingMethod": "cameraDistance"}}}
+        doc.update({"extensionsUsed": [EXTENSION], "meshes": [{"name": "Gaussians", "primitives": [primitive]}],
+                    "accessors": accessors, "bufferViews": views, "buffers": [{"byteLength": len(blob)}]})
+        roots.append(len(nodes))
+        nodes.append({"name": "Gaussians", "mesh": 0})
     if cameras:
         gl_cams = []
+        first = len(nodes)
         for cam in cameras:
             c, node = gltf_camera(cam, znear)
             node["camera"] = len(gl_cams)
             gl_cams.append(c)
             nodes.append(node)
         doc["cameras"] = gl_cams
-        nodes.append({"name": "Cameras", "children": list(range(1, len(nodes)))})
-        doc["scenes"] = [{"nodes": [0, len(nodes) - 1]}]
-    else:
-        doc["scenes"] = [{"nodes": [0]}]
+        roots.append(len(nodes))
+        nodes.append({"name": "Cameras", "children": list(range(first, len(nodes)))})
     doc["nodes"] = nodes
+    doc["scenes"] = [{"nodes": roots}]
     text = json.dumps(doc, separators=(",", ":")).encode()
     text += b" " * (-len(text) % 4)  # the JSON chunk is padded with spaces
-    total = 12 + 8 + len(text) + 8 + len(blob)
-    return (struct.pack("<4sII", b"glTF", 2, total) + struct.pack("<I4s", len(text), b"JSON") + text
-            + struct.pack("<I4s", len(blob), b"BIN\0") + bytes(blob))
+    chunks = struct.pack("<I4s", len(text), b"JSON") + text
+    if blob:
+        chunks += struct.pack("<I4s", len(blob), b"BIN\0") + bytes(blob)
+    return struct.pack("<4sII", b"glTF", 2, 12 + len(chunks)) + chunks
 
 
 def write_splat_glb(path: str | Path, model: Any, cameras: list[Camera] | None = None, znear: float = 0.01,

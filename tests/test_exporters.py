@@ -1152,6 +1152,19 @@ def test_splat_glb_follows_khr_gaussian_splatting(tmp_path):
     assert back0["sh_degree"] == 0 and back0["sh"].shape == (5, 1, 3)
 
 
+def test_splat_glb_of_no_gaussians_is_the_cameras_alone(tmp_path):
+    """glTF forbids empty accessors: with every Gaussian deleted the file holds the cameras only."""
+    from sgpor_pipeline.splat_gltf import read_glb, read_splat_glb, write_splat_glb
+
+    path = write_splat_glb(tmp_path / "empty.glb", random_model(0, 3), small_cameras(2))
+    doc, binary = read_glb(path)
+    assert "meshes" not in doc and "accessors" not in doc and binary == b""
+    assert [n["name"] for n in doc["nodes"]] == ["view_00", "view_01", "Cameras"]
+    assert doc["scenes"] == [{"nodes": [2]}] and len(doc["cameras"]) == 2
+    with pytest.raises(ValueError, match="no primitive with the KHR_gaussian_splatting extension"):
+        read_splat_glb(path)
+
+
 def test_splat_glb_refuses_a_broken_model(tmp_path):
     from sgpor_pipeline.splat_gltf import write_splat_glb
 

@@ -5,8 +5,9 @@ Stage (Z up, ``metersPerUnit`` 1, ``kilogramsPerUnit`` 1, default prim ``/World`
     /World                    Xform
       PhysicsScene            UsdPhysics.Scene (gravity -Z, 9.81)
       Gaussians               UsdVol.ParticleField3DGaussianSplat (positions, orientations, linear
-                              scales, opacities in [0,1], SH coefficient-major, elementSize (deg+1)^2)
-      Mesh                    UsdGeom.Mesh, vertex displayColor, static collider
+                              scales, opacities in [0,1], SH coefficient-major, elementSize (deg+1)^2),
+                              UsdColorSpaceAPI srgb_rec709_scene (the photos' colours)
+      Mesh                    UsdGeom.Mesh, vertex displayColor (linear), static collider
                               (CollisionAPI + MeshCollisionAPI, approximation "none")
       Cameras/<name>          UsdGeom.Camera per input camera (and novel camera), looking down -Z
 
@@ -26,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from sgpor_pipeline.dag import Exporter, StageContext
+from sgpor_pipeline.imageio import srgb_to_linear
 from sgpor_pipeline.meshing import MeshData
 from sgpor_pipeline.orientation import ExportFrame, quat_to_matrix, scene_center_radius
 from sgpor_pipeline.scene import Camera
@@ -72,8 +74,9 @@ def gaussian_extent(means: np.ndarray, quats: np.ndarray, scales: np.ndarray, si
 
 
 def add_gaussians(stage: Any, path: str, model: Any) -> Any:
-    """Define a ParticleField3DGaussianSplat at ``path`` from a GaussianModel (activated values)."""
-    from pxr import UsdVol, Vt
+    """Define a ParticleField3DGaussianSplat at ``path`` from a GaussianModel (activated values), its
+    colour space sRGB (``UsdColorSpaceAPI`` ``srgb_rec709_scene``)."""
+    from pxr import Gf, Usd, UsdVol, Vt
 
     p = model.numpy()
     n = len(model)
@@ -95,11 +98,16 @@ def add_gaussians(stage: Any, path: str, model: Any) -> Any:
     coeffs.SetMetadata("elementSize", k)
     ext = gaussian_extent(p["means"].astype(np.float64), q, scales)
     g.CreateExtentAttr(Vt.Vec3fArray.FromNumpy(ext.astype(np.float32)))
+    # The radiance was fitted to the photos' sRGB values (3DGS's display-referred colour); USD takes colour
+    # values as linear Rec.709 unless a prim says otherwise. A nonlinear curve cannot be applied to SH
+    # coefficients, so the prim says so instead.
+    Usd.ColorSpaceAPI.Apply(g.GetPrim()).CreateColorSpaceNameAttr(Gf.ColorSpaceNames.SRGBRec709)
     return g
 
 
 def add_mesh(stage: Any, path: str, mesh: MeshData, collider: bool = True) -> Any:
-    """Define a UsdGeom.Mesh with vertex colours; a static collider (CollisionAPI, approximation none)."""
+    """Define a UsdGeom.Mesh with vertex colours (linear Rec.709, USD's default colour space); a static
+    collider (CollisionAPI, approximation none)."""
     from pxr import UsdGeom, UsdPhysics, Vt
 
     m = UsdGeom.Mesh.Define(stage, path)
@@ -112,8 +120,8 @@ def add_mesh(stage: Any, path: str, mesh: MeshData, collider: bool = True) -> An
     if mesh.normals is not None:
         m.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(mesh.normals, np.float32)))
         m.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
-    m.CreateDisplayColorPrimvar(UsdGeom.Tokens.vertex).Set(
-        Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(mesh.colors, np.float32)))
+    m.CreateDisplayColorPrimvar(UsdGeom.Tokens.vertex).Set(  # linear, as USD takes colours by default
+        Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(srgb_to_linear(mesh.colors), np.float32)))
     m.CreateExtentAttr(UsdGeom.PointBased.ComputeExtent(pts))
     if collider:
         UsdPhysics.CollisionAPI.Apply(m.GetPrim())
@@ -258,7 +266,7 @@ def validate_stage(stage: Any) -> list[str]:
 
 class UsdExporter(Exporter):
     name = "usd"
-    VERSION = 2  # 2: the mesh collider's normals of unit length
+    VERSION = 3  # 2: the mesh collider's normals of unit length; 3: colour spaces (linear displayColor, sRGB splats)
     needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE)
     optional_needs = (GPS_STAGE,)
     description = "scene.usda/.usdc/.usdz: Gaussians (UsdVol splat), mesh collider, cameras; Z up, metres"

@@ -552,6 +552,20 @@ def _usd_run(tmp_path, degree=3):
     return ctx, m, cams
 
 
+def test_usd_mesh_colours_are_linear():
+    """USD takes colour values as linear Rec.709: the mesh's sRGB vertex colours are decoded."""
+    from pxr import Usd, UsdGeom
+
+    from sgpor_pipeline.exporters.usd import add_mesh
+    from sgpor_pipeline.imageio import srgb_to_linear
+
+    c = np.array([[0.0, 0.5, 1.0], [0.2, 0.04, 0.9], [0.7, 0.7, 0.7]], np.float32)
+    stage = Usd.Stage.CreateInMemory()
+    m = add_mesh(stage, "/Mesh", MeshData(np.eye(3), np.array([[0, 1, 2]]), c))
+    stored = np.asarray(UsdGeom.Mesh(m).GetDisplayColorPrimvar().Get())
+    assert np.allclose(stored, srgb_to_linear(c), atol=1e-6) and stored[0, 1] < 0.22
+
+
 def test_usd_stage_valid_and_matching_the_gaussians(tmp_path):
     from pxr import Gf, Usd, UsdGeom, UsdPhysics, UsdVol
 
@@ -609,6 +623,10 @@ def test_usd_stage_valid_and_matching_the_gaussians(tmp_path):
         assert np.allclose(sh[:, 0], mx["sh0"][:, 0]) and np.allclose(sh[:, 1:], mx["shN"])
         ext = np.asarray(g.GetExtentAttr().Get())
         assert np.all(ext[0] <= pos.min(0)) and np.all(ext[1] >= pos.max(0))
+        # the radiance is the photos' sRGB; everything else takes USD's default, linear Rec.709
+        spaces = Usd.ColorSpaceHashCache()
+        assert Usd.ColorSpaceAPI.ComputeColorSpaceName(g.GetPrim(), spaces) == "srgb_rec709_scene"
+        assert Usd.ColorSpaceAPI.ComputeColorSpaceName(stage.GetPrimAtPath("/World/Mesh"), spaces) == ""  # the default
 
         mesh = stage.GetPrimAtPath("/World/Mesh")
         assert mesh.IsA(UsdGeom.Mesh) and mesh.GetParent().GetPath() == "/World"

@@ -25,6 +25,7 @@ class CamerasExporter(Exporter):
     VERSION = 3  # 2: the fit's (refined) poses; 3: transforms.json's frames point at the renders
     needs = ("sfm", "fit")
     description = "camera poses as transforms.json, a COLMAP text model and cameras.json"
+    outputs = ("cameras/",)
 
     def export(self, ctx: StageContext, out_dir: Path) -> None:
         from sgpor_pipeline.camera_io import write_colmap_model, write_transforms_json

@@ -161,7 +161,9 @@ class PlyExporter(Exporter):
     VERSION = 1
     needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE)
     optional_needs = (GPS_STAGE,)
-    description = "the Gaussians as scene.ply (INRIA 3DGS layout, export frame) and export_frame.json"
+    description = ("the Gaussians as scene.ply (INRIA 3DGS layout, export frame: SuperSplat and most splat "
+                   "viewers) and export_frame.json (the similarity from the SfM frame)")
+    outputs = ("scene.ply", "export_frame.json")
 
     def export(self, ctx: StageContext, out_dir: Path) -> None:
         from sgpor_pipeline.gaussians.ply import write_ply
@@ -177,7 +179,8 @@ class SplatExporter(Exporter):
     VERSION = 1
     needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE)
     optional_needs = (GPS_STAGE,)
-    description = "the Gaussians as scene.splat (antimatter15 format, export frame, DC colour only)"
+    description = "the Gaussians as scene.splat (antimatter15's web viewers; export frame, DC colour only)"
+    outputs = ("scene.splat",)
 
     def export(self, ctx: StageContext, out_dir: Path) -> None:
         from sgpor_pipeline.splat_io import write_splat
@@ -212,7 +215,9 @@ class GltfExporter(Exporter):
     VERSION = 1
     needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE)
     optional_needs = (GPS_STAGE,)
-    description = "the Gaussians as scene.glb (glTF KHR_gaussian_splatting, Y up, full SH) with the cameras"
+    description = ("the Gaussians as scene.glb (glTF KHR_gaussian_splatting: Babylon.js, PlayCanvas, CesiumJS; "
+                   "Y up, full SH) with the cameras")
+    outputs = ("scene.glb",)
 
     def export(self, ctx: StageContext, out_dir: Path) -> None:
         from sgpor_pipeline.orientation import scene_center_radius
@@ -241,7 +246,9 @@ class SpzExporter(Exporter):
     VERSION = 1
     needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE)
     optional_needs = (GPS_STAGE,)
-    description = "the Gaussians as scene.spz (Niantic's compressed format, version 3, Y up, full SH)"
+    description = ("the Gaussians as scene.spz (Niantic's compressed format, version 3: Scaniverse, Spark, "
+                   "SuperSplat, Babylon.js; Y up, full SH)")
+    outputs = ("scene.spz",)
 
     def export(self, ctx: StageContext, out_dir: Path) -> None:
         from sgpor_pipeline.spz_io import FRACTIONAL_BITS, read_spz_header, write_spz
@@ -308,6 +315,7 @@ class ObjectExporter(Exporter):
     needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE, "remove")
     optional_needs = (GPS_STAGE,)
     description = "the removed object as object/object.ply and object/object.glb (export frame)"
+    outputs = ("object/",)
     OBJECT_FILE = "object.ply"
 
     def export(self, ctx: StageContext, out_dir: Path) -> None:

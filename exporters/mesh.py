@@ -139,6 +139,7 @@ class MeshExporter(Exporter):
     needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE)
     optional_needs = (GPS_STAGE,)
     description = "a coloured mesh (TSDF of rendered depth) as mesh.glb (Y up), mesh.obj and mesh.ply (Z up)"
+    outputs = ("mesh.glb", "mesh.obj", "mesh.ply")
 
     def export(self, ctx: StageContext, out_dir: Path) -> None:
         t0 = time.perf_counter()

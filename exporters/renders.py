@@ -47,6 +47,7 @@ class RendersExporter(Exporter):
     VERSION = 1
     needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE)
     description = "renders of the scene at every input view (renders/<view>.png) and novel camera (renders/novel/)"
+    outputs = ("renders/",)
 
     def export(self, ctx: StageContext, out_dir: Path) -> None:
         t0 = time.perf_counter()

@@ -21,7 +21,10 @@ those stages' folders reach ``ctx.inputs``). Built in:
   ground truth) as tables: PSNR/SSIM in the ``mask``, ``bbox`` and ``full`` definitions for the final
   scene, the 2D-inpainted views and delete-only, seconds per stage, and per view; the file itself is
   copied beside the report as ``metrics.json``. Any other input stage's ``metrics.json`` is shown as
-  key/value rows.
+  key/value rows;
+* files: what the exporters wrote into the export folder (their ``outputs``), with sizes and each
+  exporter's ``description`` (which tools open it). The report's exporter runs after the others
+  (``runs_last``) so that their files are there.
 """
 
 from __future__ import annotations
@@ -548,6 +551,48 @@ class PlaneSection:
         return "".join(figs) + table
 
 
+def _size(path: Path) -> tuple[int, int]:
+    """(bytes, files) of a file or of a folder's files."""
+    if path.is_file():
+        return path.stat().st_size, 1
+    files = [f for f in path.rglob("*") if f.is_file()]
+    return sum(f.stat().st_size for f in files), len(files)
+
+
+def _human(n: int) -> str:
+    for unit in ("B", "KB", "MB", "GB"):
+        if n < 1000 or unit == "GB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1000
+    return f"{n} B"  # (not reached)
+
+
+class FilesSection:
+    """The export folder's files, each with its size and what its exporter says it is (which tools
+    open it); the report's exporter runs after the others (``runs_last``), so their files are there."""
+
+    title = "Files"
+
+    def render(self, rc: ReportContext) -> str | None:
+        from sgpor_pipeline.dag import discover_exporters
+
+        rows = []
+        for name, exporter in sorted(discover_exporters().items()):
+            for out in exporter.outputs:
+                path = rc.export_dir / out.rstrip("/")
+                if out in (REPORT_FILE, f"{REPORT_DIR}/") or not path.exists():
+                    continue  # (the page itself, and its images, are being written)
+                size, count = _size(path)
+                what = f"{count} files, {_human(size)}" if path.is_dir() else _human(size)
+                link = href(out.rstrip("/")) + ("/" if out.endswith("/") else "")
+                rows.append(f"<tr><td><a href='{esc(link)}'>{esc(out)}</a></td><td>{esc(what)}</td>"
+                            f"<td>{esc(name)}: {esc(exporter.description)}</td></tr>")
+        if not rows:
+            return None
+        return ("<table class='files'><tr><th>file</th><th>size</th><th>exporter: what it is</th></tr>"
+                + "".join(rows) + "</table>")
+
+
 DEFAULT_SECTIONS: list[Any] = [
     SummarySection(),
     MetricsSection(),
@@ -555,6 +600,7 @@ DEFAULT_SECTIONS: list[Any] = [
     PlaneSection(),
     TrainingSection(),
     StageFileSection("Speed against error", "speed_error.png"),
+    FilesSection(),
 ]
 
 _CSS = """
@@ -617,13 +663,15 @@ REPORT_STAGES = ("fit", "masks", "remove", "inpaint", "refine") if SCENE_STAGE =
 
 class ReportExporter(Exporter):
     name = "report"
-    VERSION = 6  # 2: evaluate's metrics as tables (and metrics.json beside the report); 3: the plane texture;
+    VERSION = 7  # 2: evaluate's metrics as tables (and metrics.json beside the report); 3: the plane texture;
     # 4: its contact shadow (inpaint.lift_shadow); 5: its straight edges (inpaint.plane_structure); 6: dated by
-    # its results, not its writing
+    # its results, not its writing; 7: the export folder's files (it runs after the other exporters)
     needs = ("ingest", CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE, *REPORT_STAGES)
     optional_needs = ("evaluate",)  # when the run has ground truth; its key then enters export's key
     description = ("report.html (+ report/ PNGs): inputs, masks, renders, training curve, metrics (with ground "
-                   "truth); offline")
+                   "truth), the export's files; offline")
+    outputs = (REPORT_FILE, f"{REPORT_DIR}/", METRICS_FILE)
+    runs_last = True  # (its Files section lists what the other exporters wrote)
 
     def export(self, ctx: StageContext, out_dir: Path) -> None:
         t0 = time.perf_counter()

@@ -269,7 +269,10 @@ class UsdExporter(Exporter):
     VERSION = 3  # 2: the mesh collider's normals of unit length; 3: colour spaces (linear displayColor, sRGB splats)
     needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE)
     optional_needs = (GPS_STAGE,)
-    description = "scene.usda/.usdc/.usdz: Gaussians (UsdVol splat), mesh collider, cameras; Z up, metres"
+    description = (
+        "scene.usda/.usdc/.usdz: Gaussians (UsdVol splat), mesh collider, cameras; Z up, metres when the "
+        "scale is known")
+    outputs = ("scene.usda", "scene.usdc", "scene.usdz")
 
     def export(self, ctx: StageContext, out_dir: Path) -> None:
         from sgpor_pipeline.orientation import transform_model

@@ -223,6 +223,10 @@ class Exporter:
     # Stages read when the run has them (see Stage.optional_inputs), e.g. evaluate for the report.
     optional_needs: ClassVar[tuple[str, ...]] = ()
     description: ClassVar[str] = ""
+    # What it writes into the export folder: file names, and folders as "name/" (the report lists them).
+    outputs: ClassVar[tuple[str, ...]] = ()
+    # Run after the other exporters (the report, which lists the files they wrote).
+    runs_last: ClassVar[bool] = False
 
     def export(self, ctx: StageContext, out_dir: Path) -> None:  # pragma: no cover - the contract
         raise NotImplementedError

@@ -41,7 +41,7 @@ def selected_exporters(params: ExportParams) -> dict[str, type[Exporter]]:
     exporters = discover_exporters()
     stages = discover_stages()
     if "all" in params.formats:
-        return {n: e for n, e in sorted(exporters.items()) if all(s in stages for s in e.needs)}
+        return _in_run_order({n: e for n, e in exporters.items() if all(s in stages for s in e.needs)})
     out = {}
     for name in params.formats:
         if name not in exporters:
@@ -52,7 +52,12 @@ def selected_exporters(params: ExportParams) -> dict[str, type[Exporter]]:
             raise PipelineError(f"export format '{name}' needs stage(s) {missing}, which are not installed",
                                 fix="install the package that provides them, or choose other formats")
         out[name] = exporters[name]
-    return out
+    return _in_run_order(out)
+
+
+def _in_run_order(exporters: dict[str, type[Exporter]]) -> dict[str, type[Exporter]]:
+    """By name, those that run last (the report: it lists the others' files) after the rest."""
+    return dict(sorted(exporters.items(), key=lambda item: (item[1].runs_last, item[0])))
 
 
 def _needs_of_selected(params: ExportParams, attribute: str) -> tuple[str, ...]:

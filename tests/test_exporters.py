@@ -685,7 +685,7 @@ def test_ply_splat_renders_and_report_exporters(tmp_path):
     masks[0][10:30, 20:40] = True
     ctx = make_run(tmp_path, m, cams, masks=[masks[0], None, masks[2]])
     out = ctx.out_dir
-    for exporter in (PlyExporter(), RendersExporter(), ReportExporter(), SplatExporter(), CamerasExporter()):
+    for exporter in (PlyExporter(), RendersExporter(), SplatExporter(), CamerasExporter(), ReportExporter()):
         exporter.export(ctx, out)
 
     frame = json.loads((out / "export_frame.json").read_text())
@@ -721,8 +721,24 @@ def test_ply_splat_renders_and_report_exporters(tmp_path):
     assert len(links.refs) >= 3 * 3  # input, mask, render per view (+ curve)
     for ref in links.refs:
         path = out / unquote(ref)
-        assert path.is_file() and path.resolve().is_relative_to(out.resolve()), ref
+        # (the Files section links the folders the exporters wrote, as "name/")
+        assert (path.is_file() or ref.endswith("/") and path.is_dir()) and path.resolve().is_relative_to(
+            out.resolve()), ref
     assert any("curve" in r for r in links.refs)
+    # the export's files, with what wrote them (the report ran after the other exporters here)
+    files = page[page.index("<table class='files'>"):]
+    files = files[:files.index("</table>")]
+    for name in ("scene.ply", "scene.splat", "export_frame.json", "renders/", "cameras/"):
+        assert f">{name}</a>" in files, name
+    assert "report.html</a>" not in files and "Niantic" not in files  # (spz did not run)
+
+
+def test_the_report_runs_after_the_other_exporters():
+    from sgpor_pipeline.stages.export import ExportParams, selected_exporters
+
+    for formats in (["all"], ["report", "ply", "usd"]):
+        names = list(selected_exporters(ExportParams(formats=formats)))
+        assert names[-1] == "report" and names[:-1] == sorted(names[:-1]), names
 
 
 def test_mesh_files_glb_is_y_up_with_colours(tmp_path):

@@ -156,11 +156,17 @@ def _mb(path: Path) -> str:
     return f"{path.stat().st_size / 1e6:.1f} MB"
 
 
-class PlyExporter(Exporter):
-    name = "ply"
-    VERSION = 1
+class SceneFileExporter(Exporter):
+    """An exporter of the scene's Gaussians in the export frame: it reads the cameras, the fit's poses,
+    the scene, and the photos' GPS where the run has them (the export frame's scale)."""
+
     needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE)
     optional_needs = (GPS_STAGE,)
+
+
+class PlyExporter(SceneFileExporter):
+    name = "ply"
+    VERSION = 1
     description = ("the Gaussians as scene.ply (INRIA 3DGS layout, export frame: SuperSplat and most splat "
                    "viewers) and export_frame.json (the similarity from the SfM frame)")
     outputs = ("scene.ply", "export_frame.json")
@@ -174,11 +180,9 @@ class PlyExporter(Exporter):
         ctx.log.info(f"ply: {len(model)} Gaussians -> {path.name} ({_mb(path)}) in {time.perf_counter() - t0:.1f} s")
 
 
-class SplatExporter(Exporter):
+class SplatExporter(SceneFileExporter):
     name = "splat"
     VERSION = 1
-    needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE)
-    optional_needs = (GPS_STAGE,)
     description = "the Gaussians as scene.splat (antimatter15's web viewers; export frame, DC colour only)"
     outputs = ("scene.splat",)
 
@@ -205,7 +209,7 @@ def scene_y_up(ctx: StageContext, out_dir: Path) -> tuple[Any, ExportFrame, list
     return transform_model(model, y_up), frame, cams
 
 
-class GltfExporter(Exporter):
+class GltfExporter(SceneFileExporter):
     """``scene.glb``: the Gaussians as glTF's ``KHR_gaussian_splatting`` point primitive (every SH degree
     the model has, :mod:`sgpor_pipeline.splat_gltf`) and the run's cameras as glTF cameras, in glTF's
     frame: the export frame rotated so that its +Z (up) is glTF's +Y (:data:`GLTF_FROM_ZUP`), SH rotated
@@ -213,8 +217,6 @@ class GltfExporter(Exporter):
 
     name = "gltf"
     VERSION = 1
-    needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE)
-    optional_needs = (GPS_STAGE,)
     description = ("the Gaussians as scene.glb (glTF KHR_gaussian_splatting: Babylon.js, PlayCanvas, CesiumJS; "
                    "Y up, full SH) with the cameras")
     outputs = ("scene.glb",)
@@ -236,7 +238,7 @@ class GltfExporter(Exporter):
                      f"{path.name} ({_mb(path)}) in {time.perf_counter() - t0:.1f} s")
 
 
-class SpzExporter(Exporter):
+class SpzExporter(SceneFileExporter):
     """``scene.spz``: the Gaussians in Niantic's compressed ``.spz`` (version 3, about a tenth of the PLY;
     :mod:`sgpor_pipeline.spz_io`), every SH degree up to 3, in SPZ's frame (RUB: the export frame turned
     so that its +Z is +Y, as :func:`scene_y_up`); the positions' fixed point keeps 12 fraction bits
@@ -244,8 +246,6 @@ class SpzExporter(Exporter):
 
     name = "spz"
     VERSION = 1
-    needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE)
-    optional_needs = (GPS_STAGE,)
     description = ("the Gaussians as scene.spz (Niantic's compressed format, version 3: Scaniverse, Spark, "
                    "SuperSplat, Babylon.js; Y up, full SH)")
     outputs = ("scene.spz",)

@@ -18,6 +18,10 @@ from sgpor_pipeline.presets import describe as describe_preset
 
 log = logging.getLogger("sgpor_pipeline")
 
+#: What ``sgpor-pipeline export`` writes for Gaussians from elsewhere (the exporters that need only the
+#: Gaussians and their cameras: not the report, nor the removed object)
+EXTERNAL_FORMATS = ("ply", "splat", "spz", "gltf", "mesh", "usd", "renders", "cameras")
+
 
 class _Formatter(logging.Formatter):
     def format(self, record: logging.LogRecord) -> str:
@@ -117,6 +121,23 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"longest side of the photos (default {FrameParams.max_size}; 0 = as in the video)")
     p.add_argument("--format", choices=["jpg", "png"], default=FrameParams.format, help="jpg (default) or png")
 
+    p = sub.add_parser("export", help="export Gaussians trained elsewhere (a 3DGS PLY and its cameras): USD, glTF, "
+                                      ".spz, mesh, ...",
+                       description="Write the exports of Gaussians from another trainer, without removing anything: "
+                                   "an INRIA-layout 3DGS PLY (any SH degree) and the cameras it was trained with "
+                                   "(a COLMAP model folder, a transforms.json or a cameras.json, in the PLY's frame). "
+                                   "The export frame is found as for a run: Z up from the cameras' horizon and "
+                                   "the ground, arbitrary units unless --scale gives metres.")
+    p.add_argument("gaussians", type=Path, help="the Gaussians: an INRIA-layout 3DGS .ply")
+    p.add_argument("--cameras", type=Path, required=True, metavar="FILE",
+                   help="a COLMAP model folder, a transforms.json or a cameras.json, in the PLY's frame")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="the folder the files go to")
+    p.add_argument("--export", metavar="LIST",
+                   help="comma-separated formats (default: " + ",".join(EXTERNAL_FORMATS) + ")")
+    p.add_argument("--up", metavar="AXIS", default="auto",
+                   help="up axis of the export frame: auto (default), ring, cameras, nadir, or an axis such as -y")
+    p.add_argument("--scale", metavar="S", type=float, help="metres per unit of the PLY's frame")
+
     p = sub.add_parser("status", help="show each stage of a run folder: hit / missing / stale, time, size",
                        description="Show each stage of a run folder: hit / missing / stale / damaged, time, size.")
     p.add_argument("out", type=Path, help="the run's output folder")
@@ -198,6 +219,34 @@ def cmd_frames(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_export(args: argparse.Namespace) -> int:
+    import tempfile
+
+    from sgpor_pipeline.camera_io import load_cameras_any
+    from sgpor_pipeline.exporters.gaussians import export_external
+    from sgpor_pipeline.scene import save_cameras
+    from sgpor_pipeline.stages.export import ExportParams
+
+    if args.gaussians.suffix.lower() != ".ply" or not args.gaussians.is_file():
+        raise PipelineError(f"{args.gaussians}: not a .ply file", fix="give the trainer's 3DGS PLY (a .spz or .splat "
+                            "converts to PLY with e.g. PlayCanvas splat-transform, in the frame of its cameras)")
+    formats = tuple(n.strip() for n in args.export.split(",") if n.strip()) if args.export else EXTERNAL_FORMATS
+    unsupported = [f for f in formats if f not in EXTERNAL_FORMATS]
+    if unsupported:
+        raise PipelineError(f"format(s) {unsupported} need a run of the pipeline (its photos, masks or stages)",
+                            fix=f"choose from {', '.join(EXTERNAL_FORMATS)}")
+    t0 = time.perf_counter()
+    cameras = load_cameras_any(args.cameras)
+    with tempfile.TemporaryDirectory(prefix="sgpor-cameras-") as tmp:
+        cameras_json = Path(tmp) / "cameras.json"
+        save_cameras(cameras_json, cameras)
+        out = export_external(args.gaussians, cameras_json, args.out, formats,
+                              ExportParams(up=args.up, scale=args.scale))
+    log.info(f"exported {args.gaussians.name} with {len(cameras)} cameras: {', '.join(formats)} in "
+             f"{time.perf_counter() - t0:.1f} s; output in {out}")
+    return 0
+
+
 def cmd_status(args: argparse.Namespace) -> int:
     from sgpor_pipeline.runner import format_status, pipeline_status
 
@@ -215,8 +264,8 @@ def cmd_clean(args: argparse.Namespace) -> int:
     return 0
 
 
-COMMANDS = {"run": cmd_run, "demo": cmd_demo, "render": cmd_render, "frames": cmd_frames, "status": cmd_status,
-            "clean": cmd_clean}
+COMMANDS = {"run": cmd_run, "demo": cmd_demo, "render": cmd_render, "frames": cmd_frames, "export": cmd_export,
+            "status": cmd_status, "clean": cmd_clean}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 from conftest import cli_env, make_images, run_cli
 
-COMMANDS = ["run", "demo", "status", "clean", "render"]
+COMMANDS = ["run", "demo", "status", "clean", "render", "frames", "export"]
 
 
 def test_version_and_help():
@@ -160,3 +160,41 @@ def test_sigkill_mid_stage_resumes_and_concurrent_run_is_refused(tmp_path, plugi
     assert not list((out / "cache").glob("*/.tmp-*"))
     third = subprocess.run(args, env=env, capture_output=True, text=True, timeout=60, cwd=tmp_path)
     assert third.returncode == 0 and "ran in" not in third.stderr
+
+
+def test_export_of_gaussians_trained_elsewhere(tmp_path):
+    """`sgpor-pipeline export`: another trainer's PLY and its cameras (here a transforms.json) give the
+    exports; a .spz input and a format that needs a run are refused with what to do instead."""
+    import numpy as np
+    import torch
+
+    from sgpor_pipeline.camera_io import write_transforms_json
+    from sgpor_pipeline.gaussians.model import GaussianModel
+    from sgpor_pipeline.gaussians.ply import write_ply
+    from sgpor_pipeline.scene import Camera
+    from sgpor_pipeline.spz_io import read_spz
+    from sgpor_pipeline.synthetic import look_at
+
+    g = torch.Generator().manual_seed(0)
+    m = GaussianModel.empty(200, 1)
+    m.params["means"].data = 0.5 * torch.randn(200, 3, generator=g)
+    m.params["scales"].data = torch.full((200, 3), -3.0)
+    m.params["opacities"].data = torch.zeros(200)
+    m.params["quats"].data = torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(200, 1)
+    write_ply(tmp_path / "trained.ply", m)
+    K = np.array([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]])
+    cams = [Camera(f"c{i}", 64, 48, K, look_at(np.array([3 * np.cos(a), 3 * np.sin(a), 1.0]), np.zeros(3)),
+                   image=f"c{i}") for i, a in enumerate(np.linspace(0, 2 * np.pi, 4, endpoint=False))]
+    write_transforms_json(cams, tmp_path / "transforms.json")
+    out = tmp_path / "out"
+    r = run_cli(["export", str(tmp_path / "trained.ply"), "--cameras", str(tmp_path / "transforms.json"),
+                 "--out", str(out), "--export", "ply,spz,gltf,renders"])
+    assert r.returncode == 0, r.stderr
+    for name in ("scene.ply", "scene.spz", "scene.glb", "export_frame.json", "renders/c0.png"):
+        assert (out / name).is_file(), name
+    assert read_spz(out / "scene.spz")["sh_degree"] == 1
+    for args, words in ((["--export", "report"], "need a run of the pipeline"), ([], "not a .ply file")):
+        src = tmp_path / ("trained.ply" if args else "trained.spz")
+        src.touch(exist_ok=True)
+        r = run_cli(["export", str(src), "--cameras", str(tmp_path / "transforms.json"), "--out", str(out), *args])
+        assert r.returncode == 1 and words in r.stderr and "fix:" in r.stderr, r.stderr

@@ -170,6 +170,9 @@ def build_glb(attributes: dict[str, np.ndarray], cameras: list[Camera] | None = 
     doc["scenes"] = [{"nodes": roots}]
     text = json.dumps(doc, separators=(",", ":")).encode()
     text += b" " * (-len(text) % 4)  # the JSON chunk is padded with spaces
+    if 12 + 8 + len(text) + 8 + len(blob) >= 1 << 32:
+        raise ValueError(f"{count:,} Gaussians make a GLB over glTF's 4 GB limit ({(len(blob) + len(text)) / 1e9:.1f} "
+                         f"GB): export scene.spz instead, or fewer Gaussians (fit.budget)")
     chunks = struct.pack("<I4s", len(text), b"JSON") + text
     if blob:
         chunks += struct.pack("<I4s", len(blob), b"BIN\0") + bytes(blob)
@@ -180,7 +183,11 @@ def write_splat_glb(path: str | Path, model: Any, cameras: list[Camera] | None =
                     extras: dict[str, Any] | None = None) -> Path:
     """Write a GaussianModel (already in a Y-up frame) and optional cameras as a GLB, atomically."""
     path = Path(path)
-    data = build_glb(splat_attributes(model, path), cameras, znear, extras=extras)
+    attributes = splat_attributes(model, path)
+    try:
+        data = build_glb(attributes, cameras, znear, extras=extras)
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}") from None
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     tmp.write_bytes(data)
     os.replace(tmp, path)

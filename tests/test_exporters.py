@@ -1281,3 +1281,23 @@ def test_spz_exporter_is_the_y_up_scene_compressed(tmp_path):
     assert np.abs(spz["sh0"][:, 0] - dc).max() <= 0.5 / (0.15 * 255) + 1e-6
     assert np.abs(spz["shN"] - np.clip(glb["sh"][:, 1:], -1, 127 / 128)).max() <= 8.5 / 128
     assert (out / "scene.spz").stat().st_size * 3 < (out / "scene.ply").stat().st_size
+
+
+def test_exports_benchmark_reads_every_format_back(tmp_path, capsys):
+    """benchmarks/exports.py decodes each Gaussian file of an export and renders it: the GLB is the PLY
+    to float rounding, the .spz within its quantisation, the .splat (DC colour, 8 bits) coarser."""
+    from conftest import load_benchmark
+
+    from sgpor_pipeline.exporters.cameras import CamerasExporter
+    from sgpor_pipeline.exporters.gaussians import GltfExporter, PlyExporter, SplatExporter, SpzExporter
+
+    ctx = make_run(tmp_path, random_model(300, 2, seed=16, spread=0.4), small_cameras(3))
+    for exporter in (PlyExporter(), GltfExporter(), SpzExporter(), SplatExporter(), CamerasExporter()):
+        exporter.export(ctx, ctx.out_dir)
+    bench = load_benchmark("exports")
+    assert bench.main([str(ctx.out_dir), "--json"]) == 0
+    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert res["ply"]["psnr_mean"] is None and res["ply"]["ratio"] == 1.0
+    assert res["glb"]["psnr_min"] > 90 and res["glb"]["sh_degree"] == 2
+    assert 25 < res["spz"]["psnr_min"] < 90 and res["spz"]["ratio"] < 0.3 and res["spz"]["sh_degree"] == 2
+    assert res["splat"]["sh_degree"] == 0 and res["splat"]["psnr_mean"] < res["spz"]["psnr_mean"]

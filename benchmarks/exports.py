@@ -1,0 +1,137 @@
+"""Exports benchmark: what each Gaussian file format of an export costs, in bytes and in image error.
+
+    python benchmarks/exports.py [EXPORT_DIR] [--views N] [--json]
+
+``EXPORT_DIR`` is a run's ``export/`` folder (default ``runs/demo/export``, what ``make demo`` writes;
+any run or ``sgpor-pipeline export`` folder with ``cameras/cameras.json`` and ``export_frame.json``).
+Every Gaussian file in it is read back with an independent decoder of ours (``scene.ply`` exactly,
+``scene.glb`` by :func:`sgpor_pipeline.splat_gltf.read_splat_glb`, ``scene.spz`` by
+:func:`sgpor_pipeline.spz_io.read_spz`, ``scene.splat`` by :func:`sgpor_pipeline.splat_io.read_splat`),
+turned back into the export frame where the format is +Y up, and rendered at the run's registered
+cameras (every ``--views``-th of them; black background). The table gives per format its size,
+its size against the PLY's, the SH degree it keeps, and the PSNR of its renders against the renders
+of ``scene.ply`` (mean and worst view): what a viewer of that file loses. With ``--json`` the last
+line is one JSON object: ``{format: {"mb", "ratio", "sh_degree", "psnr_mean", "psnr_min"}}`` (PSNR
+null where the renders are the same bits as the PLY's).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from sgpor_pipeline.exporters.gaussians import FRAME_FILE
+from sgpor_pipeline.gaussians.model import GaussianModel
+from sgpor_pipeline.gaussians.ply import read_ply
+from sgpor_pipeline.meshing import activated_tensors, render_view
+from sgpor_pipeline.metrics import psnr
+from sgpor_pipeline.orientation import GLTF_FROM_ZUP, ExportFrame, Similarity, transform_model
+from sgpor_pipeline.scene import Camera, load_cameras
+from sgpor_pipeline.splat_gltf import read_splat_glb
+from sgpor_pipeline.splat_io import SH_C0, read_splat
+from sgpor_pipeline.spz_io import read_spz
+
+ROOT = Path(__file__).resolve().parents[1]
+Z_UP_FROM_Y_UP = Similarity(1.0, GLTF_FROM_ZUP.T)  # glTF's and SPZ's frame back to the export frame
+
+
+def _logit(opacity: np.ndarray) -> np.ndarray:
+    o = np.clip(np.asarray(opacity, np.float64), 1e-6, 1 - 1e-6)
+    return np.log(o / (1 - o))
+
+
+def model_from(means: np.ndarray, quats_wxyz: np.ndarray, log_scales: np.ndarray, opacities: np.ndarray,
+               sh: np.ndarray) -> GaussianModel:
+    """A GaussianModel from decoded values (opacities in [0,1], ``sh`` [N,K,3] with the DC first)."""
+    k = sh.shape[1]
+    degree = int(round(math.sqrt(k))) - 1
+    f32 = lambda a: torch.from_numpy(np.array(a, np.float32))  # noqa: E731  (a writable copy)
+    return GaussianModel({"means": f32(means), "quats": f32(quats_wxyz), "scales": f32(log_scales),
+                          "opacities": f32(_logit(opacities)), "sh0": f32(sh[:, :1]), "shN": f32(sh[:, 1:])},
+                         degree)
+
+
+def decode(path: Path) -> GaussianModel:
+    """The Gaussians of an export file, in the export frame (Z up)."""
+    if path.suffix == ".ply":
+        return read_ply(path)
+    if path.suffix == ".glb":
+        g = read_splat_glb(path)
+        return transform_model(model_from(g["means"], g["quats"], np.log(g["scales"]), g["opacities"], g["sh"]),
+                               Z_UP_FROM_Y_UP)
+    if path.suffix == ".spz":
+        s = read_spz(path)
+        sh = np.concatenate([s["sh0"], s["shN"]], axis=1)
+        return transform_model(model_from(s["means"], s["quats"], s["scales"], s["opacities"], sh), Z_UP_FROM_Y_UP)
+    if path.suffix == ".splat":
+        s = read_splat(path)
+        sh0 = ((s["colors"] - 0.5) / SH_C0)[:, None, :]
+        return model_from(s["means"], s["quats"], np.log(np.maximum(s["scales"], 1e-30)), s["opacities"], sh0)
+    raise ValueError(f"{path}: no decoder for this format")
+
+
+def export_cameras(export_dir: Path, every: int) -> list[Camera]:
+    """The registered cameras of the export, in the export frame."""
+    frame = ExportFrame.from_dict(json.loads((export_dir / FRAME_FILE).read_text()))
+    cams = [c for c in load_cameras(export_dir / "cameras" / "cameras.json") if c.image is not None]
+    return [frame.transform.camera(c) for c in cams[::max(1, every)]]
+
+
+def render_all(model: GaussianModel, cameras: list[Camera]) -> list[np.ndarray]:
+    g = activated_tensors(model)
+    return [render_view(g, cam, None, with_depth=False)["rgb"] for cam in cameras]
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("export_dir", nargs="?", type=Path, default=ROOT / "runs" / "demo" / "export")
+    ap.add_argument("--views", type=int, default=1, help="render every N-th registered camera (default: all)")
+    ap.add_argument("--json", action="store_true", help="print one JSON object as the last line")
+    args = ap.parse_args(argv)
+    export_dir = args.export_dir
+    if not (export_dir / "scene.ply").is_file() or not (export_dir / FRAME_FILE).is_file():
+        print(f"{export_dir}: no scene.ply / {FRAME_FILE} (run `make demo`, or give a run's export/ folder)",
+              file=sys.stderr)
+        return 2
+    cameras = export_cameras(export_dir, args.views)
+    reference_path = export_dir / "scene.ply"
+    reference = render_all(read_ply(reference_path), cameras)
+    ply_bytes = reference_path.stat().st_size
+    results = {}
+    print(f"# exports benchmark: {export_dir}, {len(cameras)} cameras; PSNR of each file's renders against "
+          f"scene.ply's")
+    print(f"{'file':12s} {'MB':>8s} {'x PLY':>7s} {'SH':>3s} {'PSNR mean':>10s} {'worst':>7s} {'decode+render s':>16s}")
+    for name in ("scene.ply", "scene.glb", "scene.spz", "scene.splat"):
+        path = export_dir / name
+        if not path.is_file():
+            continue
+        t0 = time.perf_counter()
+        model = decode(path)
+        renders = render_all(model, cameras)
+        seconds = time.perf_counter() - t0
+        scores = [psnr(r, ref) for r, ref in zip(renders, reference)]
+        finite = [s for s in scores if math.isfinite(s)]
+        mean = float(np.mean(finite)) if finite else None  # (None: every render the same bits)
+        worst = float(min(finite)) if finite else None
+        size = path.stat().st_size
+        results[path.suffix.lstrip(".")] = {"mb": round(size / 1e6, 2), "ratio": round(size / ply_bytes, 4),
+                                            "sh_degree": model.max_sh_degree,
+                                            "psnr_mean": None if mean is None else round(mean, 2),
+                                            "psnr_min": None if worst is None else round(worst, 2)}
+        print(f"{name:12s} {size / 1e6:8.1f} {size / ply_bytes:7.3f} {model.max_sh_degree:3d} "
+              f"{'exact' if not finite else f'{mean:10.2f}':>10s} {'' if not finite else f'{worst:7.2f}':>7s} "
+              f"{seconds:16.1f}")
+    if args.json:
+        print(json.dumps(results))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -93,11 +93,23 @@ class ExportStage(Stage):
 
     def run(self, ctx: StageContext) -> None:
         seconds: dict[str, float] = {}
-        for name, exporter in selected_exporters(ctx.params).items():
+        failed: dict[str, str] = {}
+        selected = selected_exporters(ctx.params)
+        for name, exporter in selected.items():
             t0 = time.perf_counter()
-            exporter().export(ctx, ctx.out_dir)
+            try:
+                exporter().export(ctx, ctx.out_dir)
+            except (PipelineError, ValueError, OSError) as e:  # one format's problem: the others still run
+                failed[name] = e.one_line() if isinstance(e, PipelineError) else f"{type(e).__name__}: {e}"
+                ctx.log.error(f"export: {name} failed: {failed[name]}")
+                continue
             seconds[name] = round(time.perf_counter() - t0, 3)
             ctx.log.debug(f"export: {name} written")
+        if failed:
+            rest = [n for n in selected if n not in failed]
+            raise PipelineError(f"export format(s) {', '.join(failed)} failed: " + "; ".join(failed.values()),
+                                fix="see each message; or leave them out: --export " + ",".join(rest)
+                                if rest else "see each message")
         ctx.notes["exporters"] = list(seconds)
         ctx.notes["exporter_seconds"] = seconds  # (in the manifest: where the stage's time went)
         ctx.log.info("export: " + ", ".join(f"{n} {s:.1f} s" for n, s in seconds.items()))

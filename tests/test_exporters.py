@@ -1301,3 +1301,24 @@ def test_exports_benchmark_reads_every_format_back(tmp_path, capsys):
     assert res["glb"]["psnr_min"] > 90 and res["glb"]["sh_degree"] == 2
     assert 25 < res["spz"]["psnr_min"] < 90 and res["spz"]["ratio"] < 0.3 and res["spz"]["sh_degree"] == 2
     assert res["splat"]["sh_degree"] == 0 and res["splat"]["psnr_mean"] < res["spz"]["psnr_mean"]
+
+
+def test_one_failing_format_does_not_stop_the_others(tmp_path, monkeypatch):
+    """An exporter that fails (a file format's limit, a full disk) is named with its message and the
+    --export list without it; the other formats still write their files."""
+    from sgpor_pipeline.dag import Exporter
+    from sgpor_pipeline.errors import PipelineError
+    from sgpor_pipeline.exporters.gaussians import PlyExporter
+    from sgpor_pipeline.stages import export as export_stage
+
+    class TooBig(Exporter):
+        name = "toobig"
+
+        def export(self, ctx, out_dir):
+            raise ValueError("scene.big: over the format's limit")
+
+    monkeypatch.setattr(export_stage, "selected_exporters", lambda params: {"ply": PlyExporter, "toobig": TooBig})
+    ctx = make_run(tmp_path, random_model(50, 1, seed=17), small_cameras(3))
+    with pytest.raises(PipelineError, match=r"toobig failed: ValueError: scene\.big: over.*--export ply"):
+        export_stage.ExportStage().run(ctx)
+    assert (ctx.out_dir / "scene.ply").is_file()

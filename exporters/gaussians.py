@@ -360,7 +360,7 @@ def export_external(ply: Path, cameras_json: Path, out_dir: Path,
 
     from sgpor_pipeline.dag import RunInputs, discover_exporters
     from sgpor_pipeline.gaussians.ply import read_ply, write_ply
-    from sgpor_pipeline.stages.export import ExportParams
+    from sgpor_pipeline.stages.export import ExportParams, run_exporters
 
     exporters = discover_exporters()
     unknown = [f for f in formats if f not in exporters]
@@ -379,6 +379,5 @@ def export_external(ply: Path, cameras_json: Path, out_dir: Path,
         ctx = StageContext(stage="export", params=params or ExportParams(), out_dir=out_dir,
                            inputs={SCENE_STAGE: scene_dir, CAMERAS_STAGE: cam_dir},
                            run_inputs=RunInputs(images=Path(tmp)), log=log, seed_key="external")
-        for name in formats:
-            exporters[name]().export(ctx, out_dir)
+        run_exporters({name: exporters[name] for name in formats}, ctx, out_dir)
     return out_dir

@@ -65,6 +65,30 @@ def _needs_of_selected(params: ExportParams, attribute: str) -> tuple[str, ...]:
     return tuple(sorted({stage for e in selected_exporters(params).values() for stage in getattr(e, attribute)}))
 
 
+def run_exporters(exporters: dict[str, type[Exporter]], ctx: StageContext, out_dir: Any) -> dict[str, float]:
+    """Run the exporters in order into ``out_dir``; returns each one's seconds. A format that fails (its
+    file format's limit, a full disk) does not stop the others; then a PipelineError names each failed
+    format with its message and the ``--export`` list without them."""
+    seconds: dict[str, float] = {}
+    failed: dict[str, str] = {}
+    for name, exporter in exporters.items():
+        t0 = time.perf_counter()
+        try:
+            exporter().export(ctx, out_dir)
+        except (PipelineError, ValueError, OSError) as e:
+            failed[name] = e.one_line() if isinstance(e, PipelineError) else f"{type(e).__name__}: {e}"
+            ctx.log.error(f"export: {name} failed: {failed[name]}")
+            continue
+        seconds[name] = round(time.perf_counter() - t0, 3)
+        ctx.log.debug(f"export: {name} written")
+    if failed:
+        rest = [n for n in exporters if n not in failed]
+        raise PipelineError(f"export format(s) {', '.join(failed)} failed: " + "; ".join(failed.values()),
+                            fix="see each message; or leave them out: --export " + ",".join(rest)
+                            if rest else "see each message")
+    return seconds
+
+
 class ExportStage(Stage):
     name = "export"
     VERSION = 2  # 2: the export frame levelled on the ground plane, whose height is the floor origin
@@ -92,24 +116,7 @@ class ExportStage(Stage):
         return bool(selected_exporters(params))
 
     def run(self, ctx: StageContext) -> None:
-        seconds: dict[str, float] = {}
-        failed: dict[str, str] = {}
-        selected = selected_exporters(ctx.params)
-        for name, exporter in selected.items():
-            t0 = time.perf_counter()
-            try:
-                exporter().export(ctx, ctx.out_dir)
-            except (PipelineError, ValueError, OSError) as e:  # one format's problem: the others still run
-                failed[name] = e.one_line() if isinstance(e, PipelineError) else f"{type(e).__name__}: {e}"
-                ctx.log.error(f"export: {name} failed: {failed[name]}")
-                continue
-            seconds[name] = round(time.perf_counter() - t0, 3)
-            ctx.log.debug(f"export: {name} written")
-        if failed:
-            rest = [n for n in selected if n not in failed]
-            raise PipelineError(f"export format(s) {', '.join(failed)} failed: " + "; ".join(failed.values()),
-                                fix="see each message; or leave them out: --export " + ",".join(rest)
-                                if rest else "see each message")
+        seconds = run_exporters(selected_exporters(ctx.params), ctx, ctx.out_dir)
         ctx.notes["exporters"] = list(seconds)
         ctx.notes["exporter_seconds"] = seconds  # (in the manifest: where the stage's time went)
         ctx.log.info("export: " + ", ".join(f"{n} {s:.1f} s" for n, s in seconds.items()))

@@ -1322,3 +1322,26 @@ def test_one_failing_format_does_not_stop_the_others(tmp_path, monkeypatch):
     with pytest.raises(PipelineError, match=r"toobig failed: ValueError: scene\.big: over.*--export ply"):
         export_stage.ExportStage().run(ctx)
     assert (ctx.out_dir / "scene.ply").is_file()
+
+
+def test_a_large_scenes_usda_is_a_text_layer_over_the_crate(tmp_path, monkeypatch):
+    """Above TEXT_MAX_GAUSSIANS the .usda keeps the stage's metadata and sublayers the .usdc: it opens as
+    the same stage (the same Gaussians, up axis, units, default prim) and is small."""
+    from pxr import Usd, UsdGeom, UsdVol
+
+    from sgpor_pipeline.exporters import usd as usd_exporter
+    from sgpor_pipeline.exporters.usd import UsdExporter, validate_stage
+
+    monkeypatch.setattr(usd_exporter, "TEXT_MAX_GAUSSIANS", 100)
+    ctx, m, _ = _usd_run(tmp_path)  # 300 Gaussians
+    UsdExporter().export(ctx, ctx.out_dir)
+    usda, usdc = ctx.out_dir / "scene.usda", ctx.out_dir / "scene.usdc"
+    assert usda.stat().st_size < 2000 < usdc.stat().st_size
+    text, crate = Usd.Stage.Open(str(usda)), Usd.Stage.Open(str(usdc))
+    assert validate_stage(text) == []
+    assert text.GetDefaultPrim().GetPath() == "/World" and UsdGeom.GetStageUpAxis(text) == UsdGeom.Tokens.z
+    assert text.GetRootLayer().customLayerData == crate.GetRootLayer().customLayerData
+    assert UsdGeom.GetStageMetersPerUnit(text) == UsdGeom.GetStageMetersPerUnit(crate)
+    pos = [np.asarray(UsdVol.ParticleField3DGaussianSplat(s.GetPrimAtPath("/World/Gaussians")).GetPositionsAttr().Get())
+           for s in (text, crate)]
+    assert pos[0].shape == (len(m), 3) and np.array_equal(pos[0], pos[1])

@@ -5,8 +5,8 @@ Stage (Z up, ``metersPerUnit`` 1, ``kilogramsPerUnit`` 1, default prim ``/World`
     /World                    Xform
       PhysicsScene            UsdPhysics.Scene (gravity -Z, 9.81)
       Gaussians               UsdVol.ParticleField3DGaussianSplat (positions, orientations, linear
-                              scales, opacities in [0,1], SH coefficient-major, elementSize (deg+1)^2),
-                              UsdColorSpaceAPI srgb_rec709_scene (the photos' colours)
+                              scales, opacities in [0,1], SH coefficient-major, elementSize (deg+1)^2;
+                              the photos' sRGB, display-referred, as the schema's renderers read it)
       Mesh                    UsdGeom.Mesh, vertex displayColor (linear), static collider
                               (CollisionAPI + MeshCollisionAPI, approximation "none")
       Cameras/<name>          UsdGeom.Camera per input camera (and novel camera), looking down -Z
@@ -76,9 +76,8 @@ def gaussian_extent(means: np.ndarray, quats: np.ndarray, scales: np.ndarray, si
 
 
 def add_gaussians(stage: Any, path: str, model: Any) -> Any:
-    """Define a ParticleField3DGaussianSplat at ``path`` from a GaussianModel (activated values), its
-    colour space sRGB (``UsdColorSpaceAPI`` ``srgb_rec709_scene``)."""
-    from pxr import Gf, Usd, UsdVol, Vt
+    """Define a ParticleField3DGaussianSplat at ``path`` from a GaussianModel (activated values)."""
+    from pxr import UsdVol, Vt
 
     p = model.numpy()
     n = len(model)
@@ -100,10 +99,9 @@ def add_gaussians(stage: Any, path: str, model: Any) -> Any:
     coeffs.SetMetadata("elementSize", k)
     ext = gaussian_extent(p["means"].astype(np.float64), q, scales)
     g.CreateExtentAttr(Vt.Vec3fArray.FromNumpy(ext.astype(np.float32)))
-    # The radiance was fitted to the photos' sRGB values (3DGS's display-referred colour); USD takes colour
-    # values as linear Rec.709 unless a prim says otherwise. A nonlinear curve cannot be applied to SH
-    # coefficients, so the prim says so instead.
-    Usd.ColorSpaceAPI.Apply(g.GetPrim()).CreateColorSpaceNameAttr(Gf.ColorSpaceNames.SRGBRec709)
+    # (The radiance is the photos' sRGB values, 3DGS's display-referred colour. No colour space is declared:
+    # renderers of this schema, Omniverse RTX, read it as display-referred sRGB, and NVIDIA's own PLY
+    # converter declares none; USD's nearest name, srgb_rec709_scene, would say scene-referred.)
     return g
 
 
@@ -284,8 +282,8 @@ def validate_stage(stage: Any) -> list[str]:
 
 class UsdExporter(Exporter):
     name = "usd"
-    VERSION = 4  # 2: the mesh collider's normals of unit length; 3: colour spaces (linear displayColor, sRGB splats);
-    # 4: a large scene's scene.usda sublayers scene.usdc
+    VERSION = 4  # 2: the mesh collider's normals of unit length; 3: the mesh's displayColor linear; 4: a large
+    # scene's scene.usda sublayers scene.usdc
     needs = (CAMERAS_STAGE, POSES_STAGE, SCENE_STAGE)
     optional_needs = (GPS_STAGE,)
     description = (

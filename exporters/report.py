@@ -8,6 +8,9 @@ the section is left out). Later stages plug in by appending a section or a per-v
 those stages' folders reach ``ctx.inputs``). Built in:
 
 * summary: the scene (Gaussians, SH degree, cameras) and the export frame (up, units, scale);
+* files: what the exporters wrote into the export folder (their ``outputs``), with sizes and each
+  exporter's ``description`` (which tools open it). The report's exporter runs after the others
+  (``runs_last``) so that their files are there;
 * views: per input view the input, the mask (if any: the ``masks`` stage's, else the given one) as an
   overlay, the render of the scene (``renders/<view>.png`` when the renders exporter ran, else
   rendered here), and optional columns that appear when their stage is an input of the export and
@@ -21,10 +24,7 @@ those stages' folders reach ``ctx.inputs``). Built in:
   ground truth) as tables: PSNR/SSIM in the ``mask``, ``bbox`` and ``full`` definitions for the final
   scene, the 2D-inpainted views and delete-only, seconds per stage, and per view; the file itself is
   copied beside the report as ``metrics.json``. Any other input stage's ``metrics.json`` is shown as
-  key/value rows;
-* files: what the exporters wrote into the export folder (their ``outputs``), with sizes and each
-  exporter's ``description`` (which tools open it). The report's exporter runs after the others
-  (``runs_last``) so that their files are there.
+  key/value rows.
 """
 
 from __future__ import annotations
@@ -578,10 +578,12 @@ class FilesSection:
 
         rows = []
         for name, exporter in sorted(discover_exporters().items()):
+            if exporter.runs_last:
+                continue  # (the report's own files: this page, its images and the metrics it links)
             for out in exporter.outputs:
                 path = rc.export_dir / out.rstrip("/")
-                if out in (REPORT_FILE, f"{REPORT_DIR}/") or not path.exists():
-                    continue  # (the page itself, and its images, are being written)
+                if not path.exists():
+                    continue
                 size, count = _size(path)
                 what = f"{count} files, {_human(size)}" if path.is_dir() else _human(size)
                 link = href(out.rstrip("/")) + ("/" if out.endswith("/") else "")
@@ -595,12 +597,12 @@ class FilesSection:
 
 DEFAULT_SECTIONS: list[Any] = [
     SummarySection(),
+    FilesSection(),  # (near the top: which file to open in which tool)
     MetricsSection(),
     ViewsSection(),
     PlaneSection(),
     TrainingSection(),
     StageFileSection("Speed against error", "speed_error.png"),
-    FilesSection(),
 ]
 
 _CSS = """

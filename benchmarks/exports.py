@@ -1,6 +1,6 @@
 """Exports benchmark: what each Gaussian file format of an export costs, in bytes and in image error.
 
-    python benchmarks/exports.py [EXPORT_DIR] [--views N] [--json]
+    python benchmarks/exports.py [EXPORT_DIR] [--views N] [--json] [--sheet PNG]
 
 ``EXPORT_DIR`` is a run's ``export/`` folder (default ``runs/demo/export``, what ``make demo`` writes;
 any run or ``sgpor-pipeline export`` folder with ``cameras/cameras.json`` and ``export_frame.json``).
@@ -12,7 +12,8 @@ cameras (every ``--views``-th of them; black background). The table gives per fo
 its size against the PLY's, the SH degree it keeps, and the PSNR of its renders against the renders
 of ``scene.ply`` (mean and worst view): what a viewer of that file loses. With ``--json`` the last
 line is one JSON object: ``{format: {"mb", "ratio", "sh_degree", "psnr_mean", "psnr_min"}}`` (PSNR
-null where the renders are the same bits as the PLY's).
+null where the renders are the same bits as the PLY's). ``--sheet PNG`` writes a picture of the first
+camera: the PLY's render and each lossy file's, then their differences from the PLY's render, 10x.
 """
 
 from __future__ import annotations
@@ -89,11 +90,38 @@ def render_all(model: GaussianModel, cameras: list[Camera]) -> list[np.ndarray]:
     return [render_view(g, cam, None, with_depth=False)["rgb"] for cam in cameras]
 
 
+def write_sheet(path: Path, renders: dict[str, np.ndarray], reference: np.ndarray, height: int = 240) -> None:
+    """One row: the PLY's render, each lossy file's (off by more than 1/255 somewhere), then each lossy
+    file's |render - PLY's| x 10, labelled."""
+    import cv2
+
+    from sgpor_pipeline.imageio import to_uint8, write_png
+
+    lossy = {name: img for name, img in renders.items() if np.abs(img - reference).max() > 1 / 255}
+    cells, labels = [reference], ["scene.ply"]
+    for name, img in lossy.items():
+        cells.append(img)
+        labels.append(name)
+    for name, img in lossy.items():
+        cells.append(np.clip(10 * np.abs(img - reference), 0, 1))
+        labels.append(f"{name} - ply, x10")
+    h, w = reference.shape[:2]
+    size = (max(1, round(w * height / h)), height)
+    row = []
+    for img, label in zip(cells, labels):
+        cell = to_uint8(cv2.resize(np.asarray(img, np.float32), size, interpolation=cv2.INTER_AREA))
+        cell = np.ascontiguousarray(np.pad(cell, ((22, 2), (2, 2), (0, 0)), constant_values=255))
+        cv2.putText(cell, label, (4, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
+        row.append(cell)
+    write_png(path, np.concatenate(row, axis=1))
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("export_dir", nargs="?", type=Path, default=ROOT / "runs" / "demo" / "export")
     ap.add_argument("--views", type=int, default=1, help="render every N-th registered camera (default: all)")
     ap.add_argument("--json", action="store_true", help="print one JSON object as the last line")
+    ap.add_argument("--sheet", type=Path, metavar="PNG", help="write the first camera's renders and differences")
     args = ap.parse_args(argv)
     export_dir = args.export_dir
     if not (export_dir / "scene.ply").is_file() or not (export_dir / FRAME_FILE).is_file():
@@ -105,6 +133,7 @@ def main(argv: list[str] | None = None) -> int:
     reference = render_all(read_ply(reference_path), cameras)
     ply_bytes = reference_path.stat().st_size
     results = {}
+    first: dict[str, np.ndarray] = {}
     print(f"# exports benchmark: {export_dir}, {len(cameras)} cameras; PSNR of each file's renders against "
           f"scene.ply's")
     print(f"{'file':12s} {'MB':>8s} {'x PLY':>7s} {'SH':>3s} {'PSNR mean':>10s} {'worst':>7s} {'decode+render s':>16s}")
@@ -116,6 +145,7 @@ def main(argv: list[str] | None = None) -> int:
         model = decode(path)
         renders = render_all(model, cameras)
         seconds = time.perf_counter() - t0
+        first[name] = renders[0]
         scores = [psnr(r, ref) for r, ref in zip(renders, reference)]
         finite = [s for s in scores if math.isfinite(s)]
         mean = float(np.mean(finite)) if finite else None  # (None: every render the same bits)
@@ -128,6 +158,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name:12s} {size / 1e6:8.1f} {size / ply_bytes:7.3f} {model.max_sh_degree:3d} "
               f"{'exact' if not finite else f'{mean:10.2f}':>10s} {'' if not finite else f'{worst:7.2f}':>7s} "
               f"{seconds:16.1f}")
+    if args.sheet is not None and cameras:
+        write_sheet(args.sheet, first, reference[0])
+        print(f"sheet: {args.sheet}")
     if args.json:
         print(json.dumps(results))
     return 0

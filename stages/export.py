@@ -66,26 +66,37 @@ def _needs_of_selected(params: ExportParams, attribute: str) -> tuple[str, ...]:
 
 
 def run_exporters(exporters: dict[str, type[Exporter]], ctx: StageContext, out_dir: Any) -> dict[str, float]:
-    """Run the exporters in order into ``out_dir``; returns each one's seconds. A format that fails (its
-    file format's limit, a full disk) does not stop the others; then a PipelineError names each failed
-    format with its message and the ``--export`` list without them."""
+    """Run the exporters in order into ``out_dir``; returns each one's seconds. The export frame's
+    settings are checked first (a wrong ``up`` or ``scale`` is no one format's fault). A format that
+    fails (its file format's limit, a full disk) does not stop the others; then a PipelineError names
+    the failed formats with their messages and the ``--export`` list without them."""
+    from sgpor_pipeline.orientation import FrameSettings
+
+    FrameSettings.from_params(ctx.params)  # (raises the settings' own error)
     seconds: dict[str, float] = {}
-    failed: dict[str, str] = {}
+    failed: dict[str, Exception] = {}
     for name, exporter in exporters.items():
         t0 = time.perf_counter()
         try:
             exporter().export(ctx, out_dir)
         except (PipelineError, ValueError, OSError) as e:
-            failed[name] = e.one_line() if isinstance(e, PipelineError) else f"{type(e).__name__}: {e}"
-            ctx.log.error(f"export: {name} failed: {failed[name]}")
+            failed[name] = e
+            ctx.log.debug(f"export: {name} failed: {e}")
             continue
         seconds[name] = round(time.perf_counter() - t0, 3)
         ctx.log.debug(f"export: {name} written")
     if failed:
         rest = [n for n in exporters if n not in failed]
-        raise PipelineError(f"export format(s) {', '.join(failed)} failed: " + "; ".join(failed.values()),
-                            fix="see each message; or leave them out: --export " + ",".join(rest)
-                            if rest else "see each message")
+        leave_out = f"leave {'it' if len(failed) == 1 else 'them'} out: --export {','.join(rest)}" if rest else ""
+        if len(failed) == 1:
+            (name, e), = failed.items()
+            if isinstance(e, PipelineError):
+                fix = "; or ".join(f for f in (e.fix, leave_out) if f) or None
+                raise PipelineError(f"export format '{name}': {e.message}", e.path, fix=fix) from e
+            raise PipelineError(f"export format '{name}' failed: {type(e).__name__}: {e}", fix=leave_out or None) from e
+        text = "; ".join(f"{n}: {e.one_line() if isinstance(e, PipelineError) else f'{type(e).__name__}: {e}'}"
+                         for n, e in failed.items())
+        raise PipelineError(f"export formats {', '.join(failed)} failed ({text})", fix=leave_out or None)
     return seconds
 
 

@@ -1318,9 +1318,15 @@ def test_one_failing_format_does_not_stop_the_others(tmp_path, monkeypatch):
 
     monkeypatch.setattr(export_stage, "selected_exporters", lambda params: {"ply": PlyExporter, "toobig": TooBig})
     ctx = make_run(tmp_path, random_model(50, 1, seed=17), small_cameras(3))
-    with pytest.raises(PipelineError, match=r"toobig failed: ValueError: scene\.big: over.*--export ply"):
+    with pytest.raises(PipelineError, match=r"'toobig' failed: ValueError: scene\.big: over.*out: --export ply"):
         export_stage.ExportStage().run(ctx)
     assert (ctx.out_dir / "scene.ply").is_file()
+    # a setting of the export frame is no one format's fault: its own error, before any format runs
+    from dataclasses import replace
+
+    bad = StageContext(**{**ctx.__dict__, "params": replace(ctx.params, scale=-1.0)})
+    with pytest.raises(PipelineError, match=r"^export scale must be a positive number, got -1\.0$"):
+        export_stage.ExportStage().run(bad)
 
 
 def test_a_large_scenes_usda_is_a_text_layer_over_the_crate(tmp_path, monkeypatch):

@@ -73,6 +73,18 @@ def registered(cameras: list[Camera]) -> list[Camera]:
     return [c for c in cameras if c.image is not None]
 
 
+def camera_clip(cameras: list[Camera]) -> tuple[float, float]:
+    """(near, far) clipping distances for the exported cameras: 0.005 and 1000 x the scene's radius as the
+    registered ones (else all) see it, or, for a degenerate rig, as their centres spread."""
+    from sgpor_pipeline.orientation import scene_center_radius
+
+    try:
+        _, r = scene_center_radius(registered(cameras) or cameras)
+    except Exception:  # degenerate rigs: a generous range
+        r = float(np.ptp([c.center for c in cameras], axis=0).max()) if len(cameras) > 1 else 1.0
+    return max(1e-4, 0.005 * r), 1000.0 * r
+
+
 def scene_background(ctx: StageContext) -> list[float] | None:
     """The background colour the scene was fitted with (``fit.json`` "background"), if recorded."""
     path = ctx.inputs.get("fit", ctx.inputs[SCENE_STAGE]) / "fit.json"
@@ -222,17 +234,11 @@ class GltfExporter(SceneFileExporter):
     outputs = ("scene.glb",)
 
     def export(self, ctx: StageContext, out_dir: Path) -> None:
-        from sgpor_pipeline.orientation import scene_center_radius
         from sgpor_pipeline.splat_gltf import write_splat_glb
 
         t0 = time.perf_counter()
         model, frame, cams = scene_y_up(ctx, out_dir)
-        try:
-            radius = scene_center_radius(registered(cams) or cams)[1] if cams else 1.0
-        except Exception:  # degenerate rigs: the cameras' spread
-            radius = float(np.ptp([c.center for c in cams], axis=0).max()) if len(cams) > 1 else 1.0
-        path = write_splat_glb(out_dir / "scene.glb", model, cams,
-                               znear=max(1e-4, 0.005 * radius),
+        path = write_splat_glb(out_dir / "scene.glb", model, cams, znear=camera_clip(cams)[0],
                                extras={"sgpor_units": frame.units, "sgpor_up": "+Y (export frame's +Z)"})
         ctx.log.info(f"gltf: {len(model)} Gaussians (SH degree {model.max_sh_degree}), {len(cams)} cameras -> "
                      f"{path.name} ({_mb(path)}) in {time.perf_counter() - t0:.1f} s")

@@ -31,7 +31,7 @@ import numpy as np
 from sgpor_pipeline.dag import Exporter, StageContext
 from sgpor_pipeline.imageio import srgb_to_linear
 from sgpor_pipeline.meshing import MeshData
-from sgpor_pipeline.orientation import ExportFrame, quat_to_matrix, scene_center_radius
+from sgpor_pipeline.orientation import ExportFrame, quat_to_matrix
 from sgpor_pipeline.scene import Camera
 
 from .gaussians import (
@@ -39,6 +39,7 @@ from .gaussians import (
     GPS_STAGE,
     POSES_STAGE,
     SCENE_STAGE,
+    camera_clip,
     export_frame,
     load_run_cameras,
     load_scene,
@@ -195,13 +196,7 @@ def build_stage(model: Any, mesh: MeshData | None, cameras: list[Camera], frame:
         add_mesh(stage, "/World/Mesh", mesh)
     if cameras:
         UsdGeom.Scope.Define(stage, "/World/Cameras")
-        centers = np.array([c.center for c in cameras])
-        reg = [c for c in cameras if c.image is not None] or cameras
-        try:
-            _, r = scene_center_radius(reg)
-        except Exception:  # degenerate rigs: a generous range
-            r = float(np.ptp(centers, axis=0).max()) if len(centers) > 1 else 1.0
-        clip = (max(1e-4, 0.005 * r), 1000.0 * r)
+        clip = camera_clip(cameras)
         for name, cam in zip(_valid_names([c.name for c in cameras]), cameras):
             add_camera(stage, f"/World/Cameras/{name}", cam, clip)
     return stage
@@ -228,8 +223,8 @@ def write_usd(stage: Any, out_dir: Path, stem: str = "scene", gaussians: int = 0
         text_ok = layer.Export(str(usda))
     else:
         over = Sdf.Layer.CreateAnonymous(".usda")
-        over.pseudoRoot.SetInfo("upAxis", layer.pseudoRoot.GetInfo("upAxis"))
-        for key in ("metersPerUnit", "kilogramsPerUnit", "defaultPrim", "customLayerData", "documentation"):
+        for key in ("upAxis", "metersPerUnit", "kilogramsPerUnit", "defaultPrim", "customLayerData",
+                    "documentation"):
             if layer.pseudoRoot.HasInfo(key):
                 over.pseudoRoot.SetInfo(key, layer.pseudoRoot.GetInfo(key))
         over.subLayerPaths.append(f"./{usdc.name}")

@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import struct
 from pathlib import Path
 from typing import Any
@@ -47,6 +46,7 @@ from .gaussians._raster_common import SH_C0
 from .imageio import srgb_to_linear
 from .orientation import quat_from_matrix
 from .scene import Camera
+from .splat_io import write_bytes_atomically
 
 EXTENSION = "KHR_gaussian_splatting"
 PREFIX = EXTENSION + ":"
@@ -188,10 +188,7 @@ def write_splat_glb(path: str | Path, model: Any, cameras: list[Camera] | None =
         data = build_glb(attributes, cameras, znear, extras=extras)
     except ValueError as e:
         raise ValueError(f"{path}: {e}") from None
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
-    return path
+    return write_bytes_atomically(path, data)
 
 
 def read_glb(path: str | Path) -> tuple[dict[str, Any], bytes]:

@@ -53,15 +53,25 @@ def splat_records(means: np.ndarray, log_scales: np.ndarray, quats: np.ndarray, 
     return out
 
 
+def write_bytes_atomically(path: str | Path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` through a temporary file beside it, so a reader never sees half a file
+    (the splat formats' writers: ``.splat``, :mod:`.spz_io`, :mod:`.splat_gltf`); the temporary file is
+    removed if the write fails."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        tmp.write_bytes(data)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
 def write_splat(path: str | Path, model: object) -> Path:
     """Write a :class:`~sgpor_pipeline.gaussians.model.GaussianModel` as ``.splat`` (atomically)."""
     p = model.numpy()  # type: ignore[attr-defined]
     rec = splat_records(p["means"], p["scales"], p["quats"], p["opacities"], p["sh0"])
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_bytes(rec.tobytes())
-    os.replace(tmp, path)
-    return path
+    return write_bytes_atomically(path, rec.tobytes())
 
 
 def read_splat(path: str | Path) -> dict[str, np.ndarray]:

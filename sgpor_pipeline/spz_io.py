@@ -28,13 +28,14 @@ same as the reference library's.
 from __future__ import annotations
 
 import gzip
-import os
 import struct
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from .splat_io import write_bytes_atomically
 
 SPZ_MAGIC = 0x5053474E  # "NGSP" read as a little-endian uint32
 SPZ_VERSION = 3  # the version written: gzip container with smallest-three quaternions
@@ -272,13 +273,7 @@ def write_spz(path: str | Path, model: object, version: int = SPZ_VERSION,
                        fractional_bits)
     except ValueError as e:
         raise ValueError(f"{path}: {e}") from None
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        tmp.write_bytes(gzip.compress(raw, compresslevel=GZIP_LEVEL, mtime=0))
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
+    return write_bytes_atomically(path, gzip.compress(raw, compresslevel=GZIP_LEVEL, mtime=0))
 
 
 def _gunzip(data: bytes, source: str) -> bytes:

@@ -43,7 +43,7 @@ from urllib.parse import quote
 
 import numpy as np
 
-from sgpor_pipeline.cache import read_manifest
+from sgpor_pipeline.cache import format_size, read_manifest
 from sgpor_pipeline.dag import Exporter, StageContext
 from sgpor_pipeline.imageio import read_image, read_mask, resize_mask_nearest, write_png
 from sgpor_pipeline.scene import Camera
@@ -559,14 +559,6 @@ def _size(path: Path) -> tuple[int, int]:
     return sum(f.stat().st_size for f in files), len(files)
 
 
-def _human(n: int) -> str:
-    for unit in ("B", "KB", "MB", "GB"):
-        if n < 1000 or unit == "GB":
-            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
-        n /= 1000
-    return f"{n} B"  # (not reached)
-
-
 class FilesSection:
     """The export folder's files, each with its size and what its exporter says it is (which tools
     open it); the report's exporter runs after the others (``runs_last``), so their files are there."""
@@ -585,7 +577,8 @@ class FilesSection:
                 if not path.exists():
                     continue
                 size, count = _size(path)
-                what = f"{count} files, {_human(size)}" if path.is_dir() else _human(size)
+                shown = format_size(size, 1000)  # (as the exporters' log lines: MB = 1e6 bytes)
+                what = f"{count} files, {shown}" if path.is_dir() else shown
                 link = href(out.rstrip("/")) + ("/" if out.endswith("/") else "")
                 rows.append(f"<tr><td><a href='{esc(link)}'>{esc(out)}</a></td><td>{esc(what)}</td>"
                             f"<td>{esc(name)}: {esc(exporter.description)}</td></tr>")

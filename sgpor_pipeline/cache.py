@@ -37,6 +37,16 @@ OLD_PREFIX = ".old-"
 ITEMS = "items"
 
 
+def format_size(n: float, step: int = 1024) -> str:
+    """A byte count for people: B, KB, MB or GB, each ``step`` times the one before (1024, as ``status``
+    shows sizes; 1000 where a log line beside it counts MB as 1e6 bytes)."""
+    for unit in ("B", "KB", "MB"):
+        if n < step:
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= step
+    return f"{n:.1f} GB"
+
+
 def folder_size(path: Path) -> int:
     total = 0
     for root, _dirs, files in os.walk(path):

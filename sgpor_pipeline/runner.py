@@ -15,7 +15,18 @@ from pathlib import Path
 from typing import Any
 
 from . import __version__
-from .cache import CHECKPOINT, ITEMS, SCRATCH, RunLock, StageCache, folder_size, publish, read_manifest, verify
+from .cache import (
+    CHECKPOINT,
+    ITEMS,
+    SCRATCH,
+    RunLock,
+    StageCache,
+    folder_size,
+    format_size,
+    publish,
+    read_manifest,
+    verify,
+)
 from .config import params_key, params_to_dict, resolve_config, save_config
 from .dag import (
     RunInputs,
@@ -142,14 +153,6 @@ def select_stages(stages: dict[str, type[Stage]], order: list[str], config: dict
             if stages[name].wanted(config[name], run_inputs):
                 wanted |= ancestors(stages, config, name, run_inputs)
     return [n for n in order if n in wanted]
-
-
-def _format_size(n: int) -> str:
-    for unit in ("B", "KB", "MB", "GB"):
-        if n < 1024 or unit == "GB":
-            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
-        n /= 1024
-    return f"{n} B"
 
 
 def run_pipeline(
@@ -485,8 +488,8 @@ def format_status(rows: list[StageStatus]) -> str:
         t = "-" if r.seconds is None else f"{r.seconds:.1f} s"
         k = (r.key or "-")[:10]
         detail = f"  {r.detail}" if r.detail else ""
-        memory = "-" if r.peak_memory is None else _format_size(r.peak_memory)
-        lines.append(f"{r.name:<10} {r.state:<8} {t:>8} {_format_size(r.size):>9} {memory:>9}  {k}{detail}")
+        memory = "-" if r.peak_memory is None else format_size(r.peak_memory)
+        lines.append(f"{r.name:<10} {r.state:<8} {t:>8} {format_size(r.size):>9} {memory:>9}  {k}{detail}")
     return "\n".join(lines)
 
 

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from sgpor_pipeline.exporters.gaussians import FRAME_FILE
-from sgpor_pipeline.gaussians.model import GaussianModel
+from sgpor_pipeline.gaussians.model import GaussianModel, inverse_sigmoid
 from sgpor_pipeline.gaussians.ply import read_ply
 from sgpor_pipeline.meshing import activated_tensors, render_view
 from sgpor_pipeline.metrics import psnr
@@ -43,11 +43,6 @@ ROOT = Path(__file__).resolve().parents[1]
 Z_UP_FROM_Y_UP = Similarity(1.0, GLTF_FROM_ZUP.T)  # glTF's and SPZ's frame back to the export frame
 
 
-def _logit(opacity: np.ndarray) -> np.ndarray:
-    o = np.clip(np.asarray(opacity, np.float64), 1e-6, 1 - 1e-6)
-    return np.log(o / (1 - o))
-
-
 def model_from(means: np.ndarray, quats_wxyz: np.ndarray, log_scales: np.ndarray, opacities: np.ndarray,
                sh: np.ndarray) -> GaussianModel:
     """A GaussianModel from decoded values (opacities in [0,1], ``sh`` [N,K,3] with the DC first)."""
@@ -55,7 +50,7 @@ def model_from(means: np.ndarray, quats_wxyz: np.ndarray, log_scales: np.ndarray
     degree = int(round(math.sqrt(k))) - 1
     f32 = lambda a: torch.from_numpy(np.array(a, np.float32))  # noqa: E731  (a writable copy)
     return GaussianModel({"means": f32(means), "quats": f32(quats_wxyz), "scales": f32(log_scales),
-                          "opacities": f32(_logit(opacities)), "sh0": f32(sh[:, :1]), "shN": f32(sh[:, 1:])},
+                          "opacities": inverse_sigmoid(f32(opacities)), "sh0": f32(sh[:, :1]), "shN": f32(sh[:, 1:])},
                          degree)
 
 

@@ -151,6 +151,11 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _format_list(text: str) -> tuple[str, ...]:
+    """The export formats of an ``--export a,b,c`` option."""
+    return tuple(n.strip() for n in text.split(",") if n.strip())
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from sgpor_pipeline.dag import RunInputs
 
@@ -164,7 +169,7 @@ def _run(args: argparse.Namespace, inputs: object) -> int:
 
     overrides = list(args.overrides)
     if args.export:
-        names = [n.strip() for n in args.export.split(",") if n.strip()]
+        names = list(_format_list(args.export))
         overrides.append(f"export.formats={names!r}".replace("'", '"'))
     if args.up:
         overrides.append(f'export.up="{args.up}"')
@@ -230,7 +235,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     if args.gaussians.suffix.lower() != ".ply" or not args.gaussians.is_file():
         raise PipelineError(f"{args.gaussians}: not a .ply file", fix="give the trainer's 3DGS PLY (a .spz or .splat "
                             "converts to PLY with e.g. PlayCanvas splat-transform, in the frame of its cameras)")
-    formats = tuple(n.strip() for n in args.export.split(",") if n.strip()) if args.export else EXTERNAL_FORMATS
+    formats = _format_list(args.export) if args.export else EXTERNAL_FORMATS
     unsupported = [f for f in formats if f not in EXTERNAL_FORMATS]
     if unsupported:
         raise PipelineError(f"format(s) {unsupported} need a run of the pipeline (its photos, masks or stages)",

@@ -47,6 +47,7 @@ import numpy as np
 
 from sgpor_pipeline.dag import Stage, StageContext
 from sgpor_pipeline.errors import PipelineError
+from sgpor_pipeline.gaussians.model import GaussianModel
 from sgpor_pipeline.gaussians.ply import read_ply, write_ply
 from sgpor_pipeline.imageio import read_mask, read_rgb8, to_float32, write_mask01, write_png
 from sgpor_pipeline.removal.holes import (
@@ -56,6 +57,7 @@ from sgpor_pipeline.removal.holes import (
     complete_depths_jointly,
     concat_models,
     context_image,
+    far_side_floor,
     hole_mask,
     initial_colour,
     median_spacing,
@@ -120,11 +122,22 @@ def grown_propagated(masks: list[np.ndarray], names: list[str], sources: dict[st
     return out, grown
 
 
+def hole_floor(front: GaussianModel, cam: Camera, mask: np.ndarray, depth: np.ndarray, alpha: np.ndarray,
+               p: RemoveParams) -> np.ndarray:
+    """The least depth of a view's holes (0 = none): the deleted object's surface (``behind_object``)
+    and the far side of a depth step across the mask (``far_side_ratio``)."""
+    floor = (object_depth(front, cam, p.backend) if p.behind_object
+             else np.zeros((cam.height, cam.width), np.float32))
+    if p.far_side_ratio > 0:
+        floor = np.maximum(floor, far_side_floor(mask, depth, alpha >= p.hole_alpha, p.far_side_ratio))
+    return floor
+
+
 def complete_hole_depths(cameras: list[Camera], depths: list[np.ndarray], valids: list[np.ndarray],
                          holes: list[np.ndarray], p: RemoveParams,
                          floors: list[np.ndarray] | None = None, keep: Keeper = in_memory) -> list[np.ndarray]:
     """The holes' depths, jointly (one surface, ``consistent_depth``) or each view on its own; at least
-    ``floors`` (the deleted object's depth) where given. ``keep`` holds them (:mod:`sgpor_pipeline.scratch`)."""
+    ``floors`` (:func:`hole_floor`) where given. ``keep`` holds them (:mod:`sgpor_pipeline.scratch`)."""
     if p.consistent_depth:
         return complete_depths_jointly(cameras, depths, valids, holes, floors, keep)
     return keep("completed_depths", (complete_depth(d, v, h, f) for d, v, h, f in
@@ -140,7 +153,7 @@ DISK_BYTES_PER_PIXEL = 53
 
 class RemoveStage(Stage):
     name = "remove"
-    VERSION = 15  # 3: the hole-depth floor renders the object proper only (no floaters); 4: rim holes;
+    VERSION = 16  # 3: the hole-depth floor renders the object proper only (no floaters); 4: rim holes;
     # 5: rim holes with hole_mode mask too; 6: seeds behind the completed surface (seed_depth_offset 4);
     # 7: the median depth, and holes where no other view saw the background (min_views 1, tolerance 0.02);
     # 8: DC colours clamped behind the masks (clamp_share); 9: seeds carved by the views that saw through them;
@@ -148,7 +161,8 @@ class RemoveStage(Stage):
     # 11: the photos are compared blurred in float16 (memory; the disagreement moves by < 0.001);
     # 13 (12 skipped): the context's render is divided by its opacity (unpremultiplied);
     # 14: the propagated masks grown by propagated_margin (0.05 x the square root of their area);
-    # 15: the seeds' scales shrunk off the background other views saw beside them (carve_footprint)
+    # 15: the seeds' scales shrunk off the background other views saw beside them (carve_footprint);
+    # 16: holes completed no nearer than the far side of a depth step across the mask (far_side_ratio)
     Params = RemoveStageParams
     inputs = ("sfm", "fit", "masks")
 
@@ -202,7 +216,10 @@ class RemoveStage(Stage):
             raw_depths.append(depth)
         holes = [hole_mask(m, a, p) for m, a in zip(masks, alphas)]
         front = subset(model, surface)
-        floors = keep("floors", (object_depth(front, cam, p.backend) for cam in cameras)) if p.behind_object else None
+        floors = None
+        if p.behind_object or p.far_side_ratio > 0:
+            floors = keep("floors", (hole_floor(front, cam, m, d, a, p)
+                                     for cam, m, d, a in zip(cameras, masks, raw_depths, alphas)))
         depths = complete_hole_depths(cameras, raw_depths, [a >= p.hole_alpha for a in alphas], holes, p, floors,
                                       keep)
         second_pass = p.min_views > 0 and p.hole_mode == "unseen"

@@ -17,6 +17,7 @@ from sgpor_pipeline.removal.holes import (
     complete_depth,
     concat_models,
     context_image,
+    far_side_floor,
     footprint_scales,
     hole_mask,
     initial_colour,
@@ -383,6 +384,48 @@ def test_depth_completion_is_exact_for_planes():
     broken[hole] = 0.0
     filled = complete_depth(broken, ~hole, hole)
     assert np.abs(filled[hole] - depth[hole]).max() < 1e-4
+
+
+def test_far_side_floor_takes_the_background_side_of_a_depth_step():
+    """A mask across a depth step (a house front near on the left, a street's far end on the right):
+    its hole is completed no nearer than the far side. Where both sides lie at about one depth (a
+    floor under an object) there is no floor, and the harmonic completion stands."""
+    h, w = 20, 40
+    mask = np.zeros((h, w), bool)
+    mask[5:15, 10:30] = True
+    valid = np.ones((h, w), bool)
+    step = np.full((h, w), 2.0, np.float32)
+    step[:, 25:] = 6.0
+    floor = far_side_floor(mask, step, valid, 1.5)
+    assert (floor[mask] == 6.0).all() and (floor[~mask] == 0).all()
+    filled = complete_depth(np.where(mask, 0.0, step).astype(np.float32), ~mask, mask, floor)
+    assert filled[mask].min() >= 6.0 - 1e-5
+    plain = complete_depth(np.where(mask, 0.0, step).astype(np.float32), ~mask, mask)
+    assert plain[mask].min() < 3.0  # (without it: between the two)
+    # the 2 px beside the mask mix the object in real renders: not read
+    edged = step.copy()
+    edged[:, 8:10] = 100.0
+    edged[:, 30:32] = 100.0
+    assert np.array_equal(far_side_floor(mask, edged, valid, 1.5), floor)
+    # invalid pixels are skipped: the next valid one out is read
+    holed = valid.copy()
+    holed[:, 32:36] = False
+    far = step.copy()
+    far[:, 36:] = 9.0
+    assert (far_side_floor(mask, far, holed, 1.5)[mask] == 9.0).all()
+    # no step: a gently sloping floor, both sides within the ratio
+    ys, xs = np.mgrid[0:h, 0:w]
+    slope = (2.0 + 0.02 * xs).astype(np.float32)
+    assert not far_side_floor(mask, slope, valid, 1.5).any()
+    assert far_side_floor(mask, slope, valid, 1.0)[mask].min() > 2.0  # (every row's far side at ratio 1)
+    # a mask at the image's border: the one side there is
+    edge_mask = np.zeros((h, w), bool)
+    edge_mask[5:15, :12] = True
+    assert (far_side_floor(edge_mask, step, valid, 1.5)[edge_mask] == 2.0).all()
+    # nothing valid in a row on either side: no floor there
+    none = valid.copy()
+    none[7] = False
+    assert not far_side_floor(mask, step, none, 1.5)[7].any()
 
 
 def test_observing_views_and_joint_depths_keep_their_maps_on_disk_bit_for_bit(scene_and_model, tmp_path):

@@ -418,14 +418,14 @@ def test_far_side_floor_takes_the_background_side_of_a_depth_step():
     slope = (2.0 + 0.02 * xs).astype(np.float32)
     assert not far_side_floor(mask, slope, valid, 1.5).any()
     assert far_side_floor(mask, slope, valid, 1.0)[mask].min() > 2.0  # (every row's far side at ratio 1)
-    # a mask at the image's border: the one side there is
+    # a mask at the image's border, or a row with no valid pixel on one side: one side shows no step
     edge_mask = np.zeros((h, w), bool)
     edge_mask[5:15, :12] = True
-    assert (far_side_floor(edge_mask, step, valid, 1.5)[edge_mask] == 2.0).all()
-    # nothing valid in a row on either side: no floor there
-    none = valid.copy()
-    none[7] = False
-    assert not far_side_floor(mask, step, none, 1.5)[7].any()
+    assert not far_side_floor(edge_mask, step, valid, 1.5).any()
+    one_side = valid.copy()
+    one_side[7, :8] = False
+    floor = far_side_floor(mask, step, one_side, 1.5)
+    assert not floor[7].any() and (floor[8, 10:30] == 6.0).all()
 
 
 def test_observing_views_and_joint_depths_keep_their_maps_on_disk_bit_for_bit(scene_and_model, tmp_path):

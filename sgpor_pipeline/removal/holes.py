@@ -455,8 +455,8 @@ def far_side_floor(mask: np.ndarray, depth: np.ndarray, valid: np.ndarray, ratio
                    ) -> np.ndarray:
     """Per ``mask`` pixel: the farther of the depths at the nearest ``valid`` pixels left and right of
     it in its row that lie ``gap`` px or more outside the mask (their edge mixes the object), where it
-    is at least ``ratio`` x the nearer one or the other side is the image's border; 0 elsewhere (no
-    floor). See :attr:`RemoveParams.far_side_ratio`."""
+    is at least ``ratio`` x the nearer one; 0 elsewhere (no floor), also where a side is missing (the
+    image's border, no valid pixel): one side shows no step. See :attr:`RemoveParams.far_side_ratio`."""
     h, w = mask.shape
     near_mask = cv2.dilate(mask.astype(np.uint8), np.ones((1, 2 * gap + 1), np.uint8)) > 0
     good = valid & np.isfinite(depth) & (depth > 0) & ~near_mask
@@ -468,7 +468,7 @@ def far_side_floor(mask: np.ndarray, depth: np.ndarray, valid: np.ndarray, ratio
     z_left = np.where(left >= 0, z[rows, np.clip(left, 0, w - 1)], 0.0)
     z_right = np.where(right < w, z[rows, np.clip(right, 0, w - 1)], 0.0)
     far, near = np.maximum(z_left, z_right), np.minimum(z_left, z_right)
-    step = (near <= 0) | (far >= ratio * near)
+    step = (near > 0) & (far >= ratio * near)
     return np.where(mask & step, far, 0.0).astype(np.float32)
 
 

@@ -173,6 +173,10 @@ class RemoveStage(Stage):
         if p.propagated_margin < 0:
             raise PipelineError(f"remove.propagated_margin must be >= 0 (got {p.propagated_margin})",
                                 fix="use 0 (the propagated masks as the masks stage wrote them) or e.g. 0.05")
+        if not (p.far_side_ratio == 0 or p.far_side_ratio >= 1):  # (NaN fails too)
+            raise PipelineError(f"remove.far_side_ratio must be 0 (off) or >= 1 (got {p.far_side_ratio})",
+                                fix="use e.g. 1.5: a hole is completed on the far side where one side of the "
+                                    "mask is 1.5x as far as the other")
         # the fit's cameras: their poses refined with the Gaussians (fit.pose_refine)
         sfm = load_sfm(ctx.inputs["sfm"], run_cameras_file(ctx.inputs["fit"], ctx.inputs["sfm"]))
         cameras = sfm.posed

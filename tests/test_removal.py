@@ -1041,3 +1041,17 @@ def test_a_mask_only_on_photos_sfm_lost_stops_the_run_before_the_fit(tmp_path):
     mask[10:20, 10:30] = True
     write_png(sfm / "masks" / "IMG_3.png", mask)
     MasksStage.check_upstream(MasksParams(), "sfm", sfm)  # a registered photo has it: the run goes on
+
+
+@pytest.mark.parametrize("ratio", [0.5, -1.0, float("nan")])
+def test_remove_stage_refuses_a_far_side_ratio_below_one(ratio):
+    """Below 1 every row would count as a step (the far side is always >= ratio x the near one):
+    refused before anything is read, with the fix."""
+    from types import SimpleNamespace
+
+    from sgpor_pipeline.errors import PipelineError
+    from stages.remove import RemoveStage, RemoveStageParams
+
+    ctx = SimpleNamespace(params=RemoveStageParams(far_side_ratio=ratio))
+    with pytest.raises(PipelineError, match="far_side_ratio must be 0"):
+        RemoveStage().run(ctx)

@@ -121,14 +121,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"longest side of the photos (default {FrameParams.max_size}; 0 = as in the video)")
     p.add_argument("--format", choices=["jpg", "png"], default=FrameParams.format, help="jpg (default) or png")
 
-    p = sub.add_parser("export", help="export Gaussians trained elsewhere (a 3DGS PLY and its cameras): USD, glTF, "
-                                      ".spz, mesh, ...",
+    p = sub.add_parser("export", help="export Gaussians trained elsewhere (a 3DGS PLY, .spz or .splat and its "
+                                      "cameras): USD, glTF, .spz, mesh, ...",
                        description="Write the exports of Gaussians from another trainer, without removing anything: "
-                                   "an INRIA-layout 3DGS PLY (any SH degree) and the cameras it was trained with "
-                                   "(a COLMAP model folder, a transforms.json or a cameras.json, in the PLY's frame). "
+                                   "an INRIA-layout 3DGS PLY (any SH degree), a Niantic .spz or an antimatter15 "
+                                   ".splat, and the cameras it was trained with (a COLMAP model folder, a "
+                                   "transforms.json or a cameras.json, in the PLY's frame). "
                                    "The export frame is found as for a run: Z up from the cameras' horizon and "
                                    "the ground, arbitrary units unless --scale gives metres.")
-    p.add_argument("gaussians", type=Path, help="the Gaussians: an INRIA-layout 3DGS .ply")
+    p.add_argument("gaussians", type=Path, help="the Gaussians: an INRIA-layout 3DGS .ply, an .spz or a .splat")
     p.add_argument("--cameras", type=Path, required=True, metavar="FILE",
                    help="a COLMAP model folder, a transforms.json or a cameras.json, in the PLY's frame")
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="the folder the files go to")
@@ -137,6 +138,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--up", metavar="AXIS", default="auto",
                    help="up axis of the export frame: auto (default), ring, cameras, nadir, or an axis such as -y")
     p.add_argument("--scale", metavar="S", type=float, help="metres per unit of the PLY's frame")
+    p.add_argument("--spz-frame", choices=["ply", "stored"], default="ply",
+                   help="an .spz's frame: ply (default) turns SPZ's RUB (y up, z back) back into the frame of "
+                        "the PLY it was made from, as Niantic's library does; stored keeps the values as stored "
+                        "(when the cameras are in SPZ's frame)")
 
     p = sub.add_parser("status", help="show each stage of a run folder: hit / missing / stale, time, size",
                        description="Show each stage of a run folder: hit / missing / stale / damaged, time, size.")
@@ -229,12 +234,13 @@ def cmd_export(args: argparse.Namespace) -> int:
 
     from sgpor_pipeline.camera_io import load_cameras_any
     from sgpor_pipeline.exporters.gaussians import export_external
+    from sgpor_pipeline.gaussians.formats import GAUSSIAN_SUFFIXES
     from sgpor_pipeline.scene import save_cameras
     from sgpor_pipeline.stages.export import ExportParams
 
-    if args.gaussians.suffix.lower() != ".ply" or not args.gaussians.is_file():
-        raise PipelineError(f"{args.gaussians}: not a .ply file", fix="give the trainer's 3DGS PLY (a .spz or .splat "
-                            "converts to PLY with e.g. PlayCanvas splat-transform, in the frame of its cameras)")
+    if args.gaussians.suffix.lower() not in GAUSSIAN_SUFFIXES or not args.gaussians.is_file():
+        raise PipelineError(f"{args.gaussians}: not a {', '.join(GAUSSIAN_SUFFIXES)} file",
+                            fix="give the trainer's 3DGS PLY, or its .spz or .splat")
     formats = _format_list(args.export) if args.export else EXTERNAL_FORMATS
     unsupported = [f for f in formats if f not in EXTERNAL_FORMATS]
     if unsupported:
@@ -246,7 +252,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         cameras_json = Path(tmp) / "cameras.json"
         save_cameras(cameras_json, cameras)
         out = export_external(args.gaussians, cameras_json, args.out, formats,
-                              ExportParams(up=args.up, scale=args.scale))
+                              ExportParams(up=args.up, scale=args.scale), spz_frame=args.spz_frame)
     log.info(f"exported {args.gaussians.name} with {len(cameras)} cameras: {', '.join(formats)} in "
              f"{time.perf_counter() - t0:.1f} s; output in {out}")
     return 0

@@ -352,20 +352,23 @@ def frame_matrix(out_dir: Path) -> np.ndarray | None:
     return np.array(json.loads(path.read_text())["export_from_sfm"]["matrix"])
 
 
-def export_external(ply: Path, cameras_json: Path, out_dir: Path,
+def export_external(gaussians: Path, cameras_json: Path, out_dir: Path,
                     formats: tuple[str, ...] = ("ply", "splat", "spz", "gltf", "mesh", "usd", "renders"),
-                    params: Any = None) -> Path:
-    """Run exporters on Gaussians from another trainer: an INRIA-layout PLY (any SH degree) and the
-    cameras it was trained with (a ``cameras.json`` of :mod:`sgpor_pipeline.scene`, same frame).
+                    params: Any = None, spz_frame: str = "ply") -> Path:
+    """Run exporters on Gaussians from another trainer: an INRIA-layout PLY (any SH degree), an
+    ``.spz`` or a ``.splat``, and the cameras it was trained with (a ``cameras.json`` of
+    :mod:`sgpor_pipeline.scene`, in the PLY's frame).
 
-    The PLY is read with :func:`sgpor_pipeline.gaussians.ply.read_ply` (exact). ``params``: the
+    The file is read with :func:`sgpor_pipeline.gaussians.formats.load_gaussians_any` (a PLY exactly;
+    an ``.spz`` turned from its RUB frame to the PLY's unless ``spz_frame="stored"``). ``params``: the
     export stage's parameters (default ``ExportParams()``). Returns ``out_dir``.
     """
     import shutil
     import tempfile
 
     from sgpor_pipeline.dag import RunInputs, discover_exporters
-    from sgpor_pipeline.gaussians.ply import read_ply, write_ply
+    from sgpor_pipeline.gaussians.formats import load_gaussians_any
+    from sgpor_pipeline.gaussians.ply import write_ply
     from sgpor_pipeline.stages.export import ExportParams, run_exporters
 
     exporters = discover_exporters()
@@ -380,7 +383,7 @@ def export_external(ply: Path, cameras_json: Path, out_dir: Path,
         scene_dir, cam_dir = Path(tmp) / SCENE_STAGE, Path(tmp) / CAMERAS_STAGE
         scene_dir.mkdir()
         cam_dir.mkdir()
-        write_ply(scene_dir / SCENE_FILE, read_ply(ply))  # validates the file
+        write_ply(scene_dir / SCENE_FILE, load_gaussians_any(gaussians, spz_frame))  # validates the file
         shutil.copyfile(cameras_json, cam_dir / "cameras.json")
         ctx = StageContext(stage="export", params=params or ExportParams(), out_dir=out_dir,
                            inputs={SCENE_STAGE: scene_dir, CAMERAS_STAGE: cam_dir},

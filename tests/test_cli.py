@@ -164,15 +164,18 @@ def test_sigkill_mid_stage_resumes_and_concurrent_run_is_refused(tmp_path, plugi
 
 def test_export_of_gaussians_trained_elsewhere(tmp_path):
     """`sgpor-pipeline export`: another trainer's PLY and its cameras (here a transforms.json) give the
-    exports; a .spz input and a format that needs a run are refused with what to do instead."""
+    exports; the same Gaussians as an .spz (stored in SPZ's frame) render the same; a file of another
+    kind and a format that needs a run are refused with what to do instead."""
     import numpy as np
     import torch
 
     from sgpor_pipeline.camera_io import write_transforms_json
     from sgpor_pipeline.gaussians.model import GaussianModel
     from sgpor_pipeline.gaussians.ply import write_ply
+    from sgpor_pipeline.imageio import read_rgb8
+    from sgpor_pipeline.orientation import Similarity, transform_model
     from sgpor_pipeline.scene import Camera
-    from sgpor_pipeline.spz_io import read_spz
+    from sgpor_pipeline.spz_io import read_spz, write_spz
     from sgpor_pipeline.synthetic import look_at
 
     g = torch.Generator().manual_seed(0)
@@ -193,8 +196,16 @@ def test_export_of_gaussians_trained_elsewhere(tmp_path):
     for name in ("scene.ply", "scene.spz", "scene.glb", "export_frame.json", "renders/c0.png"):
         assert (out / name).is_file(), name
     assert read_spz(out / "scene.spz")["sh_degree"] == 1
-    for args, words in ((["--export", "report"], "need a run of the pipeline"), ([], "not a .ply file")):
-        src = tmp_path / ("trained.ply" if args else "trained.spz")
+    # what Niantic's tools store for the PLY (RUB: y and z negated) is turned back into its frame
+    write_spz(tmp_path / "trained.spz", transform_model(m, Similarity(1.0, np.diag([1.0, -1.0, -1.0]))))
+    r = run_cli(["export", str(tmp_path / "trained.spz"), "--cameras", str(tmp_path / "transforms.json"),
+                 "--out", str(tmp_path / "out_spz"), "--export", "renders"])
+    assert r.returncode == 0, r.stderr
+    for c in cams:
+        a, b = (read_rgb8(o / "renders" / f"{c.name}.png").astype(float) for o in (out, tmp_path / "out_spz"))
+        assert a.max() > 50 and np.abs(a - b).mean() < 2, c.name  # .spz's quantisation only
+    for args, words in ((["--export", "report"], "need a run of the pipeline"), ([], "not a .ply, .spz, .splat")):
+        src = tmp_path / ("trained.ply" if args else "trained.obj")
         src.touch(exist_ok=True)
         r = run_cli(["export", str(src), "--cameras", str(tmp_path / "transforms.json"), "--out", str(out), *args])
         assert r.returncode == 1 and words in r.stderr and "fix:" in r.stderr, r.stderr

@@ -1,0 +1,104 @@
+"""Gaussians from the splat files other tools write: ``.ply`` (INRIA 3DGS layout), ``.spz`` (Niantic)
+and ``.splat`` (antimatter15), as one :class:`~sgpor_pipeline.gaussians.model.GaussianModel`.
+
+Frames: a 3DGS PLY is in its trainer's frame, the frame of its COLMAP cameras (x right, y down, z
+forward: RDF). ``.splat`` stores the PLY's positions as they were (antimatter15's ``convert.py``), so
+it is read as stored. SPZ defines its frame as RUB (x right, y up, z back); the reference library
+converts a PLY to it on the way in (y and z negated) and back on the way out when asked for RDF, so
+an ``.spz`` is turned back into the PLY's frame by default (``spz_frame="ply"``: a half turn about x,
+orientations and SH rotated with it) and kept as stored with ``spz_frame="stored"``.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import torch
+
+from sgpor_pipeline.errors import PipelineError
+
+from .model import GaussianModel
+
+GAUSSIAN_SUFFIXES = (".ply", ".spz", ".splat")
+SpzFrame = Literal["ply", "stored"]
+SPZ_FRAMES: tuple[str, ...] = ("ply", "stored")
+MAX_SH_DEGREE = 3  # the rasterizer's and the PLY layout's highest SH degree
+#: RUB -> RDF: x kept, y and z negated (a proper rotation: the half turn about x)
+RUB_TO_RDF = np.diag([1.0, -1.0, -1.0])
+# activated opacities 0 and 1 (a byte of 0 or 255) have no finite logit; these stay within a byte of them
+OPACITY_MIN, OPACITY_MAX = 0.5 / 255.0, 1.0 - 0.5 / 255.0
+
+
+def model_from_activated(means: np.ndarray, quats_wxyz: np.ndarray, log_scales: np.ndarray,
+                         opacities: np.ndarray, sh0: np.ndarray, shN: np.ndarray, sh_degree: int) -> GaussianModel:
+    """A GaussianModel (pre-activation float32 parameters) from activated opacities in [0, 1]; ``sh0``
+    [N,1,3] and ``shN`` [N,K-1,3] in the 3DGS SH basis."""
+    n = len(means)
+    o = np.clip(np.asarray(opacities, np.float64).reshape(n), OPACITY_MIN, OPACITY_MAX)
+    params = {
+        "means": np.asarray(means, np.float32).reshape(n, 3),
+        "quats": np.asarray(quats_wxyz, np.float32).reshape(n, 4),
+        "scales": np.asarray(log_scales, np.float32).reshape(n, 3),
+        "opacities": np.log(o / (1.0 - o)).astype(np.float32),
+        "sh0": np.asarray(sh0, np.float32).reshape(n, 1, 3),
+        "shN": np.asarray(shN, np.float32).reshape(n, -1, 3),
+    }
+    return GaussianModel({k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in params.items()}, sh_degree)
+
+
+def read_spz_model(path: str | Path, frame: SpzFrame = "ply") -> GaussianModel:
+    """An ``.spz`` file as a GaussianModel, in the PLY's frame (``frame="ply"``) or as stored."""
+    from sgpor_pipeline.orientation import Similarity, transform_model
+    from sgpor_pipeline.spz_io import read_spz
+
+    if frame not in SPZ_FRAMES:
+        raise ValueError(f"spz frame {frame!r}: choose from {SPZ_FRAMES}")
+    d = read_spz(path)
+    degree, shN = int(d["sh_degree"]), d["shN"]
+    if degree > MAX_SH_DEGREE:  # the bands up to 3 are exact without the higher ones
+        logging.getLogger("sgpor_pipeline").warning(
+            f"{path}: SH degree {degree}; the rasterizer renders up to {MAX_SH_DEGREE}, the higher bands are dropped")
+        degree, shN = MAX_SH_DEGREE, shN[:, :(MAX_SH_DEGREE + 1) ** 2 - 1]
+    model = model_from_activated(d["means"], d["quats"], d["scales"], d["opacities"], d["sh0"], shN, degree)
+    return transform_model(model, Similarity(1.0, RUB_TO_RDF)) if frame == "ply" else model
+
+
+def read_splat_model(path: str | Path) -> GaussianModel:
+    """A ``.splat`` file as a GaussianModel of SH degree 0 (the format keeps the DC colour only)."""
+    from sgpor_pipeline.splat_io import SH_C0, read_splat
+
+    d = read_splat(path)
+    n = len(d["means"])
+    with np.errstate(divide="ignore"):  # a zero scale (a flat Gaussian) is kept as the smallest float
+        log_scales = np.log(np.maximum(d["scales"].astype(np.float64), np.finfo(np.float32).tiny))
+    q = d["quats"].astype(np.float64)
+    norm = np.linalg.norm(q, axis=1, keepdims=True)
+    q = np.where(norm > 1e-6, q / np.maximum(norm, 1e-12), np.array([1.0, 0.0, 0.0, 0.0]))
+    sh0 = (d["colors"].astype(np.float64) - 0.5) / SH_C0
+    return model_from_activated(d["means"], q, log_scales, d["opacities"], sh0, np.zeros((n, 0, 3)), 0)
+
+
+def load_gaussians_any(path: str | Path, spz_frame: SpzFrame = "ply") -> GaussianModel:
+    """The Gaussians of a ``.ply`` / ``.spz`` / ``.splat`` file, by its suffix, in the frame its cameras
+    use (see the module doc). Raises :class:`PipelineError` naming the file when it cannot be read."""
+    from .ply import read_ply
+
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in GAUSSIAN_SUFFIXES or not path.is_file():
+        raise PipelineError("not a Gaussian splat file" if path.is_file() else "no such file", path=path,
+                            fix=f"give a 3DGS {', '.join(GAUSSIAN_SUFFIXES)} file")
+    if suffix == ".ply":
+        return read_ply(path)
+    try:
+        model = read_spz_model(path, spz_frame) if suffix == ".spz" else read_splat_model(path)
+    except ValueError as e:  # the readers' messages name the file already
+        raise PipelineError(str(e), fix=f"give an intact {suffix} file, or the trainer's PLY") from None
+    bad = model.non_finite()
+    if bad:
+        raise PipelineError(f"non-finite values in {', '.join(bad)}", path=path,
+                            fix="export the Gaussians again from their trainer")
+    return model

@@ -1,0 +1,108 @@
+"""Gaussians read from the splat files other tools write (sgpor_pipeline.gaussians.formats): each
+format back in the PLY's frame, so the trainer's cameras see what they saw; errors name the file."""
+
+from __future__ import annotations
+
+import gzip
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from sgpor_pipeline.errors import PipelineError
+from sgpor_pipeline.gaussians.formats import RUB_TO_RDF, load_gaussians_any
+from sgpor_pipeline.gaussians.model import GaussianModel
+from sgpor_pipeline.gaussians.ply import write_ply
+from sgpor_pipeline.gaussians.train import render_view
+from sgpor_pipeline.orientation import Similarity, transform_model
+from sgpor_pipeline.scene import Camera
+from sgpor_pipeline.splat_io import write_splat
+from sgpor_pipeline.spz_io import write_spz
+from sgpor_pipeline.synthetic import look_at
+
+
+def blob_model(n: int, degree: int, seed: int = 0) -> GaussianModel:
+    """Gaussians around the origin, strongly view-dependent (large SH), inside .spz's value ranges."""
+    g = torch.Generator().manual_seed(seed)
+    m = GaussianModel.empty(n, degree)
+    m.params["means"].data = 0.4 * torch.randn(n, 3, generator=g)
+    m.params["quats"].data = torch.randn(n, 4, generator=g)
+    m.params["scales"].data = -2.6 + 0.3 * torch.randn(n, 3, generator=g)
+    m.params["opacities"].data = 1.0 + torch.randn(n, generator=g)
+    m.params["sh0"].data = 0.8 * torch.randn(n, 1, 3, generator=g)
+    m.params["shN"].data = (0.4 * torch.randn(*m.params["shN"].shape, generator=g)).clamp(-0.9, 0.9)
+    return m
+
+
+def ring_cameras(n: int = 3, w: int = 64, h: int = 48) -> list[Camera]:
+    K = np.array([[60.0, 0, w / 2], [0, 60.0, h / 2], [0, 0, 1]])
+    return [Camera(f"c{i}", w, h, K, look_at(np.array([2.5 * np.cos(a), 2.5 * np.sin(a), 0.8]), np.zeros(3)))
+            for i, a in enumerate(np.linspace(0.3, 2 * np.pi + 0.3, n, endpoint=False))]
+
+
+def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float(-10 * torch.log10(((a - b) ** 2).mean()))
+
+
+@pytest.mark.parametrize("degree", [0, 3])
+def test_spz_is_read_back_in_the_frame_of_the_ply_it_was_made_from(tmp_path: Path, degree: int) -> None:
+    model = blob_model(300, degree, seed=degree)
+    # what Niantic's converter stores for a PLY: its RUB frame (y, z negated: the same half turn)
+    write_spz(tmp_path / "m.spz", transform_model(model, Similarity(1.0, RUB_TO_RDF)))
+    back = load_gaussians_any(tmp_path / "m.spz")
+    assert back.max_sh_degree == degree and len(back) == len(model)
+    assert np.abs(back.numpy()["means"] - model.numpy()["means"]).max() < 2.0 ** -12
+    for cam in ring_cameras():
+        a, b = render_view(model, cam), render_view(back, cam)
+        assert a.max() > 0.2  # the camera sees the Gaussians
+        assert psnr(a, b) > 35, (cam.name, psnr(a, b))  # only .spz's quantisation differs
+    stored = load_gaussians_any(tmp_path / "m.spz", spz_frame="stored")
+    assert np.allclose(stored.numpy()["means"], back.numpy()["means"] * [1, -1, -1], atol=1e-6)
+
+
+def test_spz_of_sh_degree_4_keeps_the_bands_up_to_3(tmp_path: Path) -> None:
+    from sgpor_pipeline.spz_io import SPZ_HEADER, pack_spz
+
+    model = blob_model(50, 3, seed=4)
+    p = model.numpy()
+    p["shN"] = np.concatenate([p["shN"], np.full((50, 9, 3), 0.5, np.float32)], axis=1)  # degree 4: 24
+    raw = pack_spz(p, 4)
+    assert SPZ_HEADER.unpack_from(raw)[3] == 4
+    (tmp_path / "d4.spz").write_bytes(gzip.compress(raw))
+    back = load_gaussians_any(tmp_path / "d4.spz", spz_frame="stored")
+    assert back.max_sh_degree == 3
+    assert np.abs(back.numpy()["shN"] - p["shN"][:, :15]).max() < 9 / 128
+
+
+def test_splat_is_read_as_stored_with_its_dc_colour(tmp_path: Path) -> None:
+    model = blob_model(300, 2, seed=5)
+    write_splat(tmp_path / "m.splat", model)
+    back = load_gaussians_any(tmp_path / "m.splat")
+    assert back.max_sh_degree == 0 and len(back) == len(model)
+    dc_only = GaussianModel({**model.params, "shN": torch.zeros(len(model), 0, 3)}, 0)
+    for cam in ring_cameras():
+        assert psnr(render_view(dc_only, cam), render_view(back, cam)) > 30  # 8-bit colour and rotations
+
+
+def test_ply_is_read_exactly(tmp_path: Path) -> None:
+    model = blob_model(100, 1, seed=6)
+    write_ply(tmp_path / "m.ply", model)
+    back = load_gaussians_any(tmp_path / "m.ply")
+    for k, v in model.numpy().items():
+        assert np.array_equal(back.numpy()[k], v), k
+
+
+@pytest.mark.parametrize("name, content, words", [
+    ("m.spz", b"not gzip at all", "not a gzip stream"),
+    ("m.splat", b"\0" * 33, "not a multiple of 32"),
+    ("m.obj", b"v 0 0 0\n", "not a Gaussian splat file"),
+    ("missing.spz", None, "no such file"),
+])
+def test_bad_files_are_named_with_a_fix(tmp_path: Path, name: str, content: bytes | None, words: str) -> None:
+    path = tmp_path / name
+    if content is not None:
+        path.write_bytes(content)
+    with pytest.raises(PipelineError) as e:
+        load_gaussians_any(path)
+    assert words in str(e.value) and name in str(e.value) and e.value.fix

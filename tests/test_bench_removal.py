@@ -341,7 +341,8 @@ def test_method_subset_runs_ours_first_and_leaves_the_target_unjudged(bench, tmp
     """--methods: ours always runs (first); with a baseline missing the target is neither passed nor failed,
     and an ablation that did not run is not reported as helping or not."""
     assert [v[0] for v in bench.selected_variants(["fsr-refit"])] == ["ours", "fsr-refit"]
-    assert [v[0] for v in bench.selected_variants(None)] == [v[0] for v in bench.VARIANTS]
+    assert [v[0] for v in bench.selected_variants(None)] == [v[0] for v in bench.VARIANTS if v[0] != "truth-fill"]
+    assert [v[0] for v in bench.selected_variants(["truth-fill"])] == ["ours", "truth-fill"]  # only when named
     with pytest.raises(ValueError, match="nope"):
         bench.selected_variants(["nope"])
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
@@ -415,3 +416,46 @@ def test_the_inserted_one_mask_scene_gives_the_largest_whole_mask(bench, tmp_pat
     masks[0, :, 0] = True
     write_mask01(tmp_path / "01.png", masks[0])
     assert bench.one_mask_view(tmp_path) == "03"  # every mask touches it
+
+
+def test_truth_fill_puts_the_truth_in_the_hole_pixels_only(bench, tmp_path, monkeypatch):
+    """The truth-fill variant (the re-fit's ceiling): the refine stage's images get the truth in their
+    holes, the rest as refine left it; its cache keys are its own (another VERSION)."""
+    from types import SimpleNamespace
+
+    from sgpor_pipeline.dag import RunInputs
+    from sgpor_pipeline.imageio import read_rgb8, write_png
+
+    stages = bench.truth_fill_stages()
+    cls = stages["refine"]
+    base = cls.__mro__[1]
+    assert cls.VERSION == base.VERSION + 1000 and bench.variant_stages("ours") is None
+    rng = np.random.default_rng(0)
+    fill = rng.integers(0, 256, (12, 16, 3), dtype=np.uint8)
+    truth = rng.integers(0, 256, (12, 16, 3), dtype=np.uint8)
+    hole = np.zeros((12, 16), bool)
+    hole[3:7, 4:11] = True
+    for sub in ("gt", "remove/holes", "out/images"):
+        (tmp_path / sub).mkdir(parents=True)
+    write_png(tmp_path / "gt" / "v0.png", truth)
+    write_png(tmp_path / "remove" / "holes" / "v0.png", hole)
+    linked = tmp_path / "other_entry.png"  # refine's image as a link into another cache entry
+    write_png(linked, fill)
+
+    def refine_run(self, ctx):  # the refine stage's own work (tested with it): its image for v0
+        (ctx.out_dir / "images" / "v0.png").hardlink_to(linked)
+
+    monkeypatch.setattr(base, "run", refine_run)
+    ctx = SimpleNamespace(run_inputs=RunInputs(images=tmp_path, extra={"groundtruth": tmp_path / "gt"}),
+                          inputs={"remove": tmp_path / "remove"}, out_dir=tmp_path / "out")
+    cls().run(ctx)
+    got = read_rgb8(tmp_path / "out" / "images" / "v0.png")
+    assert np.array_equal(got[hole], truth[hole]) and np.array_equal(got[~hole], fill[~hole])
+    assert np.array_equal(read_rgb8(linked), fill)  # the other entry's file is untouched
+    rows = [_row(m, v) for m, v in (("ours", 16.0), ("delete-only", 14.8), ("fsr-refit", 16.05), ("no-sbm", 15.7),
+                                     ("no-rpr", 16.0), ("truth-fill", 17.2))]
+    summary, checks = bench.summarise({"lund": {"scene": "lund", "rows": rows, "wall_seconds": 1.0}})
+    assert summary["lund_inserted_mask_psnr_truth_fill"] == 17.2
+    line = next(c for c in checks if "re-fit's ceiling" in c)
+    assert "gives 17.20 dB" in line and "+1.15 dB over the best baseline (fsr-refit)" in line
+    assert "truth-fill" not in next(c for c in checks if "beats every baseline" in c)  # not a baseline

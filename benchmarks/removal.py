@@ -81,6 +81,10 @@ Beside the methods, each ground-truth table prints [INFO] lines that say what a 
 * the *inpainting headroom* (``..._mask_psnr_holes_oracle``): the delete-only renders with their hole
   pixels replaced by the truth: the most any filling of the holes can reach while the background other
   views saw stays as fitted;
+* the *re-fit's ceiling* (``..._mask_psnr_truth_fill``, with ``--methods ...,truth-fill`` only): ours
+  with the truth in every hole pixel of the refine stage's images, then re-fitted and scored as the
+  methods are: what a perfect inpainting of the holes gives after the re-fit (the headroom above is
+  before it), against the best baseline;
 * every method scored on the two parts of the mask as ours splits it, its holes and the rest
   (``psnr_unseen`` / ``psnr_seen``, pooled);
 * the *blurred-truth bound* (``..._mask_psnr_holes_blurred_truth``): ours' final renders with their

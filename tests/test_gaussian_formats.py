@@ -85,6 +85,14 @@ def test_splat_is_read_as_stored_with_its_dc_colour(tmp_path: Path) -> None:
         assert psnr(render_view(dc_only, cam), render_view(back, cam)) > 30  # 8-bit colour and rotations
 
 
+@pytest.mark.parametrize("suffix", [".spz", ".splat"])
+def test_a_file_of_no_gaussians_reads_as_an_empty_model(tmp_path: Path, suffix: str) -> None:
+    empty = GaussianModel.empty(0, 2)
+    (write_spz if suffix == ".spz" else write_splat)(tmp_path / f"e{suffix}", empty)
+    back = load_gaussians_any(tmp_path / f"e{suffix}")
+    assert len(back) == 0 and back.max_sh_degree == (2 if suffix == ".spz" else 0)
+
+
 def test_ply_is_read_exactly(tmp_path: Path) -> None:
     model = blob_model(100, 1, seed=6)
     write_ply(tmp_path / "m.ply", model)
@@ -106,3 +114,5 @@ def test_bad_files_are_named_with_a_fix(tmp_path: Path, name: str, content: byte
     with pytest.raises(PipelineError) as e:
         load_gaussians_any(path)
     assert words in str(e.value) and name in str(e.value) and e.value.fix
+    with pytest.raises(PipelineError, match="unknown .spz frame"):
+        load_gaussians_any(path, spz_frame="rub")  # type: ignore[arg-type]

@@ -44,7 +44,7 @@ def model_from_activated(means: np.ndarray, quats_wxyz: np.ndarray, log_scales: 
         "scales": np.asarray(log_scales, np.float32).reshape(n, 3),
         "opacities": np.log(o / (1.0 - o)).astype(np.float32),
         "sh0": np.asarray(sh0, np.float32).reshape(n, 1, 3),
-        "shN": np.asarray(shN, np.float32).reshape(n, -1, 3),
+        "shN": np.asarray(shN, np.float32).reshape(n, (sh_degree + 1) ** 2 - 1, 3),
     }
     return GaussianModel({k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in params.items()}, sh_degree)
 
@@ -88,6 +88,8 @@ def load_gaussians_any(path: str | Path, spz_frame: SpzFrame = "ply") -> Gaussia
 
     path = Path(path)
     suffix = path.suffix.lower()
+    if spz_frame not in SPZ_FRAMES:
+        raise PipelineError(f"unknown .spz frame {spz_frame!r}", fix=f"use one of {', '.join(SPZ_FRAMES)}")
     if suffix not in GAUSSIAN_SUFFIXES or not path.is_file():
         raise PipelineError("not a Gaussian splat file" if path.is_file() else "no such file", path=path,
                             fix=f"give a 3DGS {', '.join(GAUSSIAN_SUFFIXES)} file")

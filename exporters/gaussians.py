@@ -383,7 +383,10 @@ def export_external(gaussians: Path, cameras_json: Path, out_dir: Path,
         scene_dir, cam_dir = Path(tmp) / SCENE_STAGE, Path(tmp) / CAMERAS_STAGE
         scene_dir.mkdir()
         cam_dir.mkdir()
-        write_ply(scene_dir / SCENE_FILE, load_gaussians_any(gaussians, spz_frame))  # validates the file
+        model = load_gaussians_any(gaussians, spz_frame)  # validates the file
+        if len(model) == 0:
+            log.warning(f"{gaussians}: the file holds no Gaussians; the exports hold the cameras only")
+        write_ply(scene_dir / SCENE_FILE, model)
         shutil.copyfile(cameras_json, cam_dir / "cameras.json")
         ctx = StageContext(stage="export", params=params or ExportParams(), out_dir=out_dir,
                            inputs={SCENE_STAGE: scene_dir, CAMERAS_STAGE: cam_dir},

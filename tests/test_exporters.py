@@ -956,6 +956,19 @@ def test_export_of_a_ply_from_another_trainer(tmp_path):
     assert all((out / "renders" / f"{c.image}.png").is_file() for c in cams)
 
 
+
+def test_export_of_an_empty_splat_file_warns_and_writes_the_cameras(tmp_path, caplog):
+    from sgpor_pipeline.exporters.gaussians import export_external
+
+    (tmp_path / "empty.splat").write_bytes(b"")
+    save_cameras(tmp_path / "cameras.json", small_cameras(2))
+    with caplog.at_level(logging.WARNING):
+        out = export_external(tmp_path / "empty.splat", tmp_path / "cameras.json", tmp_path / "out",
+                              formats=("ply", "gltf"))
+    assert "holds no Gaussians" in caplog.text
+    assert len(read_ply(out / "scene.ply")) == 0 and (out / "scene.glb").is_file()
+
+
 # --------------------------------------------------------------------------------------------------
 # report: the evaluate stage's metrics (an optional input of export)
 

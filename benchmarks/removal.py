@@ -483,7 +483,7 @@ def read_folder(folder: Path, names: list[str]) -> dict[str, np.ndarray]:
 
 
 def selected_variants(methods: Sequence[str] | None) -> list[tuple[str, list[str], str]]:
-    """VARIANTS restricted to ``methods`` (None: all); ours always runs, first (the others are scored on
+    """VARIANTS restricted to ``methods`` (None: all but OPT_IN); ours always runs, first (the others are scored on
     its split of the mask, and delete-only comes from its run)."""
     if methods is None:
         return [v for v in VARIANTS if v[0] not in OPT_IN]

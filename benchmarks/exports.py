@@ -5,8 +5,8 @@
 ``EXPORT_DIR`` is a run's ``export/`` folder (default ``runs/demo/export``, what ``make demo`` writes;
 any run or ``sgpor-pipeline export`` folder with ``cameras/cameras.json`` and ``export_frame.json``).
 Every Gaussian file in it is read back with an independent decoder of ours (``scene.ply`` exactly,
-``scene.glb`` by :func:`sgpor_pipeline.splat_gltf.read_splat_glb`, ``scene.spz`` by
-:func:`sgpor_pipeline.spz_io.read_spz`, ``scene.splat`` by :func:`sgpor_pipeline.splat_io.read_splat`),
+``scene.glb`` by :func:`sgpor_pipeline.splat_gltf.read_splat_glb`, ``scene.spz`` and ``scene.splat`` by
+the readers of ``sgpor-pipeline export`` in :mod:`sgpor_pipeline.gaussians.formats`, the ``.spz`` as stored),
 turned back into the export frame where the format is +Y up, and rendered at the run's registered
 cameras (every ``--views``-th of them; black background). The table gives per format its size,
 its size against the PLY's, the SH degree it keeps, and the PSNR of its renders against the renders
@@ -26,32 +26,19 @@ import time
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from sgpor_pipeline.exporters.gaussians import FRAME_FILE
-from sgpor_pipeline.gaussians.model import GaussianModel, inverse_sigmoid
+from sgpor_pipeline.gaussians.formats import model_from_activated, read_splat_model, read_spz_model
+from sgpor_pipeline.gaussians.model import GaussianModel
 from sgpor_pipeline.gaussians.ply import read_ply
 from sgpor_pipeline.meshing import activated_tensors, render_view
 from sgpor_pipeline.metrics import psnr
 from sgpor_pipeline.orientation import GLTF_FROM_ZUP, ExportFrame, Similarity, transform_model
 from sgpor_pipeline.scene import Camera, load_cameras
 from sgpor_pipeline.splat_gltf import read_splat_glb
-from sgpor_pipeline.splat_io import SH_C0, read_splat
-from sgpor_pipeline.spz_io import read_spz
 
 ROOT = Path(__file__).resolve().parents[1]
 Z_UP_FROM_Y_UP = Similarity(1.0, GLTF_FROM_ZUP.T)  # glTF's and SPZ's frame back to the export frame
-
-
-def model_from(means: np.ndarray, quats_wxyz: np.ndarray, log_scales: np.ndarray, opacities: np.ndarray,
-               sh: np.ndarray) -> GaussianModel:
-    """A GaussianModel from decoded values (opacities in [0,1], ``sh`` [N,K,3] with the DC first)."""
-    k = sh.shape[1]
-    degree = int(round(math.sqrt(k))) - 1
-    f32 = lambda a: torch.from_numpy(np.array(a, np.float32))  # noqa: E731  (a writable copy)
-    return GaussianModel({"means": f32(means), "quats": f32(quats_wxyz), "scales": f32(log_scales),
-                          "opacities": inverse_sigmoid(f32(opacities)), "sh0": f32(sh[:, :1]), "shN": f32(sh[:, 1:])},
-                         degree)
 
 
 def decode(path: Path) -> GaussianModel:
@@ -60,16 +47,13 @@ def decode(path: Path) -> GaussianModel:
         return read_ply(path)
     if path.suffix == ".glb":
         g = read_splat_glb(path)
-        return transform_model(model_from(g["means"], g["quats"], np.log(g["scales"]), g["opacities"], g["sh"]),
+        return transform_model(model_from_activated(g["means"], g["quats"], np.log(g["scales"]), g["opacities"],
+                                                    g["sh"][:, :1], g["sh"][:, 1:], int(g["sh_degree"])),
                                Z_UP_FROM_Y_UP)
     if path.suffix == ".spz":
-        s = read_spz(path)
-        sh = np.concatenate([s["sh0"], s["shN"]], axis=1)
-        return transform_model(model_from(s["means"], s["quats"], s["scales"], s["opacities"], sh), Z_UP_FROM_Y_UP)
+        return transform_model(read_spz_model(path, frame="stored"), Z_UP_FROM_Y_UP)
     if path.suffix == ".splat":
-        s = read_splat(path)
-        sh0 = ((s["colors"] - 0.5) / SH_C0)[:, None, :]
-        return model_from(s["means"], s["quats"], np.log(np.maximum(s["scales"], 1e-30)), s["opacities"], sh0)
+        return read_splat_model(path)
     raise ValueError(f"{path}: no decoder for this format")
 
 

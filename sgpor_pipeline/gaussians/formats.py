@@ -20,7 +20,7 @@ import torch
 
 from sgpor_pipeline.errors import PipelineError
 
-from .model import GaussianModel
+from .model import GaussianModel, inverse_sigmoid
 
 GAUSSIAN_SUFFIXES = (".ply", ".spz", ".splat")
 SpzFrame = Literal["ply", "stored"]
@@ -28,25 +28,22 @@ SPZ_FRAMES: tuple[str, ...] = ("ply", "stored")
 MAX_SH_DEGREE = 3  # the rasterizer's and the PLY layout's highest SH degree
 #: RUB -> RDF: x kept, y and z negated (a proper rotation: the half turn about x)
 RUB_TO_RDF = np.diag([1.0, -1.0, -1.0])
-# activated opacities 0 and 1 (a byte of 0 or 255) have no finite logit; these stay within a byte of them
-OPACITY_MIN, OPACITY_MAX = 0.5 / 255.0, 1.0 - 0.5 / 255.0
 
 
 def model_from_activated(means: np.ndarray, quats_wxyz: np.ndarray, log_scales: np.ndarray,
                          opacities: np.ndarray, sh0: np.ndarray, shN: np.ndarray, sh_degree: int) -> GaussianModel:
     """A GaussianModel (pre-activation float32 parameters) from activated opacities in [0, 1]; ``sh0``
-    [N,1,3] and ``shN`` [N,K-1,3] in the 3DGS SH basis."""
+    [N,1,3] and ``shN`` [N,K-1,3] in the 3DGS SH basis. Opacities 0 and 1 (a byte of 0 or 255), which
+    have no finite logit, are clamped by :func:`~sgpor_pipeline.gaussians.model.inverse_sigmoid`."""
     n = len(means)
-    o = np.clip(np.asarray(opacities, np.float64).reshape(n), OPACITY_MIN, OPACITY_MAX)
-    params = {
-        "means": np.asarray(means, np.float32).reshape(n, 3),
-        "quats": np.asarray(quats_wxyz, np.float32).reshape(n, 4),
-        "scales": np.asarray(log_scales, np.float32).reshape(n, 3),
-        "opacities": np.log(o / (1.0 - o)).astype(np.float32),
-        "sh0": np.asarray(sh0, np.float32).reshape(n, 1, 3),
-        "shN": np.asarray(shN, np.float32).reshape(n, (sh_degree + 1) ** 2 - 1, 3),
-    }
-    return GaussianModel({k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in params.items()}, sh_degree)
+
+    def f32(a: np.ndarray, *shape: int) -> torch.Tensor:  # a writable copy (the readers' arrays may be views)
+        return torch.from_numpy(np.array(a, np.float32).reshape(n, *shape))
+
+    tensors = {"means": f32(means, 3), "quats": f32(quats_wxyz, 4), "scales": f32(log_scales, 3),
+               "opacities": inverse_sigmoid(f32(opacities)), "sh0": f32(sh0, 1, 3),
+               "shN": f32(shN, (sh_degree + 1) ** 2 - 1, 3)}
+    return GaussianModel(tensors, sh_degree)
 
 
 def read_spz_model(path: str | Path, frame: SpzFrame = "ply") -> GaussianModel:

@@ -234,13 +234,9 @@ def cmd_export(args: argparse.Namespace) -> int:
 
     from sgpor_pipeline.camera_io import load_cameras_any
     from sgpor_pipeline.exporters.gaussians import export_external
-    from sgpor_pipeline.gaussians.formats import GAUSSIAN_SUFFIXES
     from sgpor_pipeline.scene import save_cameras
     from sgpor_pipeline.stages.export import ExportParams
 
-    if args.gaussians.suffix.lower() not in GAUSSIAN_SUFFIXES or not args.gaussians.is_file():
-        raise PipelineError(f"{args.gaussians}: not a {', '.join(GAUSSIAN_SUFFIXES)} file",
-                            fix="give the trainer's 3DGS PLY, or its .spz or .splat")
     formats = _format_list(args.export) if args.export else EXTERNAL_FORMATS
     unsupported = [f for f in formats if f not in EXTERNAL_FORMATS]
     if unsupported:

@@ -377,15 +377,15 @@ def export_external(gaussians: Path, cameras_json: Path, out_dir: Path,
         from sgpor_pipeline.errors import PipelineError
 
         raise PipelineError(f"unknown export format(s) {unknown}", fix=f"choose from {', '.join(sorted(exporters))}")
+    model = load_gaussians_any(gaussians, spz_frame)  # validates the file before any folder is made
+    if len(model) == 0:
+        log.warning(f"{gaussians}: the file holds no Gaussians; the exports hold the cameras only")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="sgpor-export-") as tmp:
         scene_dir, cam_dir = Path(tmp) / SCENE_STAGE, Path(tmp) / CAMERAS_STAGE
         scene_dir.mkdir()
         cam_dir.mkdir()
-        model = load_gaussians_any(gaussians, spz_frame)  # validates the file
-        if len(model) == 0:
-            log.warning(f"{gaussians}: the file holds no Gaussians; the exports hold the cameras only")
         write_ply(scene_dir / SCENE_FILE, model)
         shutil.copyfile(cameras_json, cam_dir / "cameras.json")
         ctx = StageContext(stage="export", params=params or ExportParams(), out_dir=out_dir,

@@ -207,5 +207,7 @@ def test_export_of_gaussians_trained_elsewhere(tmp_path):
     for args, words in ((["--export", "report"], "need a run of the pipeline"), ([], "not a .ply, .spz, .splat")):
         src = tmp_path / ("trained.ply" if args else "trained.obj")
         src.touch(exist_ok=True)
-        r = run_cli(["export", str(src), "--cameras", str(tmp_path / "transforms.json"), "--out", str(out), *args])
+        r = run_cli(["export", str(src), "--cameras", str(tmp_path / "transforms.json"), "--out",
+                     str(tmp_path / "refused"), *args])
         assert r.returncode == 1 and words in r.stderr and "fix:" in r.stderr, r.stderr
+        assert not (tmp_path / "refused").exists()  # a refused call makes no output folder

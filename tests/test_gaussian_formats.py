@@ -104,7 +104,7 @@ def test_ply_is_read_exactly(tmp_path: Path) -> None:
 @pytest.mark.parametrize("name, content, words", [
     ("m.spz", b"not gzip at all", "not a gzip stream"),
     ("m.splat", b"\0" * 33, "not a multiple of 32"),
-    ("m.obj", b"v 0 0 0\n", "not a Gaussian splat file"),
+    ("m.obj", b"v 0 0 0\n", "not a .ply, .spz, .splat file"),
     ("missing.spz", None, "no such file"),
 ])
 def test_bad_files_are_named_with_a_fix(tmp_path: Path, name: str, content: bytes | None, words: str) -> None:

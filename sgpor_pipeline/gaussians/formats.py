@@ -88,8 +88,8 @@ def load_gaussians_any(path: str | Path, spz_frame: SpzFrame = "ply") -> Gaussia
     if spz_frame not in SPZ_FRAMES:
         raise PipelineError(f"unknown .spz frame {spz_frame!r}", fix=f"use one of {', '.join(SPZ_FRAMES)}")
     if suffix not in GAUSSIAN_SUFFIXES or not path.is_file():
-        raise PipelineError("not a Gaussian splat file" if path.is_file() else "no such file", path=path,
-                            fix=f"give a 3DGS {', '.join(GAUSSIAN_SUFFIXES)} file")
+        raise PipelineError(f"not a {', '.join(GAUSSIAN_SUFFIXES)} file" if path.is_file() else "no such file",
+                            path=path, fix="give the trainer's 3DGS PLY, or its .spz or .splat")
     if suffix == ".ply":
         return read_ply(path)
     try:

@@ -103,13 +103,20 @@ class SfmParams:
     max_image_size: int = 1600
     max_num_features: int = 8192  # SIFT features per image (matching time grows with its square)
     min_registered_fraction: float = 0.8  # warn when fewer images than this register
-    # Incremental mapping that registers fewer than min_registered_fraction of the images is run once
-    # more with relaxed thresholds (RELAXED_MAPPER) and the larger model is kept. Small or narrow-angle
-    # images (mip-NeRF 360 room's 256 px crops) have pairs COLMAP classifies as planar/panoramic and
-    # too few inliers for its default initialisation: 7 of 24 registered, 17 relaxed (direct pycolmap).
-    # A third mapping with the focal held (at the relaxed model's) registers all 24 of room, but their
-    # poses agree worse: the plane texture under the slippers came out blotched and the re-fit blurred
-    # (session 31). Only with the distortion held at 0 too did the others register.
+    # Incremental mapping that registers fewer than min_registered_fraction of the images is run again,
+    # first with the lens distortion held at 0 (retry_held_distortion), then with relaxed thresholds
+    # (retry_relaxed, RELAXED_MAPPER), each only while the best model so far is short; the model that
+    # registers the most is kept (:func:`mapping_attempts`, :func:`_map_with_retry`).
+    # Small or narrow-angle photos (mip-NeRF 360 room: 256 px crops, a field of view near 12 degrees)
+    # cannot tell a radial distortion term from the focal length and the depth: refined from a few
+    # images, it drifts (room: k = 1.04) and the photos added later no longer fit. Room, SIMPLE_RADIAL:
+    # 7 of 24 registered; relaxed 17 (0.87 px); the distortion held at 0, COLMAP's default thresholds:
+    # 24 (0.89 px, focal 1262 px as with SIMPLE_PINHOLE; every checked pair agrees), and a fit on it
+    # (fit.holdout_every=4) scores 22.68 dB on its held-out views against 21.59 on the relaxed model's.
+    # Both held and relaxed: 19, at a focal of 3990 px (4 degrees of triangulation angle let a
+    # degenerate first pair in). A third mapping with the focal also held, at the relaxed model's,
+    # registered 24 too but at worse poses (session 31).
+    retry_held_distortion: bool = True
     retry_relaxed: bool = True
     seed: int = 0  # pycolmap's random seed (RANSAC, mapper)
     num_threads: int = -1  # feature extraction, matching, undistortion; -1 = all cores
@@ -444,7 +451,12 @@ def _match(db: Path, matcher: str, params: SfmParams) -> None:
                                   verification_options=verification, device=pycolmap.Device.cpu)
 
 
-def _map(db: Path, image_dir: Path, out: Path, params: SfmParams, relaxed: bool = False) -> dict[int, Any]:
+# COLMAP's defaults: init_min_num_inliers 100, abs_pose_min_num_inliers 30, init_min_tri_angle 16 deg
+RELAXED_MAPPER = {"init_min_num_inliers": 30, "abs_pose_min_num_inliers": 15, "init_min_tri_angle": 4.0}
+UNDISTORTED_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")  # COLMAP camera models without distortion terms
+
+
+def _map(db: Path, image_dir: Path, out: Path, params: SfmParams, attempt: str = "default") -> dict[int, Any]:
     import pycolmap
 
     out.mkdir(parents=True, exist_ok=True)
@@ -456,28 +468,52 @@ def _map(db: Path, image_dir: Path, out: Path, params: SfmParams, relaxed: bool 
         options.mapper.random_seed = params.seed
         options.mapper.num_threads = threads
         return pycolmap.global_mapping(db, image_dir, out, options=options)
-    options = incremental_options(params, relaxed)
+    options = incremental_options(params, attempt)
     return pycolmap.incremental_mapping(db, image_dir, out, options=options)
+
+
+def mapping_attempts(params: SfmParams) -> list[str]:
+    """The incremental mappings tried, in order, while too few images register (see ``retry_relaxed``,
+    ``retry_held_distortion``): "default", then "held_distortion" (only for a camera model with
+    distortion terms), then "relaxed"."""
+    attempts = ["default"]
+    if params.mapper != "incremental":
+        return attempts
+    if params.retry_held_distortion and params.camera_model not in UNDISTORTED_MODELS:
+        attempts.append("held_distortion")
+    if params.retry_relaxed:
+        attempts.append("relaxed")
+    return attempts
+
+
+ATTEMPT_NOTES = {"held_distortion": "the lens distortion held at 0",
+                 "relaxed": f"relaxed thresholds {RELAXED_MAPPER}"}
 
 
 def _map_with_retry(db: Path, image_dir: Path, work: Path, params: SfmParams, n_images: int, timings: Timings,
                     step: str = "map", note: str = "") -> tuple[dict[int, Any], dict[str, Any] | None]:
-    """Mapping, and once more with RELAXED_MAPPER when too few images register (``retry_relaxed``);
-    returns the models kept and the retry's numbers (None without a retry). Models go to
-    ``work/models_<step>`` (``_relaxed``)."""
+    """Mapping, and again with each further attempt of :func:`mapping_attempts` while the best model so
+    far registers fewer than ``min_registered_fraction`` of the images; keeps the models of the
+    attempt that registers the most (the earlier on a tie) and returns them with the retry's numbers
+    (None when the first mapping was enough). Models go to ``work/models_<step>[_<attempt>]``."""
+    attempts = mapping_attempts(params)
     with timings.step(step, f"sfm: {params.mapper} mapping{note}"):
         models = _map(db, image_dir, work / f"models_{step}", params)
-    registered = max((m.num_reg_images() for m in models.values()), default=0)
-    if not (params.retry_relaxed and params.mapper == "incremental"
-            and registered < params.min_registered_fraction * n_images):
+    registered = {"default": max((m.num_reg_images() for m in models.values()), default=0)}
+    kept = "default"
+    for attempt in attempts[1:]:
+        best = registered[kept]
+        if best >= params.min_registered_fraction * n_images:
+            break
+        with timings.step(f"{step}_{attempt}", f"sfm: {best}/{n_images} registered; mapping again with "
+                                               f"{ATTEMPT_NOTES[attempt]}"):
+            candidate = _map(db, image_dir, work / f"models_{step}_{attempt}", params, attempt)
+        registered[attempt] = max((m.num_reg_images() for m in candidate.values()), default=0)
+        if registered[attempt] > best:
+            models, kept = candidate, attempt
+    if len(registered) == 1:
         return models, None
-    with timings.step(f"{step}_relaxed", f"sfm: {registered}/{n_images} registered; mapping again with "
-                                         f"relaxed thresholds {RELAXED_MAPPER}"):
-        relaxed = _map(db, image_dir, work / f"models_{step}_relaxed", params, relaxed=True)
-    registered_relaxed = max((m.num_reg_images() for m in relaxed.values()), default=0)
-    retry = {"registered_default": registered, "registered_relaxed": registered_relaxed,
-             "kept": "relaxed" if registered_relaxed > registered else "default"}
-    return (relaxed if registered_relaxed > registered else models), retry
+    return models, {"registered": registered, "kept": kept}
 
 
 def _largest_model(models: dict[int, Any]) -> Any:
@@ -485,13 +521,14 @@ def _largest_model(models: dict[int, Any]) -> Any:
     return max((models[k] for k in sorted(models)), key=lambda r: r.num_reg_images())
 
 
-# COLMAP's defaults: init_min_num_inliers 100, abs_pose_min_num_inliers 30, init_min_tri_angle 16 deg
-RELAXED_MAPPER = {"init_min_num_inliers": 30, "abs_pose_min_num_inliers": 15, "init_min_tri_angle": 4.0}
 
 
-def incremental_options(params: SfmParams, relaxed: bool = False) -> Any:
+def incremental_options(params: SfmParams, attempt: str = "default") -> Any:
+    """pycolmap's incremental mapping options for one of :func:`mapping_attempts`."""
     import pycolmap
 
+    if attempt not in ("default", *ATTEMPT_NOTES):
+        raise ValueError(f"unknown mapping attempt {attempt!r}")
     options = pycolmap.IncrementalPipelineOptions()
     threads = 1 if params.deterministic else params.num_threads
     options.num_threads = threads
@@ -501,7 +538,9 @@ def incremental_options(params: SfmParams, relaxed: bool = False) -> Any:
     options.triangulation.random_seed = params.seed
     # COLMAP drops models of fewer than 10 images; a small capture (3-9 photos) would then always fail.
     options.min_model_size = 3
-    if relaxed:
+    if attempt == "held_distortion":
+        options.ba_refine_extra_params = False  # the extractor starts every distortion term at 0
+    if attempt == "relaxed":
         for key, value in RELAXED_MAPPER.items():
             setattr(options.mapper, key, value)
     return options
@@ -769,7 +808,7 @@ def estimate_cameras(ingest_dir: Path, views: Sequence[View], out_dir: Path, par
                          f"model contradicts {len(check.contradicted)} of the {check.checked} checked")
                 repair = {"first": {"registered": best.num_reg_images(), "contradicted": len(check.contradicted)},
                           "strongest_pairs": {"pairs": kept_pairs, "registered": 0, "contradicted": None,
-                                              "relaxed_retry": strong_retry},
+                                              "mapping_retry": strong_retry},
                           "kept": "first"}
                 if strong_models:
                     candidate = _largest_model(strong_models)
@@ -826,7 +865,7 @@ def estimate_cameras(ingest_dir: Path, views: Sequence[View], out_dir: Path, par
         "registered": len(cameras),
         "unregistered": unregistered,
         "models": len(models),
-        "relaxed_retry": retry,
+        "mapping_retry": retry,
         "pair_check": None if check is None else {**check.to_dict(), "repair": repair},
         "seconds": timings.seconds,
     }

@@ -51,8 +51,9 @@ __all__ = ["SfmParams", "SfmStage"]
 class SfmStage(Stage):
     name = "sfm"
     # 2: the model checked against each image's strongest pairs (SfmParams.pair_check); 3: given cameras
-    # in a frame far from its origin or at an extreme scale are moved (sfm.conditioning_frame)
-    VERSION = 3
+    # in a frame far from its origin or at an extreme scale are moved (sfm.conditioning_frame); 4: too
+    # few registered -> mapped again with the distortion held at 0 before relaxing (retry_held_distortion)
+    VERSION = 4
     Params = SfmParams
     inputs = ("ingest",)
     libraries = ("pycolmap",)

@@ -153,7 +153,7 @@ def test_sfm_outputs_layout_and_points(sfm_run):
     assert not (folder / "colmap").exists() and not (folder / "stereo").exists()
     notes = json.loads((folder / "manifest.json").read_text())["notes"]
     assert notes["registered"] == len(scene.cameras) and set(notes["seconds"]) >= {"extract", "match", "map"}
-    assert sfm.summary["relaxed_retry"] is None  # everything registered: no second mapping
+    assert sfm.summary["mapping_retry"] is None  # everything registered: no second mapping
     # the raw cameras (SfM's SIMPLE_RADIAL) map ingest's photos onto the undistorted images
     raw = {c.image: c for c in load_cameras(folder / RAW_CAMERAS_FILE)}
     assert set(raw) == {c.image for c in sfm.cameras} and raw[sfm.cameras[0].image].model == "SIMPLE_RADIAL"
@@ -243,8 +243,10 @@ def test_warns_when_few_images_register(scene_dir, tmp_path, caplog):
         _, sfm = run_sfm(tmp_path / "out", images=images)
     assert sfm.summary["registered"] == 12
     assert sfm.summary["unregistered"] == [f"zz_blank{i}" for i in range(4)]
-    # too few registered: mapped once more with relaxed thresholds; blank photos gain nothing from it
-    assert sfm.summary["relaxed_retry"] == {"registered_default": 12, "registered_relaxed": 12, "kept": "default"}
+    # too few registered: mapped again with the distortion held, then with relaxed thresholds; blank
+    # photos gain nothing from either
+    assert sfm.summary["mapping_retry"] == {"registered": {"default": 12, "held_distortion": 12, "relaxed": 12},
+                                            "kept": "default"}
     assert all(not sfm.image_path(f"zz_blank{i}").exists() for i in range(4))
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert any("only 12 of 16 images registered" in w and "zz_blank3" in w for w in warnings), warnings
@@ -521,12 +523,67 @@ def test_pycolmap_imported_first_is_a_clear_error():
     assert right.returncode == 0, right.stderr[-500:]
 
 
-def test_relaxed_mapper_options():
-    from sgpor_pipeline.sfm import RELAXED_MAPPER, incremental_options
+def test_mapping_attempts_and_their_options():
+    from sgpor_pipeline.sfm import RELAXED_MAPPER, incremental_options, mapping_attempts
 
-    default, relaxed = incremental_options(SfmParams()), incremental_options(SfmParams(), relaxed=True)
+    default = incremental_options(SfmParams())
+    relaxed = incremental_options(SfmParams(), "relaxed")
+    held = incremental_options(SfmParams(), "held_distortion")
     for key, value in RELAXED_MAPPER.items():
         assert getattr(relaxed.mapper, key) == value and getattr(default.mapper, key) > value
+        assert getattr(held.mapper, key) == getattr(default.mapper, key)  # held: COLMAP's thresholds
+    assert default.ba_refine_extra_params and relaxed.ba_refine_extra_params and not held.ba_refine_extra_params
+    with pytest.raises(ValueError, match="unknown mapping attempt"):
+        incremental_options(SfmParams(), "loose")
+    # the distortion is held before the thresholds are relaxed; a model without distortion skips it
+    assert mapping_attempts(SfmParams()) == ["default", "held_distortion", "relaxed"]
+    assert mapping_attempts(SfmParams(camera_model="SIMPLE_PINHOLE")) == ["default", "relaxed"]
+    assert mapping_attempts(SfmParams(retry_held_distortion=False, retry_relaxed=False)) == ["default"]
+    assert mapping_attempts(SfmParams(mapper="global")) == ["default"]
+
+
+def test_mapping_retry_keeps_the_attempt_that_registers_most(monkeypatch, tmp_path):
+    """The retry's bookkeeping (which attempts run, which models are kept); pycolmap's mapping itself is
+    replaced by fixed numbers of registered images per attempt."""
+    import sgpor_pipeline.sfm as sfm_module
+
+    class Model:
+        def __init__(self, registered: int):
+            self.registered = registered
+
+        def num_reg_images(self) -> int:
+            return self.registered
+
+    def run(counts: dict[str, int], params: SfmParams | None = None):
+        params = params or SfmParams()
+        ran = []
+
+        def fake_map(db, image_dir, out, params, attempt="default"):
+            ran.append(attempt)
+            return {0: Model(counts[attempt])} if counts[attempt] else {}
+
+        monkeypatch.setattr(sfm_module, "_map", fake_map)
+        models, retry = sfm_module._map_with_retry(tmp_path / "db", tmp_path, tmp_path, params, 24,
+                                                   sfm_module.Timings(logging.getLogger("test")))
+        return ran, models[0].registered if models else 0, retry
+
+    # room: the held distortion registers every photo; relaxing is not tried then
+    ran, kept, retry = run({"default": 7, "held_distortion": 24, "relaxed": 17})
+    assert ran == ["default", "held_distortion"] and kept == 24
+    assert retry == {"registered": {"default": 7, "held_distortion": 24}, "kept": "held_distortion"}
+    # still short after holding: relaxed next, the most registered kept, the earlier attempt on a tie
+    ran, kept, retry = run({"default": 7, "held_distortion": 12, "relaxed": 17})
+    assert ran == ["default", "held_distortion", "relaxed"] and kept == 17 and retry["kept"] == "relaxed"
+    _, kept, retry = run({"default": 7, "held_distortion": 15, "relaxed": 15})
+    assert kept == 15 and retry["kept"] == "held_distortion"
+    # no model at first: the retries can still find one
+    _, kept, retry = run({"default": 0, "held_distortion": 0, "relaxed": 9})
+    assert kept == 9 and retry["registered"] == {"default": 0, "held_distortion": 0, "relaxed": 9}
+    # enough at first (20 of 24 >= 80 %): no retry
+    ran, kept, retry = run({"default": 20, "held_distortion": 24, "relaxed": 24})
+    assert ran == ["default"] and kept == 20 and retry is None
+    ran, _, retry = run({"default": 7, "relaxed": 17}, SfmParams(camera_model="PINHOLE"))
+    assert ran == ["default", "relaxed"] and retry["kept"] == "relaxed"
 
 
 def test_choose_matcher_and_params():

@@ -499,7 +499,7 @@ def _map_with_retry(db: Path, image_dir: Path, work: Path, params: SfmParams, n_
     attempts = mapping_attempts(params)
     with timings.step(step, f"sfm: {params.mapper} mapping{note}"):
         models = _map(db, image_dir, work / f"models_{step}", params)
-    registered = {"default": max((m.num_reg_images() for m in models.values()), default=0)}
+    registered = {"default": _most_registered(models)}
     kept = "default"
     for attempt in attempts[1:]:
         best = registered[kept]
@@ -508,7 +508,7 @@ def _map_with_retry(db: Path, image_dir: Path, work: Path, params: SfmParams, n_
         with timings.step(f"{step}_{attempt}", f"sfm: {best}/{n_images} registered; mapping again with "
                                                f"{ATTEMPT_NOTES[attempt]}"):
             candidate = _map(db, image_dir, work / f"models_{step}_{attempt}", params, attempt)
-        registered[attempt] = max((m.num_reg_images() for m in candidate.values()), default=0)
+        registered[attempt] = _most_registered(candidate)
         if registered[attempt] > best:
             models, kept = candidate, attempt
     if len(registered) == 1:
@@ -521,6 +521,9 @@ def _largest_model(models: dict[int, Any]) -> Any:
     return max((models[k] for k in sorted(models)), key=lambda r: r.num_reg_images())
 
 
+def _most_registered(models: dict[int, Any]) -> int:
+    """How many images the largest of the models registers (0 for none)."""
+    return max((m.num_reg_images() for m in models.values()), default=0)
 
 
 def incremental_options(params: SfmParams, attempt: str = "default") -> Any:

@@ -461,31 +461,21 @@ def _map(db: Path, image_dir: Path, out: Path, params: SfmParams, attempt: str =
 
     out.mkdir(parents=True, exist_ok=True)
     if params.mapper == "global":
-        options = pycolmap.GlobalPipelineOptions()
-        threads = 1 if params.deterministic else params.num_threads
-        options.num_threads = threads
-        options.random_seed = params.seed
-        options.mapper.random_seed = params.seed
-        options.mapper.num_threads = threads
-        return pycolmap.global_mapping(db, image_dir, out, options=options)
-    options = incremental_options(params, attempt)
-    return pycolmap.incremental_mapping(db, image_dir, out, options=options)
+        return pycolmap.global_mapping(db, image_dir, out, options=global_options(params, attempt))
+    return pycolmap.incremental_mapping(db, image_dir, out, options=incremental_options(params, attempt))
 
 
 def mapping_attempts(params: SfmParams) -> list[str]:
-    """The incremental mappings tried, in order, while too few images register (see ``retry_relaxed``,
+    """The mappings tried, in order, while too few images register (see ``retry_relaxed``,
     ``retry_held_distortion``): "default", then "held_distortion" (only for a camera model with
-    distortion terms), then "relaxed"."""
-    attempts = ["default"]
-    if params.mapper != "incremental":
-        return attempts
-    if params.retry_held_distortion and params.camera_model not in UNDISTORTED_MODELS:
-        attempts.append("held_distortion")
-    if params.retry_relaxed:
-        attempts.append("relaxed")
-    return attempts
+    distortion terms), then "relaxed" (only for the incremental mapper)."""
+    skip = {"held_distortion": not params.retry_held_distortion or params.camera_model in UNDISTORTED_MODELS,
+            "relaxed": not params.retry_relaxed}
+    return [a for a in MAPPER_ATTEMPTS[params.mapper] if not skip.get(a, False)]
 
 
+#: the mappings each mapper may try, in order (the global mapper has no thresholds of the incremental kind)
+MAPPER_ATTEMPTS = {"incremental": ("default", "held_distortion", "relaxed"), "global": ("default", "held_distortion")}
 ATTEMPT_NOTES = {"held_distortion": "the lens distortion held at 0",
                  "relaxed": f"relaxed thresholds {RELAXED_MAPPER}"}
 
@@ -526,12 +516,16 @@ def _most_registered(models: dict[int, Any]) -> int:
     return max((m.num_reg_images() for m in models.values()), default=0)
 
 
+def _check_attempt(mapper: str, attempt: str) -> None:
+    if attempt not in MAPPER_ATTEMPTS[mapper]:
+        raise ValueError(f"unknown mapping attempt {attempt!r} for the {mapper} mapper")
+
+
 def incremental_options(params: SfmParams, attempt: str = "default") -> Any:
     """pycolmap's incremental mapping options for one of :func:`mapping_attempts`."""
     import pycolmap
 
-    if attempt not in ("default", *ATTEMPT_NOTES):
-        raise ValueError(f"unknown mapping attempt {attempt!r}")
+    _check_attempt("incremental", attempt)
     options = pycolmap.IncrementalPipelineOptions()
     threads = 1 if params.deterministic else params.num_threads
     options.num_threads = threads
@@ -546,6 +540,24 @@ def incremental_options(params: SfmParams, attempt: str = "default") -> Any:
     if attempt == "relaxed":
         for key, value in RELAXED_MAPPER.items():
             setattr(options.mapper, key, value)
+    return options
+
+
+def global_options(params: SfmParams, attempt: str = "default") -> Any:
+    """pycolmap's global (GLOMAP) mapping options for one of :func:`mapping_attempts`."""
+    import pycolmap
+
+    _check_attempt("global", attempt)
+    options = pycolmap.GlobalPipelineOptions()
+    threads = 1 if params.deterministic else params.num_threads
+    options.num_threads = threads
+    options.random_seed = params.seed
+    options.mapper.random_seed = params.seed
+    options.mapper.num_threads = threads
+    if attempt == "held_distortion":
+        # the global mapper's bundle adjustment drifts the distortion of narrow photos as the incremental
+        # one does, and its retriangulation then rejects cameras whose term passes 1 (mip360 room: no model)
+        options.mapper.bundle_adjustment.refine_extra_params = False
     return options
 
 
@@ -574,6 +586,18 @@ def database_stats(db: Path) -> DatabaseStats:
         return DatabaseStats(len(ids), int(with_features), len(matched), verified)
     finally:
         database.close()
+
+
+def no_model_fix(params: SfmParams, stats: DatabaseStats) -> str:
+    """What to try when mapping gave no model: where most images matched, the mapping is at fault, not
+    the photos (the other mapper, a camera model without distortion); otherwise the capture."""
+    if stats.with_matches >= max(3, stats.images // 2):
+        other = "incremental" if params.mapper == "global" else "global"
+        return (f"the photos match, the {params.mapper} mapping failed: try --set sfm.mapper={other}, or "
+                "--set sfm.camera_model=SIMPLE_PINHOLE for small or narrow-angle photos; or pass known cameras "
+                "with --cameras")
+    return ("photograph with more overlap (every spot in 3+ photos) and textured surfaces in view; for an "
+            "ordered capture try --set sfm.matcher=sequential; or pass known cameras with --cameras")
 
 
 @dataclass
@@ -791,10 +815,7 @@ def estimate_cameras(ingest_dir: Path, views: Sequence[View], out_dir: Path, par
             raise PipelineError(
                 f"SfM could not reconstruct the scene: of {n} images, {stats.with_features} had features and "
                 f"{stats.with_matches} had verified matches with another image ({stats.verified_pairs} pairs)",
-                path=user_images,
-                fix="photograph with more overlap (every spot in 3+ photos) and textured surfaces in view; "
-                    "for an ordered capture try --set sfm.matcher=sequential; or pass known cameras with "
-                    "--cameras")
+                path=user_images, fix=no_model_fix(params, stats))
         best = _largest_model(models)
         check, repair = None, None
         if params.pair_check != "off":

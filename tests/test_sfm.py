@@ -524,7 +524,7 @@ def test_pycolmap_imported_first_is_a_clear_error():
 
 
 def test_mapping_attempts_and_their_options():
-    from sgpor_pipeline.sfm import RELAXED_MAPPER, incremental_options, mapping_attempts
+    from sgpor_pipeline.sfm import RELAXED_MAPPER, global_options, incremental_options, mapping_attempts
 
     default = incremental_options(SfmParams())
     relaxed = incremental_options(SfmParams(), "relaxed")
@@ -539,7 +539,27 @@ def test_mapping_attempts_and_their_options():
     assert mapping_attempts(SfmParams()) == ["default", "held_distortion", "relaxed"]
     assert mapping_attempts(SfmParams(camera_model="SIMPLE_PINHOLE")) == ["default", "relaxed"]
     assert mapping_attempts(SfmParams(retry_held_distortion=False, retry_relaxed=False)) == ["default"]
-    assert mapping_attempts(SfmParams(mapper="global")) == ["default"]
+    # the global mapper holds the distortion too (mip360 room: no model, then 24 of 24), but has no
+    # incremental thresholds to relax
+    assert mapping_attempts(SfmParams(mapper="global")) == ["default", "held_distortion"]
+    assert mapping_attempts(SfmParams(mapper="global", camera_model="PINHOLE")) == ["default"]
+    global_default, global_held = global_options(SfmParams()), global_options(SfmParams(), "held_distortion")
+    assert global_default.mapper.bundle_adjustment.refine_extra_params
+    assert not global_held.mapper.bundle_adjustment.refine_extra_params
+    assert global_held.mapper.bundle_adjustment.refine_focal_length  # only the distortion is held
+    with pytest.raises(ValueError, match="for the global mapper"):
+        global_options(SfmParams(), "relaxed")
+
+
+def test_no_model_fix_names_the_mapping_when_the_photos_match():
+    from sgpor_pipeline.sfm import DatabaseStats, no_model_fix
+
+    matched = DatabaseStats(images=24, with_features=24, with_matches=24, verified_pairs=261)
+    fix = no_model_fix(SfmParams(mapper="global"), matched)
+    assert "the global mapping failed" in fix and "sfm.mapper=incremental" in fix and "SIMPLE_PINHOLE" in fix
+    assert "sfm.mapper=global" in no_model_fix(SfmParams(), matched)
+    unmatched = DatabaseStats(images=24, with_features=24, with_matches=2, verified_pairs=1)
+    assert "more overlap" in no_model_fix(SfmParams(), unmatched)
 
 
 def test_mapping_retry_keeps_the_attempt_that_registers_most(monkeypatch, tmp_path):
@@ -584,6 +604,9 @@ def test_mapping_retry_keeps_the_attempt_that_registers_most(monkeypatch, tmp_pa
     assert ran == ["default"] and kept == 20 and retry is None
     ran, _, retry = run({"default": 7, "relaxed": 17}, SfmParams(camera_model="PINHOLE"))
     assert ran == ["default", "relaxed"] and retry["kept"] == "relaxed"
+    # the global mapper: no model, then every photo with the distortion held
+    ran, kept, retry = run({"default": 0, "held_distortion": 24}, SfmParams(mapper="global"))
+    assert ran == ["default", "held_distortion"] and kept == 24 and retry["kept"] == "held_distortion"
 
 
 def test_choose_matcher_and_params():

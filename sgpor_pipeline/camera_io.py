@@ -1,5 +1,5 @@
 """Import and export of known cameras: COLMAP models and nerfstudio / instant-ngp ``transforms.json``
-(both ways), LLFF ``poses_bounds.npy`` (read).
+(both ways), LLFF ``poses_bounds.npy`` and the cameras of a binary glTF (read).
 
 Every reader returns a list of :class:`sgpor_pipeline.scene.Camera` (OpenCV axes, ``cam_from_world``).
 Bad input raises :class:`sgpor_pipeline.errors.PipelineError` naming the file and the fix.
@@ -21,6 +21,9 @@ Conventions:
 - LLFF ``poses_bounds.npy`` (LLFF, SPIn-NeRF): rows in the sorted order of the ``images/`` folder
   beside the file, camera-to-world with columns down, right, back; PINHOLE at the file's full size
   (ingest scales it to the photos).
+- ``.glb``: its perspective cameras (:func:`sgpor_pipeline.splat_gltf.read_gltf_cameras`), in the
+  glTF file's frame, the frame of the Gaussians it may hold; the pixel size from our writer's
+  ``sgpor_size`` extra, else 1080 px high.
 """
 
 from __future__ import annotations
@@ -43,7 +46,8 @@ log = logging.getLogger(__name__)
 _GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 _CAMERA_FIX = ("pass a COLMAP model folder (cameras/images .bin or .txt), a nerfstudio/instant-ngp "
-               "transforms.json, an LLFF poses_bounds.npy, or a cameras.json written by sgpor-pipeline")
+               "transforms.json, an LLFF poses_bounds.npy, a .glb with cameras, or a cameras.json written by "
+               "sgpor-pipeline")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -422,8 +426,24 @@ def proper_poses(cameras: list[Camera], path: Path) -> list[Camera]:
     return cameras
 
 
+def read_glb_cameras(path: str | Path) -> list[Camera]:
+    """The perspective cameras of a binary glTF file (see the module doc); none is an error."""
+    from .splat_gltf import read_glb, read_gltf_cameras
+
+    path = Path(path)
+    try:
+        cams = read_gltf_cameras(read_glb(path)[0], path)
+    except (ValueError, KeyError, IndexError, TypeError) as e:  # read_glb's messages name the file
+        raise PipelineError(f"unreadable glTF cameras ({e})", path, fix="re-export the .glb, or pass its cameras "
+                                                                         "in another format") from None
+    if not cams:
+        raise PipelineError("the .glb holds no perspective camera; the cameras the Gaussians were trained "
+                            "with are needed", path, fix=_CAMERA_FIX)
+    return cams
+
+
 def load_cameras_any(path: str | Path) -> list[Camera]:
-    """Cameras from a COLMAP model folder, a transforms.json, an LLFF poses_bounds.npy or our
+    """Cameras from a COLMAP model folder, a transforms.json, an LLFF poses_bounds.npy, a .glb or our
     cameras.json (format detected), their poses checked (:func:`proper_poses`)."""
     path = Path(path)
     return proper_poses(_load_cameras_any(path), path)
@@ -444,6 +464,8 @@ def _load_cameras_any(path: Path) -> list[Camera]:
         return read_colmap_model(path.parent)
     if path.suffix.lower() == ".npy":
         return read_llff_poses(path)
+    if path.suffix.lower() == ".glb":
+        return read_glb_cameras(path)
     if path.suffix.lower() != ".json":
         raise PipelineError(f"unrecognised camera file type {path.suffix!r}", path, fix=_CAMERA_FIX)
     data = _read_json(path)

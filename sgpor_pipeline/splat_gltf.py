@@ -44,7 +44,7 @@ import numpy as np
 
 from .gaussians._raster_common import SH_C0
 from .imageio import srgb_to_linear
-from .orientation import quat_from_matrix
+from .orientation import quat_from_matrix, quat_to_matrix
 from .scene import Camera
 from .splat_io import write_bytes_atomically
 
@@ -56,6 +56,9 @@ ARRAY_BUFFER = 34962  # bufferView target: vertex attributes
 #: OpenCV camera axes (x right, y down, z forward) -> glTF camera axes (x right, y up, looks down -z)
 CV_TO_GLTF_CAMERA = np.diag([1.0, -1.0, -1.0])
 _COMPONENTS = {"SCALAR": 1, "VEC3": 3, "VEC4": 4}
+#: glTF cameras have an aspect ratio and a vertical field of view but no pixel size: a camera without
+#: our ``sgpor_size`` extra is read at this height (the pixel scale moves K, not the view)
+DEFAULT_CAMERA_HEIGHT = 1080
 
 
 def sh_attribute(degree: int, n: int) -> str:
@@ -253,3 +256,56 @@ def read_splat_glb(path: str | Path) -> dict[str, Any]:
                         "opacities": get[PREFIX + "OPACITY"], "sh": np.stack(sh, axis=1), "sh_degree": degree,
                         "color": get.get("COLOR_0"), "cameras": cams, "document": doc}
     raise ValueError(f"{path}: no primitive with the {EXTENSION} extension")
+
+
+def _node_matrix(node: dict[str, Any]) -> np.ndarray:
+    """A node's local transform (its ``matrix``, column-major, or translation x rotation x scale)."""
+    if "matrix" in node:
+        return np.asarray(node["matrix"], np.float64).reshape(4, 4).T
+    m = np.eye(4)
+    x, y, z, w = node.get("rotation", (0.0, 0.0, 0.0, 1.0))
+    m[:3, :3] = quat_to_matrix(np.array([w, x, y, z])) * np.asarray(node.get("scale", (1.0, 1.0, 1.0)))
+    m[:3, 3] = node.get("translation", (0.0, 0.0, 0.0))
+    return m
+
+
+def read_gltf_cameras(doc: dict[str, Any], path: Path | str = "<memory>") -> list[Camera]:
+    """The perspective cameras placed by a glTF document's nodes (parents' transforms applied), in our
+    convention (OpenCV axes, pinhole K with the principal point at the centre). The pixel size comes
+    from :func:`gltf_camera`'s ``sgpor_size`` extra when the file has it, else
+    :data:`DEFAULT_CAMERA_HEIGHT` and the aspect ratio. Orthographic cameras are left out."""
+    nodes = doc.get("nodes", [])
+    parent = {child: i for i, n in enumerate(nodes) for child in n.get("children", [])}
+    cameras = []
+    for index, node in enumerate(nodes):
+        if "camera" not in node:
+            continue
+        gl = doc["cameras"][node["camera"]]
+        if gl.get("type") != "perspective":
+            continue
+        world, i, seen = _node_matrix(node), index, {index}
+        while i in parent:
+            i = parent[i]
+            if i in seen:
+                raise ValueError(f"{path}: the glTF node hierarchy has a cycle at node {i}")
+            seen.add(i)
+            world = _node_matrix(nodes[i]) @ world
+        rot = world[:3, :3]
+        scale = np.linalg.norm(rot, axis=0)
+        if np.any(scale <= 0) or not np.all(np.isfinite(world)):
+            raise ValueError(f"{path}: camera node {node.get('name', index)!r} has a degenerate transform")
+        extras = node.get("extras", {})
+        persp = gl["perspective"]
+        if "sgpor_size" in extras:
+            width, height = (int(v) for v in extras["sgpor_size"])
+        else:
+            height = DEFAULT_CAMERA_HEIGHT
+            width = max(1, round(height * float(persp.get("aspectRatio", 1.0))))
+        fy = height / (2.0 * math.tan(float(persp["yfov"]) / 2.0))
+        K = np.array([[fy, 0.0, width / 2.0], [0.0, fy, height / 2.0], [0.0, 0.0, 1.0]])
+        world_from_cam = np.eye(4)
+        world_from_cam[:3, :3] = (rot / scale) @ CV_TO_GLTF_CAMERA  # its own inverse: glTF axes -> OpenCV's
+        world_from_cam[:3, 3] = world[:3, 3]
+        name = node.get("name") or gl.get("name") or f"camera{len(cameras)}"
+        cameras.append(Camera(name, width, height, K, np.linalg.inv(world_from_cam), image=extras.get("sgpor_image")))
+    return cameras

@@ -101,10 +101,81 @@ def test_ply_is_read_exactly(tmp_path: Path) -> None:
         assert np.array_equal(back.numpy()[k], v), k
 
 
+def test_glb_is_read_as_stored_with_its_cameras(tmp_path: Path) -> None:
+    """A KHR_gaussian_splatting GLB (ours: float32 attributes) reads back as the model it was written
+    from, SH included; its cameras come back with their pixel size, intrinsics, poses and image names."""
+    from sgpor_pipeline.camera_io import load_cameras_any
+    from sgpor_pipeline.splat_gltf import write_splat_glb
+
+    model = blob_model(300, 3, seed=7)
+    model.params["quats"].data /= model.params["quats"].data.norm(dim=1, keepdim=True)  # the file stores unit ones
+    cams = ring_cameras()
+    cams[1].image = "photo_1"
+    write_splat_glb(tmp_path / "m.glb", model, cams)
+    back = load_gaussians_any(tmp_path / "m.glb")
+    assert back.max_sh_degree == 3 and len(back) == len(model)
+    for key, value in model.numpy().items():
+        assert np.allclose(back.numpy()[key], value, rtol=1e-5, atol=1e-5), key
+    read = load_cameras_any(tmp_path / "m.glb")
+    assert [c.name for c in read] == [c.name for c in cams] and [c.image for c in read] == [None, "photo_1", None]
+    for a, b in zip(read, cams):
+        assert (a.width, a.height) == (b.width, b.height) and np.allclose(a.K, b.K)
+        assert np.allclose(a.cam_from_world, b.cam_from_world, atol=1e-9)
+        assert psnr(render_view(model, a), render_view(back, b)) > 60
+
+
+def json_only_glb(path: Path, doc: dict) -> Path:
+    """A GLB of a JSON chunk alone (a document whose accessors, if any, are never read)."""
+    import json
+    import struct
+
+    text = json.dumps(doc).encode()
+    text += b" " * (-len(text) % 4)
+    path.write_bytes(struct.pack("<4sII", b"glTF", 2, 20 + len(text)) + struct.pack("<I4s", len(text), b"JSON") + text)
+    return path
+
+
+def test_glb_cameras_of_other_writers(tmp_path: Path) -> None:
+    """A glTF camera without our size extra is read 1080 px high at its aspect ratio and field of view,
+    and nested nodes place it (parents' transforms applied, their scale left out)."""
+    from sgpor_pipeline.camera_io import load_cameras_any
+
+    doc = {"asset": {"version": "2.0"}, "scene": 0, "scenes": [{"nodes": [0]}],
+           "cameras": [{"type": "perspective", "perspective": {"yfov": 0.8, "aspectRatio": 1.5, "znear": 0.1}},
+                       {"type": "orthographic", "orthographic": {"xmag": 1, "ymag": 1, "znear": 0, "zfar": 1}}],
+           # the parent moves by +2 on x and scales by 3; the child, 1 along x in its parent, looks down -z
+           "nodes": [{"name": "rig", "translation": [2.0, 0.0, 0.0], "scale": [3.0, 3.0, 3.0], "children": [1, 2]},
+                     {"name": "cam", "camera": 0, "translation": [1.0, 0.0, 0.0]},
+                     {"name": "ortho", "camera": 1}]}
+    path = json_only_glb(tmp_path / "c.glb", doc)
+    (cam,) = load_cameras_any(path)  # the orthographic camera is left out
+    assert (cam.name, cam.width, cam.height) == ("cam", 1620, 1080)
+    assert np.isclose(cam.K[1, 1], 540 / np.tan(0.4)) and np.isclose(cam.K[0, 0], cam.K[1, 1])
+    assert np.allclose(cam.center, [5.0, 0.0, 0.0])
+    assert np.allclose(cam.world_from_cam[:3, :3] @ [0, 0, 1], [0, 0, -1])  # OpenCV's +z: glTF's -z
+    assert np.allclose(cam.world_from_cam[:3, :3] @ [0, -1, 0], [0, 1, 0])  # up is glTF's +y
+    assert len(load_gaussians_any(path)) == 0  # no meshes: no Gaussians, as our exporter writes none
+
+
+def test_glb_that_is_not_gaussians_is_refused(tmp_path: Path) -> None:
+    """A glTF of meshes is not Gaussians; one without cameras cannot stand in for --cameras."""
+    from sgpor_pipeline.camera_io import load_cameras_any
+
+    doc = {"asset": {"version": "2.0"}, "meshes": [{"primitives": [{"attributes": {"POSITION": 0}}]}]}
+    path = json_only_glb(tmp_path / "mesh.glb", doc)
+    with pytest.raises(PipelineError, match="no primitive with the KHR_gaussian_splatting extension") as e:
+        load_gaussians_any(path)
+    assert "mesh.glb" in str(e.value) and e.value.fix
+    with pytest.raises(PipelineError, match="no perspective camera") as e:
+        load_cameras_any(path)
+    assert "mesh.glb" in str(e.value) and e.value.fix
+
+
 @pytest.mark.parametrize("name, content, words", [
     ("m.spz", b"not gzip at all", "not a gzip stream"),
     ("m.splat", b"\0" * 33, "not a multiple of 32"),
-    ("m.obj", b"v 0 0 0\n", "not a .ply, .spz, .splat file"),
+    ("m.obj", b"v 0 0 0\n", "not a .ply, .spz, .splat, .glb file"),
+    ("m.glb", b"glTF\x01", "not a binary glTF file"),
     ("missing.spz", None, "no such file"),
 ])
 def test_bad_files_are_named_with_a_fix(tmp_path: Path, name: str, content: bytes | None, words: str) -> None:

@@ -1,12 +1,15 @@
-"""Gaussians from the splat files other tools write: ``.ply`` (INRIA 3DGS layout), ``.spz`` (Niantic)
-and ``.splat`` (antimatter15), as one :class:`~sgpor_pipeline.gaussians.model.GaussianModel`.
+"""Gaussians from the splat files other tools write: ``.ply`` (INRIA 3DGS layout), ``.spz`` (Niantic),
+``.splat`` (antimatter15) and ``.glb`` (glTF's ``KHR_gaussian_splatting``), as one
+:class:`~sgpor_pipeline.gaussians.model.GaussianModel`.
 
 Frames: a 3DGS PLY is in its trainer's frame, the frame of its COLMAP cameras (x right, y down, z
 forward: RDF). ``.splat`` stores the PLY's positions as they were (antimatter15's ``convert.py``), so
 it is read as stored. SPZ defines its frame as RUB (x right, y up, z back); the reference library
 converts a PLY to it on the way in (y and z negated) and back on the way out when asked for RDF, so
 an ``.spz`` is turned back into the PLY's frame by default (``spz_frame="ply"``: a half turn about x,
-orientations and SH rotated with it) and kept as stored with ``spz_frame="stored"``.
+orientations and SH rotated with it) and kept as stored with ``spz_frame="stored"``. A ``.glb`` is
+read as stored, in glTF's frame (+Y up), the frame of the glTF cameras it may carry
+(:func:`sgpor_pipeline.splat_gltf.read_gltf_cameras`): no PLY frame is recorded in it to go back to.
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ from sgpor_pipeline.errors import PipelineError
 
 from .model import GaussianModel, inverse_sigmoid
 
-GAUSSIAN_SUFFIXES = (".ply", ".spz", ".splat")
+GAUSSIAN_SUFFIXES = (".ply", ".spz", ".splat", ".glb")
 SpzFrame = Literal["ply", "stored"]
 SPZ_FRAMES: tuple[str, ...] = ("ply", "stored")
 MAX_SH_DEGREE = 3  # the rasterizer's and the PLY layout's highest SH degree
@@ -54,13 +57,39 @@ def read_spz_model(path: str | Path, frame: SpzFrame = "ply") -> GaussianModel:
     if frame not in SPZ_FRAMES:
         raise ValueError(f"spz frame {frame!r}: choose from {SPZ_FRAMES}")
     d = read_spz(path)
-    degree, shN = int(d["sh_degree"]), d["shN"]
-    if degree > MAX_SH_DEGREE:  # the bands up to 3 are exact without the higher ones
-        logging.getLogger("sgpor_pipeline").warning(
-            f"{path}: SH degree {degree}; the rasterizer renders up to {MAX_SH_DEGREE}, the higher bands are dropped")
-        degree, shN = MAX_SH_DEGREE, shN[:, :(MAX_SH_DEGREE + 1) ** 2 - 1]
+    degree, shN = _highest_bands(path, int(d["sh_degree"]), d["shN"])
     model = model_from_activated(d["means"], d["quats"], d["scales"], d["opacities"], d["sh0"], shN, degree)
     return transform_model(model, Similarity(1.0, RUB_TO_RDF)) if frame == "ply" else model
+
+
+def _highest_bands(path: str | Path, degree: int, shN: np.ndarray) -> tuple[int, np.ndarray]:
+    """SH up to the rasterizer's degree (the bands up to 3 are exact without the higher ones)."""
+    if degree <= MAX_SH_DEGREE:
+        return degree, shN
+    logging.getLogger("sgpor_pipeline").warning(
+        f"{path}: SH degree {degree}; the rasterizer renders up to {MAX_SH_DEGREE}, the higher bands are dropped")
+    return MAX_SH_DEGREE, shN[:, :(MAX_SH_DEGREE + 1) ** 2 - 1]
+
+
+def read_glb_model(path: str | Path) -> GaussianModel:
+    """The ``KHR_gaussian_splatting`` primitive of a ``.glb`` as a GaussianModel, as stored (glTF's
+    frame). A GLB without meshes (our exporter's file of no Gaussians) is an empty model; one whose
+    meshes are not Gaussians raises ValueError."""
+    from sgpor_pipeline.splat_gltf import EXTENSION as EXTENSION_NAME
+    from sgpor_pipeline.splat_gltf import read_glb, read_splat_glb
+
+    doc, _ = read_glb(path)
+    if not doc.get("meshes"):
+        return GaussianModel.empty(0, 0)
+    try:
+        d = read_splat_glb(path)
+    except (KeyError, IndexError) as e:  # a missing attribute, accessor or component type
+        raise ValueError(f"{path}: its {EXTENSION_NAME} primitive is incomplete or of a layout not read here "
+                         f"(float32 attributes; {type(e).__name__} {e})") from None
+    degree, sh = _highest_bands(path, int(d["sh_degree"]), d["sh"][:, 1:])
+    with np.errstate(divide="ignore"):  # a zero scale (a flat Gaussian) is kept as the smallest float
+        log_scales = np.log(np.maximum(np.asarray(d["scales"], np.float64), np.finfo(np.float32).tiny))
+    return model_from_activated(d["means"], d["quats"], log_scales, d["opacities"], d["sh"][:, :1], sh, degree)
 
 
 def read_splat_model(path: str | Path) -> GaussianModel:
@@ -79,7 +108,7 @@ def read_splat_model(path: str | Path) -> GaussianModel:
 
 
 def load_gaussians_any(path: str | Path, spz_frame: SpzFrame = "ply") -> GaussianModel:
-    """The Gaussians of a ``.ply`` / ``.spz`` / ``.splat`` file, by its suffix, in the frame its cameras
+    """The Gaussians of a ``.ply`` / ``.spz`` / ``.splat`` / ``.glb`` file, by its suffix, in the frame its cameras
     use (see the module doc). Raises :class:`PipelineError` naming the file when it cannot be read."""
     from .ply import read_ply
 
@@ -89,11 +118,13 @@ def load_gaussians_any(path: str | Path, spz_frame: SpzFrame = "ply") -> Gaussia
         raise PipelineError(f"unknown .spz frame {spz_frame!r}", fix=f"use one of {', '.join(SPZ_FRAMES)}")
     if suffix not in GAUSSIAN_SUFFIXES or not path.is_file():
         raise PipelineError(f"not a {', '.join(GAUSSIAN_SUFFIXES)} file" if path.is_file() else "no such file",
-                            path=path, fix="give the trainer's 3DGS PLY, or its .spz or .splat")
+                            path=path, fix="give the trainer's 3DGS PLY, or its .spz, .splat or .glb")
     if suffix == ".ply":
         return read_ply(path)
     try:
-        model = read_spz_model(path, spz_frame) if suffix == ".spz" else read_splat_model(path)
+        readers = {".spz": lambda: read_spz_model(path, spz_frame), ".splat": lambda: read_splat_model(path),
+                   ".glb": lambda: read_glb_model(path)}
+        model = readers[suffix]()
     except ValueError as e:  # the readers' messages name the file already
         raise PipelineError(str(e), fix=f"give an intact {suffix} file, or the trainer's PLY") from None
     bad = model.non_finite()

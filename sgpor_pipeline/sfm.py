@@ -518,22 +518,24 @@ def _most_registered(models: dict[int, Any]) -> int:
     return max((m.num_reg_images() for m in models.values()), default=0)
 
 
-def _check_attempt(mapper: str, attempt: str) -> None:
-    if attempt not in MAPPER_ATTEMPTS[mapper]:
-        raise ValueError(f"unknown mapping attempt {attempt!r} for the {mapper} mapper")
-
-
-def incremental_options(params: SfmParams, attempt: str = "default") -> Any:
-    """pycolmap's incremental mapping options for one of :func:`mapping_attempts`."""
+def _seeded_options(mapper: str, params: SfmParams, attempt: str) -> Any:
+    """The mapper's pipeline options with our seed and threads (one thread when deterministic)."""
     import pycolmap
 
-    _check_attempt("incremental", attempt)
-    options = pycolmap.IncrementalPipelineOptions()
+    if attempt not in MAPPER_ATTEMPTS[mapper]:
+        raise ValueError(f"unknown mapping attempt {attempt!r} for the {mapper} mapper")
+    options = (pycolmap.IncrementalPipelineOptions if mapper == "incremental" else pycolmap.GlobalPipelineOptions)()
     threads = 1 if params.deterministic else params.num_threads
     options.num_threads = threads
     options.random_seed = params.seed
     options.mapper.random_seed = params.seed
     options.mapper.num_threads = threads
+    return options
+
+
+def incremental_options(params: SfmParams, attempt: str = "default") -> Any:
+    """pycolmap's incremental mapping options for one of :func:`mapping_attempts`."""
+    options = _seeded_options("incremental", params, attempt)
     options.triangulation.random_seed = params.seed
     # COLMAP drops models of fewer than 10 images; a small capture (3-9 photos) would then always fail.
     options.min_model_size = 3
@@ -547,15 +549,7 @@ def incremental_options(params: SfmParams, attempt: str = "default") -> Any:
 
 def global_options(params: SfmParams, attempt: str = "default") -> Any:
     """pycolmap's global (GLOMAP) mapping options for one of :func:`mapping_attempts`."""
-    import pycolmap
-
-    _check_attempt("global", attempt)
-    options = pycolmap.GlobalPipelineOptions()
-    threads = 1 if params.deterministic else params.num_threads
-    options.num_threads = threads
-    options.random_seed = params.seed
-    options.mapper.random_seed = params.seed
-    options.mapper.num_threads = threads
+    options = _seeded_options("global", params, attempt)
     if attempt == "held_distortion":
         # the global mapper's bundle adjustment drifts the distortion of narrow photos as the incremental
         # one does, and its retriangulation then rejects cameras whose term passes 1 (mip360 room: no model)

@@ -27,7 +27,10 @@ in such a frame (the ``gltf`` exporter rotates the Z-up export frame with
 perspective cameras (glTF cameras look down -Z with +Y up; no principal-point offset in glTF).
 
 Viewers that read it (2026): Babylon.js, PlayCanvas, CesiumJS. :func:`read_splat_glb` reads the files
-this module writes (and any that follow the extension with float attributes). Checked against
+this module writes and others that follow the extension: float or quantised (normalized byte / short)
+attributes, cameras in any node hierarchy (:func:`read_gltf_cameras`). Drafts of the extension said
+SCALE holds logarithms, and the text of one version still does; writers (PlayCanvas, Cesium) store the
+standard deviations, as we do, and the reader takes a file with negative scales for logarithms. Checked against
 PlayCanvas ``splat-transform`` 3.7.0's GLB writer: the same attributes, value for value, but
 ``COLOR_0``, which it stores sRGB-encoded.
 """
@@ -52,6 +55,10 @@ EXTENSION = "KHR_gaussian_splatting"
 PREFIX = EXTENSION + ":"
 MODE_POINTS = 0
 FLOAT, UNSIGNED_BYTE = 5126, 5121  # glTF componentType
+#: the component types a reader meets: the extension lets ROTATION, SCALE and OPACITY be quantised to
+#: (normalized) signed bytes / shorts or unsigned bytes / shorts
+_DTYPES = {5120: np.dtype("i1"), 5121: np.dtype("u1"), 5122: np.dtype("<i2"), 5123: np.dtype("<u2"),
+           5125: np.dtype("<u4"), FLOAT: np.dtype("<f4")}
 ARRAY_BUFFER = 34962  # bufferView target: vertex attributes
 #: OpenCV camera axes (x right, y down, z forward) -> glTF camera axes (x right, y up, looks down -z)
 CV_TO_GLTF_CAMERA = np.diag([1.0, -1.0, -1.0])
@@ -220,7 +227,7 @@ def _accessor(doc: dict[str, Any], binary: bytes, index: int) -> np.ndarray:
     acc = doc["accessors"][index]
     view = doc["bufferViews"][acc["bufferView"]]
     comps = _COMPONENTS[acc["type"]]
-    dtype = {FLOAT: np.dtype("<f4"), UNSIGNED_BYTE: np.dtype("u1")}[acc["componentType"]]
+    dtype = _DTYPES[acc["componentType"]]
     start = view.get("byteOffset", 0) + acc.get("byteOffset", 0)
     stride = view.get("byteStride", comps * dtype.itemsize)
     count = acc["count"]
@@ -230,9 +237,11 @@ def _accessor(doc: dict[str, Any], binary: bytes, index: int) -> np.ndarray:
         rows = np.lib.stride_tricks.as_strided(raw, (count, comps * dtype.itemsize), (stride, 1))
         raw = np.ascontiguousarray(rows).reshape(-1)
     out = raw.view(dtype).reshape((count, comps) if comps > 1 else (count,))
-    if acc.get("normalized"):
-        return out.astype(np.float32) / 255.0
-    return out
+    if dtype.kind == "f":
+        return out
+    if acc.get("normalized"):  # glTF's decoding: c / max, signed ones clamped at -1
+        return np.maximum(out.astype(np.float32) / np.iinfo(dtype).max, -1.0)
+    return out.astype(np.float32)
 
 
 def read_splat_glb(path: str | Path) -> dict[str, Any]:

@@ -135,6 +135,60 @@ def json_only_glb(path: Path, doc: dict) -> Path:
     return path
 
 
+def quantised_glb(path: Path, attributes: dict[str, tuple[np.ndarray, int, bool]]) -> Path:
+    """A GLB of one splat primitive whose attributes are (values, glTF componentType, normalized)."""
+    import json
+    import struct
+
+    blob, accessors, views, prim = bytearray(), [], [], {}
+    for name, (a, ctype, normalized) in attributes.items():
+        blob += b"\0" * (-len(blob) % 4)
+        views.append({"buffer": 0, "byteOffset": len(blob), "byteLength": a.nbytes})
+        blob += a.tobytes()
+        acc = {"bufferView": len(views) - 1, "count": len(a), "componentType": ctype,
+               "type": "SCALAR" if a.ndim == 1 else f"VEC{a.shape[1]}"}
+        if normalized:
+            acc["normalized"] = True
+        prim[name] = len(accessors)
+        accessors.append(acc)
+    blob += b"\0" * (-len(blob) % 4)
+    doc = {"asset": {"version": "2.0"}, "accessors": accessors, "bufferViews": views,
+           "buffers": [{"byteLength": len(blob)}],
+           "meshes": [{"primitives": [{"attributes": prim, "mode": 0,
+                                       "extensions": {"KHR_gaussian_splatting": {"kernel": "ellipse"}}}]}]}
+    text = json.dumps(doc).encode()
+    text += b" " * (-len(text) % 4)
+    chunks = struct.pack("<I4s", len(text), b"JSON") + text + struct.pack("<I4s", len(blob), b"BIN\0") + blob
+    path.write_bytes(struct.pack("<4sII", b"glTF", 2, 12 + len(chunks)) + chunks)
+    return path
+
+
+def test_glb_of_quantised_attributes_and_log_scales(tmp_path: Path, caplog) -> None:
+    """The extension lets ROTATION, SCALE and OPACITY be quantised (normalized shorts / bytes); drafts
+    of it stored SCALE as logarithms, which negative values give away (standard deviations are not)."""
+    model = blob_model(200, 1, seed=8)
+    p = model.numpy()
+    q = p["quats"] / np.linalg.norm(p["quats"], axis=1, keepdims=True)
+    q_xyzw = np.round(q[:, [1, 2, 3, 0]] * 32767).astype("<i2")
+    opacity = np.round(1 / (1 + np.exp(-p["opacities"])) * 255).astype(np.uint8)
+    sh = np.concatenate([p["sh0"], p["shN"]], axis=1).astype("<f4")
+    attrs = {"POSITION": (p["means"].astype("<f4"), 5126, False),
+             "KHR_gaussian_splatting:ROTATION": (q_xyzw, 5122, True),
+             "KHR_gaussian_splatting:SCALE": (p["scales"].astype("<f4"), 5126, False),  # logs, all negative here
+             "KHR_gaussian_splatting:OPACITY": (opacity, 5121, True)}
+    attrs |= {f"KHR_gaussian_splatting:SH_DEGREE_{d}_COEF_{k}": (np.ascontiguousarray(sh[:, d * d + k]), 5126, False)
+              for d in range(2) for k in range(2 * d + 1)}
+    with caplog.at_level("WARNING"):
+        back = load_gaussians_any(quantised_glb(tmp_path / "q.glb", attrs))
+    assert "read as logarithms" in caplog.text and "q.glb" in caplog.text
+    b = back.numpy()
+    assert np.allclose(b["scales"], p["scales"], atol=1e-6)
+    assert np.abs(b["quats"] - q).max() < 1e-4
+    assert np.abs(1 / (1 + np.exp(-b["opacities"])) - opacity / 255).max() < 1e-3
+    for cam in ring_cameras():
+        assert psnr(render_view(model, cam), render_view(back, cam)) > 35  # the quantisation only
+
+
 def test_glb_cameras_of_other_writers(tmp_path: Path) -> None:
     """A glTF camera without our size extra is read 1080 px high at its aspect ratio and field of view,
     and nested nodes place it (parents' transforms applied, their scale left out)."""

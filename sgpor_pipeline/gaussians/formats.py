@@ -87,8 +87,17 @@ def read_glb_model(path: str | Path) -> GaussianModel:
         raise ValueError(f"{path}: its {EXTENSION_NAME} primitive is incomplete or of a layout not read here "
                          f"(float32 attributes; {type(e).__name__} {e})") from None
     degree, sh = _highest_bands(path, int(d["sh_degree"]), d["sh"][:, 1:])
-    with np.errstate(divide="ignore"):  # a zero scale (a flat Gaussian) is kept as the smallest float
-        log_scales = np.log(np.maximum(np.asarray(d["scales"], np.float64), np.finfo(np.float32).tiny))
+    scales = np.asarray(d["scales"], np.float64)
+    if (scales < 0).any():
+        # linear standard deviations are never negative: a writer that followed the drafts of the
+        # extension that stored them as logs (as a 3DGS PLY does)
+        logging.getLogger("sgpor_pipeline").warning(
+            f"{path}: negative {EXTENSION_NAME}:SCALE values, so its scales are read as logarithms (as "
+            "drafts of the extension stored them), not as the standard deviations themselves")
+        log_scales = scales
+    else:
+        with np.errstate(divide="ignore"):  # a zero scale (a flat Gaussian) is kept as the smallest float
+            log_scales = np.log(np.maximum(scales, np.finfo(np.float32).tiny))
     return model_from_activated(d["means"], d["quats"], log_scales, d["opacities"], d["sh"][:, :1], sh, degree)
 
 

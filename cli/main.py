@@ -121,20 +121,22 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"longest side of the photos (default {FrameParams.max_size}; 0 = as in the video)")
     p.add_argument("--format", choices=["jpg", "png"], default=FrameParams.format, help="jpg (default) or png")
 
-    p = sub.add_parser("export", help="export Gaussians trained elsewhere (a 3DGS PLY, .spz, .splat or .glb and "
-                                      "its cameras): USD, glTF, .spz, mesh, ...",
+    p = sub.add_parser("export", help="export Gaussians trained elsewhere (a 3DGS PLY, .spz, .splat, .glb or USD "
+                                      "and its cameras): USD, glTF, .spz, mesh, ...",
                        description="Write the exports of Gaussians from another trainer, without removing anything: "
                                    "an INRIA-layout 3DGS PLY (any SH degree), a Niantic .spz, an antimatter15 "
-                                   ".splat or a glTF .glb (KHR_gaussian_splatting), and the cameras it was trained "
+                                   ".splat, a glTF .glb (KHR_gaussian_splatting) or a USD stage "
+                                   "(UsdVol.ParticleField3DGaussianSplat), and the cameras it was trained "
                                    "with (a COLMAP model folder, a transforms.json or a cameras.json, in the PLY's "
-                                   "frame; a .glb's own cameras when it has them). "
+                                   "frame; a .glb's or USD stage's own cameras when it has them). "
                                    "The export frame is found as for a run: Z up from the cameras' horizon and "
                                    "the ground, arbitrary units unless --scale gives metres.")
     p.add_argument("gaussians", type=Path,
-                   help="the Gaussians: an INRIA-layout 3DGS .ply, an .spz, a .splat or a .glb")
+                   help="the Gaussians: an INRIA-layout 3DGS .ply, an .spz, a .splat, a .glb or a .usd/.usda/"
+                        ".usdc/.usdz")
     p.add_argument("--cameras", type=Path, metavar="FILE",
                    help="a COLMAP model folder, a transforms.json or a cameras.json, in the PLY's frame "
-                        "(required but for a .glb that holds its cameras)")
+                        "(required but for a .glb or USD file that holds its cameras)")
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="the folder the files go to")
     p.add_argument("--export", metavar="LIST",
                    help="comma-separated formats (default: " + ",".join(EXTERNAL_FORMATS) + ")")
@@ -238,6 +240,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     from sgpor_pipeline.camera_io import load_cameras_any
     from sgpor_pipeline.exporters.gaussians import export_external
     from sgpor_pipeline.scene import save_cameras
+    from sgpor_pipeline.splat_usd import USD_SUFFIXES
     from sgpor_pipeline.stages.export import ExportParams
 
     formats = _format_list(args.export) if args.export else EXTERNAL_FORMATS
@@ -246,7 +249,7 @@ def cmd_export(args: argparse.Namespace) -> int:
         raise PipelineError(f"format(s) {unsupported} need a run of the pipeline (its photos, masks or stages)",
                             fix=f"choose from {', '.join(EXTERNAL_FORMATS)}")
     t0 = time.perf_counter()
-    if args.cameras is None and args.gaussians.suffix.lower() != ".glb":
+    if args.cameras is None and args.gaussians.suffix.lower() not in (".glb", *USD_SUFFIXES):
         raise PipelineError("--cameras is required: the cameras the Gaussians were trained with", args.gaussians,
                             fix="add --cameras with a COLMAP model folder, a transforms.json or a cameras.json")
     cameras = load_cameras_any(args.cameras or args.gaussians)

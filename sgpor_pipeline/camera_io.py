@@ -24,6 +24,8 @@ Conventions:
 - ``.glb``: its perspective cameras (:func:`sgpor_pipeline.splat_gltf.read_gltf_cameras`), in the
   glTF file's frame, the frame of the Gaussians it may hold; the pixel size from our writer's
   ``sgpor_size`` extra, else 1080 px high.
+- USD (``.usd``, ``.usda``, ``.usdc``, ``.usdz``): its perspective ``UsdGeom.Camera`` prims
+  (:mod:`sgpor_pipeline.splat_usd`), in the stage's world frame.
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ import numpy as np
 from .errors import PipelineError
 from .imageio import IMAGE_EXTENSIONS
 from .scene import CAMERAS_FORMAT, Camera
+from .splat_usd import USD_SUFFIXES
 
 log = logging.getLogger(__name__)
 
@@ -46,8 +49,8 @@ log = logging.getLogger(__name__)
 _GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 _CAMERA_FIX = ("pass a COLMAP model folder (cameras/images .bin or .txt), a nerfstudio/instant-ngp "
-               "transforms.json, an LLFF poses_bounds.npy, a .glb with cameras, or a cameras.json written by "
-               "sgpor-pipeline")
+               "transforms.json, an LLFF poses_bounds.npy, a .glb or USD file with cameras, or a cameras.json "
+               "written by sgpor-pipeline")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -442,9 +445,25 @@ def read_glb_cameras(path: str | Path) -> list[Camera]:
     return cams
 
 
+def read_stage_cameras(path: str | Path) -> list[Camera]:
+    """The perspective cameras of a USD stage (:func:`sgpor_pipeline.splat_usd.read_usd_cameras`)."""
+    from .splat_usd import read_usd_cameras
+
+    path = Path(path)
+    try:
+        cams = read_usd_cameras(path)
+    except (ValueError, TypeError) as e:  # the messages name the file
+        raise PipelineError(f"unreadable USD cameras ({e})", path, fix="re-export the stage, or pass its cameras "
+                                                                        "in another format") from None
+    if not cams:
+        raise PipelineError("the USD stage holds no perspective camera; the cameras the Gaussians were trained "
+                            "with are needed", path, fix=_CAMERA_FIX)
+    return cams
+
+
 def load_cameras_any(path: str | Path) -> list[Camera]:
-    """Cameras from a COLMAP model folder, a transforms.json, an LLFF poses_bounds.npy, a .glb or our
-    cameras.json (format detected), their poses checked (:func:`proper_poses`)."""
+    """Cameras from a COLMAP model folder, a transforms.json, an LLFF poses_bounds.npy, a .glb, a USD
+    stage or our cameras.json (format detected), their poses checked (:func:`proper_poses`)."""
     path = Path(path)
     return proper_poses(_load_cameras_any(path), path)
 
@@ -466,6 +485,8 @@ def _load_cameras_any(path: Path) -> list[Camera]:
         return read_llff_poses(path)
     if path.suffix.lower() == ".glb":
         return read_glb_cameras(path)
+    if path.suffix.lower() in USD_SUFFIXES:
+        return read_stage_cameras(path)
     if path.suffix.lower() != ".json":
         raise PipelineError(f"unrecognised camera file type {path.suffix!r}", path, fix=_CAMERA_FIX)
     data = _read_json(path)

@@ -165,7 +165,7 @@ def test_sigkill_mid_stage_resumes_and_concurrent_run_is_refused(tmp_path, plugi
 def test_export_of_gaussians_trained_elsewhere(tmp_path):
     """`sgpor-pipeline export`: another trainer's PLY and its cameras (here a transforms.json) give the
     exports; the same Gaussians as an .spz (stored in SPZ's frame) render the same, and so does the
-    exported scene.glb with its own cameras; a file of another kind, a PLY without cameras and a format
+    exported scene.glb and scene.usdz with their own cameras; a file of another kind, a PLY without cameras and a format
     that needs a run are refused with what to do instead."""
     import numpy as np
     import torch
@@ -212,6 +212,13 @@ def test_export_of_gaussians_trained_elsewhere(tmp_path):
     for c in cams:
         a, b = (read_rgb8(o / "renders" / f"{c.name}.png").astype(float) for o in (out, tmp_path / "out_glb"))
         assert np.abs(a - b).mean() < 1, c.name  # float32 attributes: the same pictures
+    # and so does the USD scene exported from it (its ParticleField and UsdGeom cameras)
+    r = run_cli(["export", str(tmp_path / "out_glb" / "scene.usdz"), "--out", str(tmp_path / "out_usd"),
+                 "--export", "renders"])
+    assert r.returncode == 0, r.stderr
+    for c in cams:
+        a, b = (read_rgb8(o / "renders" / f"{c.name}.png").astype(float) for o in (out, tmp_path / "out_usd"))
+        assert np.abs(a - b).mean() < 1, c.name
     r = run_cli(["export", str(tmp_path / "trained.ply"), "--out", str(tmp_path / "refused")])
     assert r.returncode == 1 and "--cameras is required" in r.stderr and "fix:" in r.stderr, r.stderr
     for args, words in ((["--export", "report"], "need a run of the pipeline"), ([], "not a .ply, .spz, .splat")):

@@ -228,7 +228,7 @@ def test_glb_that_is_not_gaussians_is_refused(tmp_path: Path) -> None:
 @pytest.mark.parametrize("name, content, words", [
     ("m.spz", b"not gzip at all", "not a gzip stream"),
     ("m.splat", b"\0" * 33, "not a multiple of 32"),
-    ("m.obj", b"v 0 0 0\n", "not a .ply, .spz, .splat, .glb file"),
+    ("m.obj", b"v 0 0 0\n", "not a .ply, .spz, .splat, .glb, .usd"),
     ("m.glb", b"glTF\x01", "not a binary glTF file"),
     ("missing.spz", None, "no such file"),
 ])
@@ -241,3 +241,78 @@ def test_bad_files_are_named_with_a_fix(tmp_path: Path, name: str, content: byte
     assert words in str(e.value) and name in str(e.value) and e.value.fix
     with pytest.raises(PipelineError, match="unknown .spz frame"):
         load_gaussians_any(path, spz_frame="rub")  # type: ignore[arg-type]
+
+
+def test_usd_stage_is_read_in_its_world_frame_with_its_cameras(tmp_path: Path) -> None:
+    """ParticleField3DGaussianSplat prims (as our usd exporter writes them) read back as the model, each
+    mapped by its prim's transform (here a parent with rotation, uniform scale and translation: SH rotated
+    too); half-precision attributes are read when the float ones are absent; cameras come back with their
+    pixel size, intrinsics (principal point off centre), pose and photo name."""
+    from pxr import Gf, Usd, UsdGeom, UsdVol, Vt
+
+    from sgpor_pipeline.camera_io import load_cameras_any
+    from sgpor_pipeline.exporters.usd import add_camera, add_gaussians
+    from sgpor_pipeline.orientation import quat_to_matrix
+
+    model = blob_model(300, 3, seed=9)
+    model.params["quats"].data /= model.params["quats"].data.norm(dim=1, keepdim=True)
+    cams = ring_cameras()
+    cams[0].K[0, 2] += 5.0  # an off-centre principal point
+    cams[2].image = "photo_2"
+    stage = Usd.Stage.CreateNew(str(tmp_path / "s.usda"))
+    UsdGeom.Xform.Define(stage, "/World")
+    add_gaussians(stage, "/World/Gaussians", model)
+    for c in cams:
+        add_camera(stage, f"/World/Cameras/{c.name}", c, (0.01, 100.0))
+    rig = UsdGeom.Xform.Define(stage, "/World/Moved")
+    R = quat_to_matrix(np.array([0.9, 0.2, -0.3, 0.1]))
+    sim = Similarity(2.0, R, np.array([0.5, -1.0, 3.0]))
+    rig.AddTransformOp().Set(Gf.Matrix4d(sim.matrix.T.tolist()))
+    moved = add_gaussians(stage, "/World/Moved/Gaussians", blob_model(50, 1, seed=10))
+    stage.GetRootLayer().Save()
+
+    back = load_gaussians_any(tmp_path / "s.usda")
+    want = transform_model(blob_model(50, 1, seed=10), sim)
+    assert back.max_sh_degree == 3 and len(back) == 350
+    b = back.numpy()
+    for key, value in model.numpy().items():
+        assert np.allclose(b[key][:300], value, rtol=1e-5, atol=1e-5), key
+    w = want.numpy()
+    assert np.allclose(b["means"][300:], w["means"], atol=1e-5)
+    assert np.allclose(b["scales"][300:], w["scales"], atol=1e-5)
+    assert np.allclose(quat_to_matrix(b["quats"][300:].astype(np.float64)),
+                       quat_to_matrix(w["quats"].astype(np.float64)), atol=1e-5)
+    assert np.allclose(b["shN"][300:, :3], w["shN"], atol=1e-5) and not b["shN"][300:, 3:].any()  # padded
+    read = load_cameras_any(tmp_path / "s.usda")
+    assert [c.name for c in read] == [c.name for c in cams] and [c.image for c in read] == [None, None, "photo_2"]
+    for a, c in zip(read, cams):
+        assert (a.width, a.height) == (c.width, c.height) and np.allclose(a.K, c.K)
+        assert np.allclose(a.cam_from_world, c.cam_from_world, atol=1e-9)
+
+    # half precision, where a writer chose it
+    g = UsdVol.ParticleField3DGaussianSplat(moved.GetPrim())
+    positions = np.asarray(g.GetPositionsAttr().Get())
+    g.GetPositionsAttr().Clear()
+    g.GetPositionshAttr().Set(Vt.Vec3hArray.FromNumpy(positions.astype(np.float16)))
+    stage.GetRootLayer().Export(str(tmp_path / "h.usdc"))
+    half = load_gaussians_any(tmp_path / "h.usdc").numpy()
+    assert np.abs(half["means"][300:] - w["means"]).max() < 0.02
+
+
+def test_usd_without_gaussians_or_cameras_is_refused(tmp_path: Path) -> None:
+    from pxr import Usd, UsdGeom
+
+    from sgpor_pipeline.camera_io import load_cameras_any
+
+    stage = Usd.Stage.CreateNew(str(tmp_path / "empty.usda"))
+    UsdGeom.Xform.Define(stage, "/World")
+    stage.GetRootLayer().Save()
+    with pytest.raises(PipelineError, match="no UsdVol.ParticleField3DGaussianSplat prim") as e:
+        load_gaussians_any(tmp_path / "empty.usda")
+    assert "empty.usda" in str(e.value) and e.value.fix
+    with pytest.raises(PipelineError, match="no perspective camera"):
+        load_cameras_any(tmp_path / "empty.usda")
+    (tmp_path / "broken.usda").write_text("#usda 1.0\ndef Xform \"World\" {\n")
+    with pytest.raises(PipelineError, match="USD cannot open it") as e:
+        load_gaussians_any(tmp_path / "broken.usda")
+    assert "broken.usda" in str(e.value)

@@ -1,5 +1,6 @@
 """Gaussians from the splat files other tools write: ``.ply`` (INRIA 3DGS layout), ``.spz`` (Niantic),
-``.splat`` (antimatter15) and ``.glb`` (glTF's ``KHR_gaussian_splatting``), as one
+``.splat`` (antimatter15), ``.glb`` (glTF's ``KHR_gaussian_splatting``) and USD (``.usd``, ``.usda``,
+``.usdc``, ``.usdz``: ``UsdVol.ParticleField3DGaussianSplat``), as one
 :class:`~sgpor_pipeline.gaussians.model.GaussianModel`.
 
 Frames: a 3DGS PLY is in its trainer's frame, the frame of its COLMAP cameras (x right, y down, z
@@ -10,6 +11,8 @@ an ``.spz`` is turned back into the PLY's frame by default (``spz_frame="ply"``:
 orientations and SH rotated with it) and kept as stored with ``spz_frame="stored"``. A ``.glb`` is
 read as stored, in glTF's frame (+Y up), the frame of the glTF cameras it may carry
 (:func:`sgpor_pipeline.splat_gltf.read_gltf_cameras`): no PLY frame is recorded in it to go back to.
+A USD stage is read as stored too, in its world frame (:mod:`sgpor_pipeline.splat_usd`), the frame of
+its cameras.
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ from sgpor_pipeline.errors import PipelineError
 
 from .model import GaussianModel, inverse_sigmoid
 
-GAUSSIAN_SUFFIXES = (".ply", ".spz", ".splat", ".glb")
+GAUSSIAN_SUFFIXES = (".ply", ".spz", ".splat", ".glb", ".usd", ".usda", ".usdc", ".usdz")
 SpzFrame = Literal["ply", "stored"]
 SPZ_FRAMES: tuple[str, ...] = ("ply", "stored")
 MAX_SH_DEGREE = 3  # the rasterizer's and the PLY layout's highest SH degree
@@ -101,6 +104,18 @@ def read_glb_model(path: str | Path) -> GaussianModel:
     return model_from_activated(d["means"], d["quats"], log_scales, d["opacities"], d["sh"][:, :1], sh, degree)
 
 
+def read_usd_model(path: str | Path) -> GaussianModel:
+    """The ``ParticleField3DGaussianSplat`` prims of a USD stage as one GaussianModel, in the stage's world
+    frame (:func:`sgpor_pipeline.splat_usd.read_usd_gaussians`)."""
+    from sgpor_pipeline.splat_usd import read_usd_gaussians
+
+    d = read_usd_gaussians(path)
+    degree, sh = _highest_bands(path, int(d["sh_degree"]), d["sh"][:, 1:])
+    with np.errstate(divide="ignore"):  # a zero scale (a flat Gaussian) is kept as the smallest float
+        log_scales = np.log(np.maximum(d["scales"], np.finfo(np.float32).tiny))
+    return model_from_activated(d["means"], d["quats"], log_scales, d["opacities"], d["sh"][:, :1], sh, degree)
+
+
 def read_splat_model(path: str | Path) -> GaussianModel:
     """A ``.splat`` file as a GaussianModel of SH degree 0 (the format keeps the DC colour only)."""
     from sgpor_pipeline.splat_io import SH_C0, read_splat
@@ -117,8 +132,8 @@ def read_splat_model(path: str | Path) -> GaussianModel:
 
 
 def load_gaussians_any(path: str | Path, spz_frame: SpzFrame = "ply") -> GaussianModel:
-    """The Gaussians of a ``.ply`` / ``.spz`` / ``.splat`` / ``.glb`` file, by its suffix, in the frame its cameras
-    use (see the module doc). Raises :class:`PipelineError` naming the file when it cannot be read."""
+    """The Gaussians of a ``.ply`` / ``.spz`` / ``.splat`` / ``.glb`` / USD file, by its suffix, in the
+    frame its cameras use (see the module doc). Raises :class:`PipelineError` naming the file when it cannot be read."""
     from .ply import read_ply
 
     path = Path(path)
@@ -127,13 +142,13 @@ def load_gaussians_any(path: str | Path, spz_frame: SpzFrame = "ply") -> Gaussia
         raise PipelineError(f"unknown .spz frame {spz_frame!r}", fix=f"use one of {', '.join(SPZ_FRAMES)}")
     if suffix not in GAUSSIAN_SUFFIXES or not path.is_file():
         raise PipelineError(f"not a {', '.join(GAUSSIAN_SUFFIXES)} file" if path.is_file() else "no such file",
-                            path=path, fix="give the trainer's 3DGS PLY, or its .spz, .splat or .glb")
+                            path=path, fix="give the trainer's 3DGS PLY, or its .spz, .splat, .glb or USD file")
     if suffix == ".ply":
         return read_ply(path)
     try:
         readers = {".spz": lambda: read_spz_model(path, spz_frame), ".splat": lambda: read_splat_model(path),
                    ".glb": lambda: read_glb_model(path)}
-        model = readers[suffix]()
+        model = readers[suffix]() if suffix in readers else read_usd_model(path)
     except ValueError as e:  # the readers' messages name the file already
         raise PipelineError(str(e), fix=f"give an intact {suffix} file, or the trainer's PLY") from None
     bad = model.non_finite()

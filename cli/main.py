@@ -124,7 +124,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("export", help="export Gaussians trained elsewhere (a 3DGS PLY, .spz, .splat, .glb or USD "
                                       "and its cameras): USD, glTF, .spz, mesh, ...",
                        description="Write the exports of Gaussians from another trainer, without removing anything: "
-                                   "an INRIA-layout 3DGS PLY (any SH degree), a Niantic .spz, an antimatter15 "
+                                   "an INRIA-layout 3DGS PLY (any SH degree) or PlayCanvas's compressed PLY, a "
+                                   "Niantic .spz, an antimatter15 "
                                    ".splat, a glTF .glb (KHR_gaussian_splatting) or a USD stage "
                                    "(UsdVol.ParticleField3DGaussianSplat), and the cameras it was trained "
                                    "with (a COLMAP model folder, a transforms.json or a cameras.json, in the PLY's "

@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from sgpor_pipeline.errors import PipelineError
+from sgpor_pipeline.gaussians._raster_common import SH_C0
 from sgpor_pipeline.gaussians.formats import RUB_TO_RDF, load_gaussians_any
 from sgpor_pipeline.gaussians.model import GaussianModel
 from sgpor_pipeline.gaussians.ply import write_ply
@@ -91,6 +92,33 @@ def test_a_file_of_no_gaussians_reads_as_an_empty_model(tmp_path: Path, suffix: 
     (write_spz if suffix == ".spz" else write_splat)(tmp_path / f"e{suffix}", empty)
     back = load_gaussians_any(tmp_path / f"e{suffix}")
     assert len(back) == 0 and back.max_sh_degree == (2 if suffix == ".spz" else 0)
+
+
+def test_compressed_ply_of_splat_transform(tmp_path: Path) -> None:
+    """PlayCanvas's compressed PLY (SuperSplat's saves): tests/data holds what splat-transform 2.7.1
+    (npm @playcanvas/splat-transform) wrote for ``blob_model(300, 3, seed=11)`` saved by our PLY writer
+    (``splat-transform -w blobs300.ply blobs300.compressed.ply``: two chunks, chunk colour bounds, SH
+    bytes). It reorders the Gaussians (Morton order), so each is matched to the original nearest it."""
+    from scipy.spatial import cKDTree
+
+    from sgpor_pipeline.orientation import quat_to_matrix
+
+    model = blob_model(300, 3, seed=11)
+    back = load_gaussians_any(Path(__file__).parent / "data" / "blobs300_splat-transform-2.7.1.compressed.ply")
+    assert back.max_sh_degree == 3 and len(back) == 300
+    a, b = model.numpy(), back.numpy()
+    dist, idx = cKDTree(a["means"]).query(b["means"])
+    assert len(set(idx)) == 300 and dist.max() < 2e-3  # 11 / 10 bits within the chunk's bounds
+    a = {k: v[idx] for k, v in a.items()}
+    assert np.abs(b["scales"] - a["scales"]).max() < 3e-3
+    qa = a["quats"] / np.linalg.norm(a["quats"], axis=1, keepdims=True)
+    assert np.abs(quat_to_matrix(b["quats"].astype(np.float64)) - quat_to_matrix(qa.astype(np.float64))).max() < 5e-3
+    sig = lambda x: 1 / (1 + np.exp(-x.astype(np.float64)))  # noqa: E731
+    assert np.abs(sig(b["opacities"]) - sig(a["opacities"])).max() <= 0.5 / 255 + 1e-6
+    assert np.abs(b["sh0"] - a["sh0"]).max() < 0.5 / 255 * 4 / SH_C0
+    assert np.abs(b["shN"] - a["shN"]).max() <= 4 / 256 + 1e-6  # bytes over [-4, 4]
+    for cam in ring_cameras():
+        assert psnr(render_view(model, cam), render_view(back, cam)) > 40, cam.name
 
 
 def test_ply_is_read_exactly(tmp_path: Path) -> None:

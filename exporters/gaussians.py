@@ -352,6 +352,43 @@ def frame_matrix(out_dir: Path) -> np.ndarray | None:
     return np.array(json.loads(path.read_text())["export_from_sfm"]["matrix"])
 
 
+#: half turns about x, y and z: the frame changes splat tools make on the way (SPZ's RUB and glTF's +Y up
+#: from a PLY's y down: about x; PlayCanvas's splat-transform writes a PLY into a .glb turned about z)
+HALF_TURNS = {"x": np.diag([1.0, -1.0, -1.0]), "y": np.diag([-1.0, 1.0, -1.0]), "z": np.diag([-1.0, -1.0, 1.0])}
+
+
+def share_in_view(means: np.ndarray, cameras: list[Camera]) -> float:
+    """The share of the points in front of at least one camera and inside its image."""
+    seen = np.zeros(len(means), bool)
+    for cam in cameras:
+        px, z = cam.project(means)
+        seen |= (z > 0) & (px[:, 0] >= 0) & (px[:, 0] < cam.width) & (px[:, 1] >= 0) & (px[:, 1] < cam.height)
+    return float(seen.mean()) if len(means) else 1.0
+
+
+def check_cameras_see_gaussians(model: Any, cameras: list[Camera], source: Path, min_share: float = 0.5,
+                                sample: int = 20000, seed: int = 0) -> dict[str, float]:
+    """Warn when the cameras see less than ``min_share`` of the opaque Gaussians: the file and the cameras
+    are then likely in different frames. Returns the share as read and, when it is low, under each of
+    :data:`HALF_TURNS` of the Gaussians, so the warning can name the turn that fits."""
+    p = model.numpy()
+    means = p["means"][p["opacities"] > 0.0]  # opacity above 0.5
+    if len(means) > sample:
+        means = means[np.random.default_rng(seed).choice(len(means), sample, replace=False)]
+    shares = {"as read": share_in_view(means.astype(np.float64), cameras)}
+    if shares["as read"] >= min_share or not len(means):
+        return shares
+    for axis, turn in HALF_TURNS.items():
+        shares[f"turned half about {axis}"] = share_in_view(means.astype(np.float64) @ turn.T, cameras)
+    best = max(shares, key=shares.get)
+    hint = (f"; turned half about {best[-1]}, {shares[best]:.0%} would be (an .spz: --spz-frame; a .glb made by "
+            "PlayCanvas's splat-transform is its PLY turned half about z)" if best != "as read" else "")
+    log.warning(f"{source}: the cameras see only {shares['as read']:.0%} of the opaque Gaussians: the cameras are "
+                f"likely in another frame than the file{hint}. Pass the cameras in the file's frame: the exports "
+                "(renders, the USD cameras, the export frame's up) need both in one frame")
+    return shares
+
+
 def export_external(gaussians: Path, cameras_json: Path, out_dir: Path,
                     formats: tuple[str, ...] = ("ply", "splat", "spz", "gltf", "mesh", "usd", "renders"),
                     params: Any = None, spz_frame: str = "ply") -> Path:
@@ -382,6 +419,8 @@ def export_external(gaussians: Path, cameras_json: Path, out_dir: Path,
     model = load_gaussians_any(gaussians, spz_frame)  # validates the file before any folder is made
     if len(model) == 0:
         log.warning(f"{gaussians}: the file holds no Gaussians; the exports hold the cameras only")
+    else:
+        check_cameras_see_gaussians(model, load_cameras(cameras_json), Path(gaussians))
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="sgpor-export-") as tmp:

@@ -1363,3 +1363,24 @@ def test_a_large_scenes_usda_is_a_text_layer_over_the_crate(tmp_path, monkeypatc
     pos = [np.asarray(UsdVol.ParticleField3DGaussianSplat(s.GetPrimAtPath("/World/Gaussians")).GetPositionsAttr().Get())
            for s in (text, crate)]
     assert pos[0].shape == (len(m), 3) and np.array_equal(pos[0], pos[1])
+
+
+def test_export_warns_when_the_cameras_do_not_see_the_gaussians(caplog):
+    """Gaussians and cameras in different frames (an .spz read in the wrong frame, a .glb turned on the
+    way) give exports that make no sense: the check names the half turn that would fit them."""
+    from sgpor_pipeline.exporters.gaussians import HALF_TURNS, check_cameras_see_gaussians
+
+    m = random_model(400, 0, seed=21, spread=0.3)
+    m.params["means"].data += torch.tensor([0.0, 0.0, 2.0])  # in front of cameras looking along +z
+    K = np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
+    cams = [Camera(f"c{i}", 64, 48, K, look_at(np.array([x, 0.0, -1.0]), np.array([x, 0.0, 2.0]), up=(0, -1, 0)))
+            for i, x in enumerate((-0.3, 0.0, 0.3))]
+    with caplog.at_level(logging.WARNING):
+        shares = check_cameras_see_gaussians(m, cams, Path("m.spz"))
+    assert shares["as read"] > 0.9 and len(shares) == 1 and "cameras see only" not in caplog.text
+    turned = transform_model(m, Similarity(1.0, HALF_TURNS["x"]))  # e.g. SPZ's RUB frame, read as stored
+    with caplog.at_level(logging.WARNING):
+        shares = check_cameras_see_gaussians(turned, cams, Path("m.spz"))
+    assert shares["as read"] < 0.05 and shares["turned half about x"] > 0.9
+    assert "m.spz: the cameras see only 0% of the opaque Gaussians" in caplog.text
+    assert "turned half about x, 100% would be" in caplog.text

@@ -121,20 +121,21 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"longest side of the photos (default {FrameParams.max_size}; 0 = as in the video)")
     p.add_argument("--format", choices=["jpg", "png"], default=FrameParams.format, help="jpg (default) or png")
 
-    p = sub.add_parser("export", help="export Gaussians trained elsewhere (a 3DGS PLY, .spz, .splat, .glb or USD "
+    p = sub.add_parser("export", help="export Gaussians trained elsewhere (a 3DGS PLY, .spz, .splat, .glb, .sog or USD "
                                       "and its cameras): USD, glTF, .spz, mesh, ...",
                        description="Write the exports of Gaussians from another trainer, without removing anything: "
                                    "an INRIA-layout 3DGS PLY (any SH degree) or PlayCanvas's compressed PLY, a "
                                    "Niantic .spz, an antimatter15 "
-                                   ".splat, a glTF .glb (KHR_gaussian_splatting) or a USD stage "
+                                   ".splat, a glTF .glb (KHR_gaussian_splatting), PlayCanvas's SOG (.sog, or an "
+                                   "unbundled SOG's meta.json) or a USD stage "
                                    "(UsdVol.ParticleField3DGaussianSplat), and the cameras it was trained "
                                    "with (a COLMAP model folder, a transforms.json or a cameras.json, in the PLY's "
                                    "frame; a .glb's or USD stage's own cameras when it has them). "
                                    "The export frame is found as for a run: Z up from the cameras' horizon and "
                                    "the ground, arbitrary units unless --scale gives metres.")
     p.add_argument("gaussians", type=Path,
-                   help="the Gaussians: an INRIA-layout 3DGS .ply, an .spz, a .splat, a .glb or a .usd/.usda/"
-                        ".usdc/.usdz")
+                   help="the Gaussians: an INRIA-layout 3DGS .ply, an .spz, a .splat, a .glb, a .sog (or its "
+                        "unbundled meta.json) or a .usd/.usda/.usdc/.usdz")
     p.add_argument("--cameras", type=Path, metavar="FILE",
                    help="a COLMAP model folder, a transforms.json or a cameras.json, in the PLY's frame "
                         "(required but for a .glb or USD file that holds its cameras)")

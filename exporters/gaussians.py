@@ -393,9 +393,9 @@ def export_external(gaussians: Path, cameras_json: Path, out_dir: Path,
                     formats: tuple[str, ...] = ("ply", "splat", "spz", "gltf", "mesh", "usd", "renders"),
                     params: Any = None, spz_frame: str = "ply") -> Path:
     """Run exporters on Gaussians from another trainer: an INRIA-layout PLY (any SH degree), an
-    ``.spz``, a ``.splat``, a ``.glb`` or a USD stage, and the cameras it was trained with (a
-    ``cameras.json`` of :mod:`sgpor_pipeline.scene`, in the PLY's frame; a ``.glb``'s or a stage's in
-    its own).
+    ``.spz``, a ``.splat``, a ``.glb``, a SOG (``.sog`` or its ``meta.json``) or a USD stage, and the
+    cameras it was trained with (a ``cameras.json`` of :mod:`sgpor_pipeline.scene`, in the PLY's
+    frame; a ``.glb``'s or a stage's in its own).
 
     The file is read with :func:`sgpor_pipeline.gaussians.formats.load_gaussians_any` (a PLY exactly;
     an ``.spz`` turned from its RUB frame to the PLY's unless ``spz_frame="stored"``; a ``.glb`` and a

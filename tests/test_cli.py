@@ -228,3 +228,29 @@ def test_export_of_gaussians_trained_elsewhere(tmp_path):
                      str(tmp_path / "refused"), *args])
         assert r.returncode == 1 and words in r.stderr and "fix:" in r.stderr, r.stderr
         assert not (tmp_path / "refused").exists()  # a refused call makes no output folder
+
+
+def test_export_of_a_sog(tmp_path):
+    """PlayCanvas's SOG (tests/data: what splat-transform 2.7.1 wrote) exports like a PLY, bundled
+    (.sog) and unbundled (its meta.json)."""
+    import zipfile
+
+    import numpy as np
+
+    from sgpor_pipeline.camera_io import write_transforms_json
+    from sgpor_pipeline.gaussians.ply import read_ply
+    from sgpor_pipeline.scene import Camera
+    from sgpor_pipeline.synthetic import look_at
+
+    sog = Path(__file__).parent / "data" / "blobs300_splat-transform-2.7.1.sog"
+    K = np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
+    cams = [Camera(f"c{i}", 64, 48, K, look_at(np.array([2.5 * np.cos(a), 2.5 * np.sin(a), 0.8]), np.zeros(3)),
+                   image=f"c{i}") for i, a in enumerate(np.linspace(0, 2 * np.pi, 4, endpoint=False))]
+    write_transforms_json(cams, tmp_path / "transforms.json")
+    zipfile.ZipFile(sog).extractall(tmp_path / "unbundled")
+    for name, src in (("bundled", sog), ("unbundled", tmp_path / "unbundled" / "meta.json")):
+        r = run_cli(["export", str(src), "--cameras", str(tmp_path / "transforms.json"),
+                     "--out", str(tmp_path / name), "--export", "ply"])
+        assert r.returncode == 0, r.stderr
+        model = read_ply(tmp_path / name / "scene.ply")
+        assert len(model) == 300 and model.max_sh_degree == 3, name

@@ -121,6 +121,110 @@ def test_compressed_ply_of_splat_transform(tmp_path: Path) -> None:
         assert psnr(render_view(model, cam), render_view(back, cam)) > 40, cam.name
 
 
+SOG_FIXTURE = Path(__file__).parent / "data" / "blobs300_splat-transform-2.7.1.sog"
+
+
+def test_sog_of_splat_transform(tmp_path: Path) -> None:
+    """PlayCanvas's SOG (version 2): tests/data holds what splat-transform 2.7.1 wrote for
+    ``blob_model(300, 3, seed=11)`` saved by our PLY writer (``splat-transform -w blobs300.ply
+    blobs300.sog``) and what it decodes that SOG to (``splat-transform -w blobs300.sog
+    blobs300.sog-decoded.ply``). We decode it as it does, bundled or unbundled (meta.json)."""
+    import zipfile
+
+    from scipy.spatial import cKDTree
+
+    back = load_gaussians_any(SOG_FIXTURE)
+    theirs = load_gaussians_any(SOG_FIXTURE.with_name(SOG_FIXTURE.name.replace(".sog", ".sog-decoded.ply")))
+    assert back.max_sh_degree == 3 and len(back) == 300
+    sig = lambda x: 1 / (1 + np.exp(-x.astype(np.float64)))  # noqa: E731
+    for key, value in theirs.numpy().items():
+        mine = back.numpy()[key]
+        assert np.abs(sig(mine) - sig(value) if key == "opacities" else mine - value).max() < 1e-6, key
+    zipfile.ZipFile(SOG_FIXTURE).extractall(tmp_path / "unbundled")
+    loose = load_gaussians_any(tmp_path / "unbundled" / "meta.json")
+    for key, value in back.numpy().items():
+        assert np.array_equal(loose.numpy()[key], value), key
+    # against the model it came from: all but the higher SH (a palette of 256 entries) renders alike
+    model = blob_model(300, 3, seed=11)
+    a = model.numpy()
+    dist, idx = cKDTree(a["means"]).query(back.numpy()["means"])
+    assert len(set(idx)) == 300 and dist.max() < 1e-3
+    back.params["shN"].data = torch.from_numpy(a["shN"][idx])
+    for cam in ring_cameras():
+        assert psnr(render_view(model, cam), render_view(back, cam)) > 50, cam.name
+
+
+def _write_webp(path: Path, rgba: np.ndarray) -> None:
+    import cv2
+
+    ok, data = cv2.imencode(".webp", rgba[:, :, [2, 1, 0, 3]], [cv2.IMWRITE_WEBP_QUALITY, 101])  # lossless
+    assert ok
+    path.write_bytes(data.tobytes())
+
+
+def test_sog_version_1_is_read(tmp_path: Path) -> None:
+    """A legacy SOG (no version: scales, colours, opacity logits and SH bytes lerped between mins and
+    maxs), hand-made: 5 Gaussians in 3 x 2 images, one band of SH; decoded values by the format's rules."""
+    rng = np.random.default_rng(3)
+    n, w, h = 5, 3, 2
+    # alpha >= 1: lossless WebP may drop the colour of fully transparent pixels
+    px = {name: rng.integers(1, 256, (h, w, 4), dtype=np.uint8) for name in ("means_l", "means_u", "scales", "sh0")}
+    quats = rng.integers(1, 256, (h, w, 4), dtype=np.uint8)
+    quats[..., 3] = [[252, 253, 254], [255, 7, 252]]  # largest w, x, y, z; an invalid tag: the identity
+    px["quats"] = quats
+    labels = np.full((h, w, 4), 255, np.uint8)
+    labels[..., 0], labels[..., 1] = [[0, 1, 65], [64, 3, 0]], 0
+    px["shN_labels"] = labels
+    px["shN_centroids"] = rng.integers(1, 256, (2, 192, 4), dtype=np.uint8)  # 128 entries of 3 coefficients
+    for name, img in px.items():
+        _write_webp(tmp_path / f"{name}.webp", img)
+    meta = {"means": {"shape": [n, 3], "mins": [-1.0, 0.0, 2.0], "maxs": [1.0, 0.5, 2.0],
+                      "files": ["means_l.webp", "means_u.webp"]},
+            "scales": {"mins": [-5.0, -4.0, -3.0], "maxs": [-1.0, -2.0, 0.0], "files": ["scales.webp"]},
+            "quats": {"files": ["quats.webp"]},
+            "sh0": {"mins": [-2.0, -1.0, 0.0, -6.0], "maxs": [2.0, 1.0, 3.0, 6.0], "files": ["sh0.webp"]},
+            "shN": {"mins": -0.5, "maxs": 0.75, "files": ["shN_centroids.webp", "shN_labels.webp"]}}
+    import json
+
+    (tmp_path / "meta.json").write_text(json.dumps(meta))
+    got = load_gaussians_any(tmp_path / "meta.json").numpy()
+    flat = {k: v.reshape(-1, 4)[:n].astype(np.float64) for k, v in px.items()}
+    u = (flat["means_l"][:, :3] + 256 * flat["means_u"][:, :3]) / 65535
+    v = np.array([-1.0, 0.0, 2.0]) + np.array([2.0, 0.5, 1.0]) * u  # a flat axis spans 1
+    assert np.allclose(got["means"], np.sign(v) * np.expm1(np.abs(v)), atol=1e-6)
+    assert np.allclose(got["scales"], [-5, -4, -3] + np.array([4.0, 2.0, 3.0]) * flat["scales"][:, :3] / 255,
+                       atol=1e-6)
+    assert np.allclose(got["sh0"][:, 0], [-2, -1, 0] + np.array([4.0, 2.0, 3.0]) * flat["sh0"][:, :3] / 255,
+                       atol=1e-6)
+    assert np.allclose(got["opacities"], -6 + 12 * flat["sh0"][:, 3] / 255, atol=1e-5)
+    q = got["quats"]
+    assert np.allclose(np.linalg.norm(q, axis=1), 1, atol=1e-6) and np.array_equal(q[4], [1, 0, 0, 0])
+    for i, largest in enumerate([0, 1, 2, 3]):
+        small = (flat["quats"][i, :3] / 255 * 2 - 1) / np.sqrt(2)
+        assert np.allclose(np.delete(q[i], largest), small, atol=1e-6) and q[i, largest] > 0
+    assert got["shN"].shape == (n, 3, 3)
+    for i, label in enumerate([0, 1, 65, 64, 3]):
+        entry = px["shN_centroids"][label // 64, (label % 64) * 3:(label % 64) * 3 + 3, :3]
+        assert np.allclose(got["shN"][i], -0.5 + 1.25 * entry / 255, atol=1e-6), i
+
+
+def test_sog_of_another_version_or_missing_images_is_refused(tmp_path: Path) -> None:
+    import json
+    import zipfile
+
+    with zipfile.ZipFile(SOG_FIXTURE) as z:
+        z.extractall(tmp_path)
+    meta = json.loads((tmp_path / "meta.json").read_text())
+    (tmp_path / "meta.json").write_text(json.dumps({**meta, "version": 3}))
+    with pytest.raises(PipelineError, match="SOG version 3") as e:
+        load_gaussians_any(tmp_path / "meta.json")
+    assert "meta.json" in str(e.value) and "SOG folder" in e.value.fix
+    (tmp_path / "meta.json").write_text(json.dumps(meta))
+    (tmp_path / "quats.webp").unlink()
+    with pytest.raises(PipelineError, match="quats.webp, named there, is not beside it"):
+        load_gaussians_any(tmp_path / "meta.json")
+
+
 def test_ply_is_read_exactly(tmp_path: Path) -> None:
     model = blob_model(100, 1, seed=6)
     write_ply(tmp_path / "m.ply", model)
@@ -256,7 +360,9 @@ def test_glb_that_is_not_gaussians_is_refused(tmp_path: Path) -> None:
 @pytest.mark.parametrize("name, content, words", [
     ("m.spz", b"not gzip at all", "not a gzip stream"),
     ("m.splat", b"\0" * 33, "not a multiple of 32"),
-    ("m.obj", b"v 0 0 0\n", "not a .ply, .spz, .splat, .glb, .usd"),
+    ("m.obj", b"v 0 0 0\n", "not a .ply, .spz, .splat, .glb, .sog, .usd"),
+    ("m.sog", b"PK not a zip", "not a SOG bundle"),
+    ("meta.json", b"[1, 2]", "not a JSON object"),
     ("m.glb", b"glTF\x01", "not a binary glTF file"),
     ("missing.spz", None, "no such file"),
 ])

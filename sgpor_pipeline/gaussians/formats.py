@@ -1,11 +1,13 @@
 """Gaussians from the splat files other tools write: ``.ply`` (INRIA 3DGS layout), ``.spz`` (Niantic),
-``.splat`` (antimatter15), ``.glb`` (glTF's ``KHR_gaussian_splatting``) and USD (``.usd``, ``.usda``,
-``.usdc``, ``.usdz``: ``UsdVol.ParticleField3DGaussianSplat``), as one
+``.splat`` (antimatter15), ``.glb`` (glTF's ``KHR_gaussian_splatting``), PlayCanvas's SOG (a ``.sog``
+bundle, or an unbundled SOG's ``meta.json``) and USD (``.usd``, ``.usda``, ``.usdc``, ``.usdz``:
+``UsdVol.ParticleField3DGaussianSplat``), as one
 :class:`~sgpor_pipeline.gaussians.model.GaussianModel`.
 
 Frames: a 3DGS PLY is in its trainer's frame, the frame of its COLMAP cameras (x right, y down, z
 forward: RDF). ``.splat`` stores the PLY's positions as they were (antimatter15's ``convert.py``), so
-it is read as stored. SPZ defines its frame as RUB (x right, y up, z back); the reference library
+it is read as stored, and so is a SOG (:mod:`sgpor_pipeline.splat_sog`: splat-transform reads it into the
+PLY's frame). SPZ defines its frame as RUB (x right, y up, z back); the reference library
 converts a PLY to it on the way in (y and z negated) and back on the way out when asked for RDF, so
 an ``.spz`` is turned back into the PLY's frame by default (``spz_frame="ply"``: a half turn about x,
 orientations and SH rotated with it) and kept as stored with ``spz_frame="stored"``. A ``.glb`` is
@@ -28,7 +30,9 @@ from sgpor_pipeline.errors import PipelineError
 
 from .model import GaussianModel, inverse_sigmoid
 
-GAUSSIAN_SUFFIXES = (".ply", ".spz", ".splat", ".glb", ".usd", ".usda", ".usdc", ".usdz")
+GAUSSIAN_SUFFIXES = (".ply", ".spz", ".splat", ".glb", ".sog", ".usd", ".usda", ".usdc", ".usdz")
+#: an unbundled SOG is named by its meta.json (the WebP images beside it)
+GAUSSIAN_FILE_NAMES = ("meta.json",)
 SpzFrame = Literal["ply", "stored"]
 SPZ_FRAMES: tuple[str, ...] = ("ply", "stored")
 MAX_SH_DEGREE = 3  # the rasterizer's and the PLY layout's highest SH degree
@@ -131,8 +135,17 @@ def read_splat_model(path: str | Path) -> GaussianModel:
     return model_from_activated(d["means"], q, log_scales, d["opacities"], sh0, np.zeros((n, 0, 3)), 0)
 
 
+def read_sog_model(path: str | Path) -> GaussianModel:
+    """A SOG (``.sog`` bundle or unbundled ``meta.json``) as a GaussianModel, as stored (the PLY's frame)."""
+    from sgpor_pipeline.splat_sog import read_sog
+
+    d = read_sog(path)
+    return model_from_activated(d["means"], d["quats"], d["scales"], d["opacities"], d["sh0"], d["shN"],
+                                int(d["sh_degree"]))
+
+
 def load_gaussians_any(path: str | Path, spz_frame: SpzFrame = "ply") -> GaussianModel:
-    """The Gaussians of a ``.ply`` / ``.spz`` / ``.splat`` / ``.glb`` / USD file, by its suffix, in the
+    """The Gaussians of a ``.ply`` / ``.spz`` / ``.splat`` / ``.glb`` / SOG / USD file, by its suffix, in the
     frame its cameras use (see the module doc). Raises :class:`PipelineError` naming the file when it cannot be read."""
     from .ply import read_ply
 
@@ -140,17 +153,21 @@ def load_gaussians_any(path: str | Path, spz_frame: SpzFrame = "ply") -> Gaussia
     suffix = path.suffix.lower()
     if spz_frame not in SPZ_FRAMES:
         raise PipelineError(f"unknown .spz frame {spz_frame!r}", fix=f"use one of {', '.join(SPZ_FRAMES)}")
-    if suffix not in GAUSSIAN_SUFFIXES or not path.is_file():
-        raise PipelineError(f"not a {', '.join(GAUSSIAN_SUFFIXES)} file" if path.is_file() else "no such file",
-                            path=path, fix="give the trainer's 3DGS PLY, or its .spz, .splat, .glb or USD file")
+    known = suffix in GAUSSIAN_SUFFIXES or path.name.lower() in GAUSSIAN_FILE_NAMES
+    if not known or not path.is_file():
+        raise PipelineError(f"not a {', '.join(GAUSSIAN_SUFFIXES + GAUSSIAN_FILE_NAMES)} file" if path.is_file()
+                            else "no such file", path=path,
+                            fix="give the trainer's 3DGS PLY, or its .spz, .splat, .glb, .sog or USD file")
     if suffix == ".ply":
         return read_ply(path)
     try:
         readers = {".spz": lambda: read_spz_model(path, spz_frame), ".splat": lambda: read_splat_model(path),
-                   ".glb": lambda: read_glb_model(path)}
+                   ".glb": lambda: read_glb_model(path), ".sog": lambda: read_sog_model(path),
+                   ".json": lambda: read_sog_model(path)}
         model = readers[suffix]() if suffix in readers else read_usd_model(path)
     except ValueError as e:  # the readers' messages name the file already
-        raise PipelineError(str(e), fix=f"give an intact {suffix} file, or the trainer's PLY") from None
+        what = "SOG folder (meta.json and its WebP images)" if suffix == ".json" else f"{suffix} file"
+        raise PipelineError(str(e), fix=f"give an intact {what}, or the trainer's PLY") from None
     bad = model.non_finite()
     if bad:
         raise PipelineError(f"non-finite values in {', '.join(bad)}", path=path,

@@ -268,6 +268,10 @@ def test_one_given_mask_propagates_all_round_a_box(tmp_path):
     remove_dir = result.path("remove")
     grown = json.loads((remove_dir / "remove.json").read_text())["propagated_masks_grown_px"]
     assert sorted(grown) == [c.name for c in scene.cameras[1:]]
+    # (remove.delete_masks=split) the Gaussians only the grown masks delete went to the nearer side
+    stats = json.loads((remove_dir / "remove.json").read_text())
+    by_grown = sum(stats[k] for k in ("from_masks_stage", "by_score", "floaters", "hull_centres"))
+    assert 0 <= stats["margin_kept"] <= stats["margin"] and stats["deleted"] + stats["margin_kept"] >= by_grown
     for cam in scene.cameras[1:]:  # 0.05 x the square root of the mask's area, px
         area = read_mask(masks_dir / "masks" / f"{cam.name}.png").sum()
         assert grown[cam.name] == round(0.05 * np.sqrt(area)) > 0

@@ -230,6 +230,27 @@ def test_a_large_gaussian_centred_in_the_hull_is_deleted_despite_its_tails(scene
     assert (delete[:-1] & ~truth).sum() < 0.02 * (~truth).sum()
 
 
+def test_margin_gaussians_go_with_the_nearer_side():
+    """closer_to_core: a floor of points from x = -1 to 3 under an object (a cluster at x < 0, above
+    it); the margin (0 <= x < 2 on the floor) splits where the floor's chain meets the object's side
+    or the rest of the floor: the part nearer the object goes with it, the rest stays."""
+    from sgpor_pipeline.removal.holes import closer_to_core
+
+    xs = np.arange(-1.0, 3.0, 0.05)
+    floor = np.stack([xs, np.zeros_like(xs), np.zeros_like(xs)], axis=1)
+    g = np.random.default_rng(0)
+    obj = np.stack([g.uniform(-1, -0.02, 200), g.uniform(-0.2, 0.2, 200), g.uniform(0.05, 1, 200)], axis=1)
+    means = np.concatenate([floor, obj])
+    core = np.r_[floor[:, 0] < 0, np.ones(len(obj), bool)]
+    margin = np.r_[(floor[:, 0] >= 0) & (floor[:, 0] < 2), np.zeros(len(obj), bool)]
+    to_core = closer_to_core(means, core, margin)
+    assert not (to_core & ~margin).any()
+    x = floor[:, 0]
+    assert to_core[:len(floor)][(x >= 0) & (x < 0.9)].all() and not to_core[:len(floor)][(x > 1.1) & (x < 2)].any()
+    assert closer_to_core(means, core, np.zeros(len(means), bool)).sum() == 0
+    assert closer_to_core(means, np.zeros(len(means), bool), np.ones(len(means), bool)).all()  # nothing outside
+
+
 def test_over_bright_colours_seen_through_the_masks_are_clamped(scene_and_model):
     """The DC colours above 1 of Gaussians that show through the object masks are clamped to [0, 1];
     the rest of the scene keeps its colours, and the stage's DC renders do not change."""
@@ -1055,3 +1076,16 @@ def test_remove_stage_refuses_a_far_side_ratio_below_one(ratio):
     ctx = SimpleNamespace(params=RemoveStageParams(far_side_ratio=ratio))
     with pytest.raises(PipelineError, match="far_side_ratio must be 0"):
         RemoveStage().run(ctx)
+
+
+def test_remove_stage_refuses_an_unknown_delete_masks():
+    """remove.delete_masks is checked before anything is read, naming the values it takes."""
+    from types import SimpleNamespace
+
+    from sgpor_pipeline.errors import PipelineError
+    from stages.remove import RemoveStage, RemoveStageParams
+
+    ctx = SimpleNamespace(params=RemoveStageParams(delete_masks="grow"))
+    with pytest.raises(PipelineError, match="unknown remove.delete_masks 'grow'") as err:
+        RemoveStage().run(ctx)
+    assert "split" in str(err.value.fix)

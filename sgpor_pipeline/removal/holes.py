@@ -267,6 +267,50 @@ def objects_to_delete(model: GaussianModel, cameras: list[Camera], masks: list[n
     return delete, stats, surface, np.nan_to_num(score, nan=0.0)
 
 
+def closer_to_core(means: np.ndarray, core: np.ndarray, margin: np.ndarray, neighbours: int = 8) -> np.ndarray:
+    """[N] bool: the ``margin`` Gaussians nearer (along a chain of margin Gaussians, by their centres'
+    distances) to a ``core`` Gaussian than to one of the rest (neither core nor margin); ties go to
+    the core. With nothing outside the margin, all of it is core.
+
+    Each margin Gaussian is linked to its ``neighbours`` nearest margin Gaussians and to the nearest
+    core and the nearest other Gaussian among its ``neighbours`` nearest outside the margin; the two
+    sides' shortest paths through those links decide (a multi-source Dijkstra)."""
+    from scipy.sparse.csgraph import dijkstra
+
+    out = np.zeros(len(means), bool)
+    idx = np.flatnonzero(margin)
+    outside = np.flatnonzero(~margin)
+    if len(idx) == 0:
+        return out
+    if len(outside) == 0:
+        out[idx] = True
+        return out
+    m = len(idx)
+    rows, cols, weights = [], [], []
+    if m > 1:
+        k = min(neighbours + 1, m)
+        dist, near = cKDTree(means[idx]).query(means[idx], k=k)
+        dist, near = dist.reshape(m, k)[:, 1:], near.reshape(m, k)[:, 1:]
+        rows.append(np.repeat(np.arange(m), k - 1))
+        cols.append(near.ravel())
+        weights.append(dist.ravel())
+    k = min(neighbours, len(outside))
+    dist, near = cKDTree(means[outside]).query(means[idx], k=k)
+    dist, near = dist.reshape(m, k), outside[near.reshape(m, k)]
+    for side, node in ((core[near], m), (~core[near], m + 1)):  # node m: the core, m + 1: the rest
+        has = side.any(axis=1)
+        first = np.where(has, np.where(side, dist, np.inf).min(axis=1), np.inf)
+        rows.append(np.full(int(has.sum()), node))
+        cols.append(np.flatnonzero(has))
+        weights.append(first[has])
+    r, c, w = (np.concatenate(a) for a in (rows, cols, weights))
+    w = np.maximum(w, 1e-12)  # (a zero weight would read as no link)
+    graph = coo_matrix((w, (r, c)), shape=(m + 2, m + 2)).tocsr()
+    to_core, to_rest = dijkstra(graph, directed=False, indices=[m, m + 1])[:, :m]
+    out[idx] = to_core <= to_rest
+    return out
+
+
 def clamp_dc_colours(model: GaussianModel, select: np.ndarray) -> int:
     """Clamp the DC colour of the Gaussians where ``select`` is True to [0, 1], in place (the higher SH
     bands are kept); returns how many changed."""
@@ -670,6 +714,7 @@ def subset(model: GaussianModel, keep: np.ndarray) -> GaussianModel:
     return GaussianModel({n: p.detach()[sel] for n, p in model.params.items()}, model.max_sh_degree)
 
 
-__all__ = ["RemoveParams", "objects_to_delete", "clamp_dc_colours", "render_background", "hole_mask", "complete_depth",
+__all__ = ["RemoveParams", "objects_to_delete", "closer_to_core", "clamp_dc_colours", "render_background", "hole_mask",
+           "complete_depth",
            "complete_depths_jointly", "object_depth", "observing_views", "initial_colour", "seed_hole_gaussians",
            "footprint_scales", "concat_models", "subset", "median_spacing"]

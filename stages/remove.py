@@ -71,6 +71,7 @@ from sgpor_pipeline.removal.holes import (
     unpremultiplied,
 )
 from sgpor_pipeline.removal.plane import under_object
+from sgpor_pipeline.removal.selection import contribution_scores_of_sets
 from sgpor_pipeline.scene import Camera, save_cameras
 from sgpor_pipeline.scratch import ArraysOnDisk, Keeper, in_memory, on_disk, release, require_free_disk
 from sgpor_pipeline.sfm import load_sfm
@@ -217,16 +218,22 @@ class RemoveStage(Stage):
             # no object was fitted: a Gaussian mostly inside the masks is background other views saw
             # behind the object (the floaters no view shows outside the masks are still deleted)
             select = dataclasses.replace(p, score_threshold=float("inf"))
-        delete, stats, surface, share = objects_to_delete(model, cameras, as_given if p.delete_masks == "as_given"
-                                                          else masks, object_ids, select)
         if p.delete_masks == "split" and grown:
-            core, _, core_surface, _ = objects_to_delete(model, cameras, as_given, object_ids, select)
+            # both mask sets' scores from one render of each view's total weights
+            (inside, inside_given), total = contribution_scores_of_sets(model, cameras, [masks, as_given], p.backend)
+            delete, stats, surface, share = objects_to_delete(model, cameras, masks, object_ids, select,
+                                                              scores=(inside, total))
+            core, _, core_surface, _ = objects_to_delete(model, cameras, as_given, object_ids, select,
+                                                         scores=(inside_given, total))
             margin = delete & ~core
             to_object = closer_to_core(model.means.detach().double().numpy(), core, margin)
             stats["margin"], stats["margin_kept"] = int(margin.sum()), int((margin & ~to_object).sum())
             surface &= core_surface | to_object
             delete = core | to_object
             stats["deleted"] = int(delete.sum())
+        else:
+            delete, stats, surface, share = objects_to_delete(model, cameras, as_given if p.delete_masks == "as_given"
+                                                              else masks, object_ids, select)
         if grown:
             stats["propagated_masks_grown_px"] = grown
         background = subset(model, ~delete)

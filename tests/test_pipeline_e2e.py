@@ -266,10 +266,10 @@ def test_one_given_mask_propagates_all_round_a_box(tmp_path):
     # the remove stage grows the propagated masks (remove.propagated_margin), never the given one
     result = run_pipeline(tmp_path / "out", inputs, until="remove", overrides=[*FAST, "fit.object_masks=fit"])
     remove_dir = result.path("remove")
-    grown = json.loads((remove_dir / "remove.json").read_text())["propagated_masks_grown_px"]
+    stats = json.loads((remove_dir / "remove.json").read_text())
+    grown = stats["propagated_masks_grown_px"]
     assert sorted(grown) == [c.name for c in scene.cameras[1:]]
     # (remove.delete_masks=split) the Gaussians only the grown masks delete went to the nearer side
-    stats = json.loads((remove_dir / "remove.json").read_text())
     by_grown = sum(stats[k] for k in ("from_masks_stage", "by_score", "floaters", "hull_centres"))
     assert 0 <= stats["margin_kept"] <= stats["margin"] and stats["deleted"] + stats["margin_kept"] >= by_grown
     for cam in scene.cameras[1:]:  # 0.05 x the square root of the mask's area, px

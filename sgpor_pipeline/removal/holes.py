@@ -236,7 +236,9 @@ class RemoveParams:
 
 
 def objects_to_delete(model: GaussianModel, cameras: list[Camera], masks: list[np.ndarray],
-                      object_ids: np.ndarray, params: RemoveParams) -> tuple[np.ndarray, dict, np.ndarray]:
+                      object_ids: np.ndarray, params: RemoveParams,
+                      scores: tuple[np.ndarray, np.ndarray] | None = None
+                      ) -> tuple[np.ndarray, dict, np.ndarray, np.ndarray]:
     """The object's Gaussians (from the masks stage, confirmed with every view's mask) plus floaters
     inside the object's visual hull that no view shows outside the masks, plus every Gaussian whose
     centre no view shows outside its mask (``hull_centre_views``).
@@ -244,8 +246,9 @@ def objects_to_delete(model: GaussianModel, cameras: list[Camera], masks: list[n
     Returns (delete [N] bool, counts per reason, surface [N] bool, share [N]): ``surface`` = the object
     proper (masks stage and score), without the floaters and hull centres, which may lie anywhere in
     the visual cone, even behind the background (:func:`object_depth` renders the surface only);
-    ``share`` = each Gaussian's blending weight inside the masks over its total (0 where unseen)."""
-    inside, total = contribution_scores(model, cameras, masks, params.backend)
+    ``share`` = each Gaussian's blending weight inside the masks over its total (0 where unseen).
+    ``scores``: :func:`contribution_scores` of these masks when already rendered."""
+    inside, total = scores if scores is not None else contribution_scores(model, cameras, masks, params.backend)
     with np.errstate(invalid="ignore", divide="ignore"):
         score = np.where(total > 0, inside / total, np.nan)
     delete = np.zeros(len(model), bool)
@@ -715,6 +718,5 @@ def subset(model: GaussianModel, keep: np.ndarray) -> GaussianModel:
 
 
 __all__ = ["RemoveParams", "objects_to_delete", "closer_to_core", "clamp_dc_colours", "render_background", "hole_mask",
-           "complete_depth",
-           "complete_depths_jointly", "object_depth", "observing_views", "initial_colour", "seed_hole_gaussians",
-           "footprint_scales", "concat_models", "subset", "median_spacing"]
+           "complete_depth", "complete_depths_jointly", "object_depth", "observing_views", "initial_colour",
+           "seed_hole_gaussians", "footprint_scales", "concat_models", "subset", "median_spacing"]

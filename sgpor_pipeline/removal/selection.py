@@ -83,15 +83,24 @@ def render_median_depth(model: GaussianModel, camera: Camera, backend: str = "au
 def contribution_scores(model: GaussianModel, cameras: list[Camera], masks: list[np.ndarray],
                         backend: str = "auto") -> tuple[np.ndarray, np.ndarray]:
     """Per Gaussian: (weight inside the masks, total weight), summed over the given views."""
-    inside = np.zeros(len(model))
+    (inside,), total = contribution_scores_of_sets(model, cameras, [masks], backend)
+    return inside, total
+
+
+def contribution_scores_of_sets(model: GaussianModel, cameras: list[Camera], mask_sets: list[list[np.ndarray]],
+                                backend: str = "auto") -> tuple[list[np.ndarray], np.ndarray]:
+    """:func:`contribution_scores` for several sets of masks (each one mask per camera): the weight
+    inside each set's masks, and the total weight, rendered once per view for all the sets."""
+    insides = [np.zeros(len(model)) for _ in mask_sets]
     total = np.zeros(len(model))
     colors = model.colors_dc()
-    for cam, mask in zip(cameras, masks):
-        _, _, meta_in = render_channels(model, cam, colors, backend, contribution_mask=mask)
+    for i, cam in enumerate(cameras):
+        for inside, masks in zip(insides, mask_sets):
+            _, _, meta_in = render_channels(model, cam, colors, backend, contribution_mask=masks[i])
+            inside += meta_in["contrib"][0].double().numpy()
         _, _, meta_all = render_channels(model, cam, colors, backend)
-        inside += meta_in["contrib"][0].double().numpy()
         total += meta_all["contrib"][0].double().numpy()
-    return inside, total
+    return insides, total
 
 
 def within_margin(mask: np.ndarray, margin: int) -> np.ndarray:

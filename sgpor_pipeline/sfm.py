@@ -2,8 +2,8 @@
 
 Two paths write the same output folder (the layout is documented in :mod:`sgpor_pipeline.stages.sfm`):
 
-- :func:`estimate_cameras`: SIFT extraction, matching (exhaustive or sequential), incremental (or
-  global) mapping, the largest model kept, undistortion to PINHOLE with ``pycolmap.undistort_images``.
+- :func:`estimate_cameras`: SIFT extraction, matching (exhaustive or sequential), global (or
+  incremental) mapping, the largest model kept, undistortion to PINHOLE with ``pycolmap.undistort_images``.
 - :func:`import_known_cameras`: the user's cameras (ingest's ``cameras.json``) are kept as they are;
   distorted images are undistorted, and 3D points for the Gaussian initialisation are triangulated
   from matched SIFT features with the poses held fixed (``pycolmap.triangulate_points``).
@@ -90,8 +90,13 @@ class SfmParams:
     # videos / ordered walks); "auto" = exhaustive up to 50 images, sequential beyond.
     matcher: Literal["auto", "exhaustive", "sequential"] = "auto"
     sequential_overlap: int = 10  # sequential matcher: how many following images each image is matched to
-    # "incremental" (COLMAP, robust) or "global" (GLOMAP-style, faster on large sets).
-    mapper: Literal["incremental", "global"] = "incremental"
+    # "global" (GLOMAP-style: every pair's rotation at once, then positions) or "incremental" (COLMAP's:
+    # one photo after another from a first pair). benchmarks/sfm.py, session 80, incremental -> global:
+    # lund 28 -> 29 of 29 registered; statue 29 both, the same pose errors against its reference
+    # (centres 0.4 / 0.8 %, rotations 0.2 / 0.3 degrees); mip360 room and kitchen 24 of 24 both; the 12
+    # generated scenes 2 -> 1 wrong models and 90 -> 95 % registered (a ring that registered 12 of 24
+    # at right poses registers 24, one that registered 6 registers 9); the same run time (lund 51 / 52 s).
+    mapper: Literal["incremental", "global"] = "global"
     # COLMAP camera model estimated by SfM (SIMPLE_RADIAL: one focal + one radial term, COLMAP's default;
     # OPENCV for strong wide-angle distortion). Images are undistorted to PINHOLE either way.
     camera_model: str = "SIMPLE_RADIAL"
@@ -142,11 +147,15 @@ class SfmParams:
     # matches within PAIR_CHECK_TOL_PX of the epipolar line). "warn" names the contradicted pairs;
     # "repair" also maps again on only those strongest pairs, keeps the model that contradicts fewer
     # of them (then the one registering more photos), and warns about what remains; "off" skips it.
-    # 12 generated scenes (benchmarks/sfm.py --scenes synthetic): 5 of the 8 inward rings came out
-    # wrong (camera centres off by 0.5-10x the ring's radius, every photo registered); the check flags
-    # all 5 and the repair fixes 4 (one registers 12 of 24 photos, at right poses); the fifth is
-    # warned about. The 4 forward grids, the 3 right rings, statue, lund, mip360 room and kitchen pass
-    # unchanged (their checked pairs agree to 92 % or more; the wrong models' to 3-49 %).
+    # 12 generated scenes (benchmarks/sfm.py --scenes synthetic), global mapper: 5 of the 8 inward rings
+    # come out wrong (camera centres off by 0.1-10x the ring's radius, every photo registered); the
+    # check flags all 5 and the repair fixes 4 (all 24 photos registered at right poses); the fifth is
+    # warned about. (Incremental mapper: 5 such, flagged; 4 fixed, one of them to 12 of 24 photos.)
+    # The 4 forward grids, the 3 right rings, statue, lund, mip360 room and kitchen pass unchanged
+    # (their checked pairs agree to 92 % or more; the wrong models' to 3-49 %). The order (fewer
+    # contradicted pairs first) holds on these data: a first model that registered all 24 with 2 of its
+    # 24 checked pairs contradicted had its centres off by 47 % of the radius (median), and the
+    # repair's 12 were right; a model is not kept for registering more while it contradicts more.
     pair_check: Literal["off", "warn", "repair"] = "repair"
     # COLMAP's guided matching: after a pair's geometric verification, its features are matched again
     # along the epipolar lines of the verified geometry, which finds the matches the ratio test lost.

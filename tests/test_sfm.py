@@ -28,6 +28,7 @@ from sgpor_pipeline.sfm import (
     choose_matcher,
     has_distortion,
     load_sfm,
+    mapping_attempts,
     photo_to_view,
     to_colmap_camera,
     undistort_mask,
@@ -243,10 +244,11 @@ def test_warns_when_few_images_register(scene_dir, tmp_path, caplog):
         _, sfm = run_sfm(tmp_path / "out", images=images)
     assert sfm.summary["registered"] == 12
     assert sfm.summary["unregistered"] == [f"zz_blank{i}" for i in range(4)]
-    # too few registered: mapped again with the distortion held, then with relaxed thresholds; blank
-    # photos gain nothing from either
-    assert sfm.summary["mapping_retry"] == {"registered": {"default": 12, "held_distortion": 12, "relaxed": 12},
-                                            "kept": "default"}
+    # too few registered: mapped again with each further attempt of the default mapper (the distortion
+    # held; the incremental mapper also relaxes its thresholds); blank photos gain nothing from any
+    attempts = mapping_attempts(SfmParams())
+    assert len(attempts) >= 2
+    assert sfm.summary["mapping_retry"] == {"registered": dict.fromkeys(attempts, 12), "kept": "default"}
     assert all(not sfm.image_path(f"zz_blank{i}").exists() for i in range(4))
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert any("only 12 of 16 images registered" in w and "zz_blank3" in w for w in warnings), warnings
@@ -524,20 +526,22 @@ def test_pycolmap_imported_first_is_a_clear_error():
 
 
 def test_mapping_attempts_and_their_options():
-    from sgpor_pipeline.sfm import RELAXED_MAPPER, global_options, incremental_options, mapping_attempts
+    from sgpor_pipeline.sfm import RELAXED_MAPPER, global_options, incremental_options
 
-    default = incremental_options(SfmParams())
-    relaxed = incremental_options(SfmParams(), "relaxed")
-    held = incremental_options(SfmParams(), "held_distortion")
+    incremental = SfmParams(mapper="incremental")
+
+    default = incremental_options(incremental)
+    relaxed = incremental_options(incremental, "relaxed")
+    held = incremental_options(incremental, "held_distortion")
     for key, value in RELAXED_MAPPER.items():
         assert getattr(relaxed.mapper, key) == value and getattr(default.mapper, key) > value
         assert getattr(held.mapper, key) == getattr(default.mapper, key)  # held: COLMAP's thresholds
     assert default.ba_refine_extra_params and relaxed.ba_refine_extra_params and not held.ba_refine_extra_params
     with pytest.raises(ValueError, match="unknown mapping attempt"):
-        incremental_options(SfmParams(), "loose")
+        incremental_options(incremental, "loose")
     # the distortion is held before the thresholds are relaxed; a model without distortion skips it
-    assert mapping_attempts(SfmParams()) == ["default", "held_distortion", "relaxed"]
-    assert mapping_attempts(SfmParams(camera_model="SIMPLE_PINHOLE")) == ["default", "relaxed"]
+    assert mapping_attempts(incremental) == ["default", "held_distortion", "relaxed"]
+    assert mapping_attempts(SfmParams(mapper="incremental", camera_model="SIMPLE_PINHOLE")) == ["default", "relaxed"]
     assert mapping_attempts(SfmParams(retry_held_distortion=False, retry_relaxed=False)) == ["default"]
     # the global mapper holds the distortion too (mip360 room: no model, then 24 of 24), but has no
     # incremental thresholds to relax
@@ -557,7 +561,7 @@ def test_no_model_fix_names_the_mapping_when_the_photos_match():
     matched = DatabaseStats(images=24, with_features=24, with_matches=24, verified_pairs=261)
     fix = no_model_fix(SfmParams(mapper="global"), matched)
     assert "the global mapping failed" in fix and "sfm.mapper=incremental" in fix and "SIMPLE_PINHOLE" in fix
-    assert "sfm.mapper=global" in no_model_fix(SfmParams(), matched)
+    assert "sfm.mapper=global" in no_model_fix(SfmParams(mapper="incremental"), matched)
     unmatched = DatabaseStats(images=24, with_features=24, with_matches=2, verified_pairs=1)
     assert "more overlap" in no_model_fix(SfmParams(), unmatched)
 
@@ -575,7 +579,7 @@ def test_mapping_retry_keeps_the_attempt_that_registers_most(monkeypatch, tmp_pa
             return self.registered
 
     def run(counts: dict[str, int], params: SfmParams | None = None):
-        params = params or SfmParams()
+        params = params or SfmParams(mapper="incremental")
         ran = []
 
         def fake_map(db, image_dir, out, params, attempt="default"):
@@ -602,7 +606,7 @@ def test_mapping_retry_keeps_the_attempt_that_registers_most(monkeypatch, tmp_pa
     # enough at first (20 of 24 >= 80 %): no retry
     ran, kept, retry = run({"default": 20, "held_distortion": 24, "relaxed": 24})
     assert ran == ["default"] and kept == 20 and retry is None
-    ran, _, retry = run({"default": 7, "relaxed": 17}, SfmParams(camera_model="PINHOLE"))
+    ran, _, retry = run({"default": 7, "relaxed": 17}, SfmParams(mapper="incremental", camera_model="PINHOLE"))
     assert ran == ["default", "relaxed"] and retry["kept"] == "relaxed"
     # the global mapper: no model, then every photo with the distortion held
     ran, kept, retry = run({"default": 0, "held_distortion": 24}, SfmParams(mapper="global"))
@@ -611,7 +615,7 @@ def test_mapping_retry_keeps_the_attempt_that_registers_most(monkeypatch, tmp_pa
 
 def test_choose_matcher_and_params():
     p = SfmParams()
-    assert (p.matcher, p.mapper, p.max_image_size, p.min_registered_fraction) == ("auto", "incremental", 1600, 0.8)
+    assert (p.matcher, p.mapper, p.max_image_size, p.min_registered_fraction) == ("auto", "global", 1600, 0.8)
     assert choose_matcher(p, 50) == "exhaustive" and choose_matcher(p, 51) == "sequential"
     assert choose_matcher(SfmParams(matcher="sequential"), 10) == "sequential"
 

@@ -28,7 +28,6 @@ from sgpor_pipeline.sfm import (
     choose_matcher,
     has_distortion,
     load_sfm,
-    mapping_attempts,
     photo_to_view,
     to_colmap_camera,
     undistort_mask,
@@ -244,11 +243,10 @@ def test_warns_when_few_images_register(scene_dir, tmp_path, caplog):
         _, sfm = run_sfm(tmp_path / "out", images=images)
     assert sfm.summary["registered"] == 12
     assert sfm.summary["unregistered"] == [f"zz_blank{i}" for i in range(4)]
-    # too few registered: mapped again with each further attempt of the default mapper (the distortion
-    # held; the incremental mapper also relaxes its thresholds); blank photos gain nothing from any
-    attempts = mapping_attempts(SfmParams())
-    assert len(attempts) >= 2
-    assert sfm.summary["mapping_retry"] == {"registered": dict.fromkeys(attempts, 12), "kept": "default"}
+    # too few registered: mapped again with the distortion held, then with relaxed thresholds, then with
+    # the global mapper; blank photos gain nothing from any
+    assert sfm.summary["mapping_retry"] == {
+        "registered": {"default": 12, "held_distortion": 12, "relaxed": 12, "global": 12}, "kept": "default"}
     assert all(not sfm.image_path(f"zz_blank{i}").exists() for i in range(4))
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert any("only 12 of 16 images registered" in w and "zz_blank3" in w for w in warnings), warnings
@@ -526,23 +524,23 @@ def test_pycolmap_imported_first_is_a_clear_error():
 
 
 def test_mapping_attempts_and_their_options():
-    from sgpor_pipeline.sfm import RELAXED_MAPPER, global_options, incremental_options
+    from sgpor_pipeline.sfm import RELAXED_MAPPER, global_options, incremental_options, mapping_attempts
 
-    incremental = SfmParams(mapper="incremental")
-
-    default = incremental_options(incremental)
-    relaxed = incremental_options(incremental, "relaxed")
-    held = incremental_options(incremental, "held_distortion")
+    default = incremental_options(SfmParams())
+    relaxed = incremental_options(SfmParams(), "relaxed")
+    held = incremental_options(SfmParams(), "held_distortion")
     for key, value in RELAXED_MAPPER.items():
         assert getattr(relaxed.mapper, key) == value and getattr(default.mapper, key) > value
         assert getattr(held.mapper, key) == getattr(default.mapper, key)  # held: COLMAP's thresholds
     assert default.ba_refine_extra_params and relaxed.ba_refine_extra_params and not held.ba_refine_extra_params
     with pytest.raises(ValueError, match="unknown mapping attempt"):
-        incremental_options(incremental, "loose")
+        incremental_options(SfmParams(), "loose")
     # the distortion is held before the thresholds are relaxed; a model without distortion skips it
-    assert mapping_attempts(incremental) == ["default", "held_distortion", "relaxed"]
-    assert mapping_attempts(SfmParams(mapper="incremental", camera_model="SIMPLE_PINHOLE")) == ["default", "relaxed"]
-    assert mapping_attempts(SfmParams(retry_held_distortion=False, retry_relaxed=False)) == ["default"]
+    # ... and the global mapper last (it registers photos no incremental attempt reaches)
+    assert mapping_attempts(SfmParams()) == ["default", "held_distortion", "relaxed", "global"]
+    assert mapping_attempts(SfmParams(camera_model="SIMPLE_PINHOLE")) == ["default", "relaxed", "global"]
+    assert mapping_attempts(SfmParams(retry_held_distortion=False, retry_relaxed=False,
+                                      retry_global=False)) == ["default"]
     # the global mapper holds the distortion too (mip360 room: no model, then 24 of 24), but has no
     # incremental thresholds to relax
     assert mapping_attempts(SfmParams(mapper="global")) == ["default", "held_distortion"]
@@ -561,7 +559,10 @@ def test_no_model_fix_names_the_mapping_when_the_photos_match():
     matched = DatabaseStats(images=24, with_features=24, with_matches=24, verified_pairs=261)
     fix = no_model_fix(SfmParams(mapper="global"), matched)
     assert "the global mapping failed" in fix and "sfm.mapper=incremental" in fix and "SIMPLE_PINHOLE" in fix
-    assert "sfm.mapper=global" in no_model_fix(SfmParams(mapper="incremental"), matched)
+    assert "sfm.mapper=global" in no_model_fix(SfmParams(retry_global=False), matched)
+    # the global mapper is the incremental mapper's last retry: not suggested again
+    both = no_model_fix(SfmParams(), matched)
+    assert "incremental and global mappings failed" in both and "sfm.mapper" not in both and "SIMPLE_PINHOLE" in both
     unmatched = DatabaseStats(images=24, with_features=24, with_matches=2, verified_pairs=1)
     assert "more overlap" in no_model_fix(SfmParams(), unmatched)
 
@@ -579,7 +580,7 @@ def test_mapping_retry_keeps_the_attempt_that_registers_most(monkeypatch, tmp_pa
             return self.registered
 
     def run(counts: dict[str, int], params: SfmParams | None = None):
-        params = params or SfmParams(mapper="incremental")
+        params = params or SfmParams()
         ran = []
 
         def fake_map(db, image_dir, out, params, attempt="default"):
@@ -596,18 +597,25 @@ def test_mapping_retry_keeps_the_attempt_that_registers_most(monkeypatch, tmp_pa
     assert ran == ["default", "held_distortion"] and kept == 24
     assert retry == {"registered": {"default": 7, "held_distortion": 24}, "kept": "held_distortion"}
     # still short after holding: relaxed next, the most registered kept, the earlier attempt on a tie
-    ran, kept, retry = run({"default": 7, "held_distortion": 12, "relaxed": 17})
-    assert ran == ["default", "held_distortion", "relaxed"] and kept == 17 and retry["kept"] == "relaxed"
-    _, kept, retry = run({"default": 7, "held_distortion": 15, "relaxed": 15})
+    ran, kept, retry = run({"default": 7, "held_distortion": 12, "relaxed": 17, "global": 9})
+    assert ran == ["default", "held_distortion", "relaxed", "global"] and kept == 17
+    assert retry["kept"] == "relaxed"
+    _, kept, retry = run({"default": 7, "held_distortion": 15, "relaxed": 15, "global": 15})
     assert kept == 15 and retry["kept"] == "held_distortion"
+    # relaxed enough: the global mapper is not tried
+    ran, kept, _ = run({"default": 7, "held_distortion": 12, "relaxed": 20, "global": 24})
+    assert ran == ["default", "held_distortion", "relaxed"] and kept == 20
+    # every incremental attempt short: the global mapper's model, when it registers more
+    ran, kept, retry = run({"default": 7, "held_distortion": 7, "relaxed": 12, "global": 24})
+    assert ran[-1] == "global" and kept == 24 and retry["kept"] == "global"
     # no model at first: the retries can still find one
-    _, kept, retry = run({"default": 0, "held_distortion": 0, "relaxed": 9})
-    assert kept == 9 and retry["registered"] == {"default": 0, "held_distortion": 0, "relaxed": 9}
+    _, kept, retry = run({"default": 0, "held_distortion": 0, "relaxed": 9, "global": 0})
+    assert kept == 9 and retry["registered"] == {"default": 0, "held_distortion": 0, "relaxed": 9, "global": 0}
     # enough at first (20 of 24 >= 80 %): no retry
     ran, kept, retry = run({"default": 20, "held_distortion": 24, "relaxed": 24})
     assert ran == ["default"] and kept == 20 and retry is None
-    ran, _, retry = run({"default": 7, "relaxed": 17}, SfmParams(mapper="incremental", camera_model="PINHOLE"))
-    assert ran == ["default", "relaxed"] and retry["kept"] == "relaxed"
+    ran, _, retry = run({"default": 7, "relaxed": 17, "global": 17}, SfmParams(camera_model="PINHOLE"))
+    assert ran == ["default", "relaxed", "global"] and retry["kept"] == "relaxed"
     # the global mapper: no model, then every photo with the distortion held
     ran, kept, retry = run({"default": 0, "held_distortion": 24}, SfmParams(mapper="global"))
     assert ran == ["default", "held_distortion"] and kept == 24 and retry["kept"] == "held_distortion"
@@ -615,7 +623,7 @@ def test_mapping_retry_keeps_the_attempt_that_registers_most(monkeypatch, tmp_pa
 
 def test_choose_matcher_and_params():
     p = SfmParams()
-    assert (p.matcher, p.mapper, p.max_image_size, p.min_registered_fraction) == ("auto", "global", 1600, 0.8)
+    assert (p.matcher, p.mapper, p.max_image_size, p.min_registered_fraction) == ("auto", "incremental", 1600, 0.8)
     assert choose_matcher(p, 50) == "exhaustive" and choose_matcher(p, 51) == "sequential"
     assert choose_matcher(SfmParams(matcher="sequential"), 10) == "sequential"
 

@@ -130,8 +130,12 @@ class SfmParams:
     retry_relaxed: bool = True
     # The global mapper registers photos that no incremental attempt reaches: of the generated rings,
     # one registered 12 of 24 (after the pair check's repair) and one 6 of 24 with incremental mapping,
-    # 24 and 9 with it, at right poses (benchmarks/sfm.py --scenes synthetic: 90 -> 95 % of the photos
-    # registered, wrong models 2 -> 1). It costs a mapping where the others fell short (0.1-0.3 s there).
+    # 24 and 9 with it, at right poses. benchmarks/sfm.py --scenes synthetic, without -> with it: 90 ->
+    # 92 % of the photos registered, wrong models 2 -> 1; 16 further generated scenes (inward rings of
+    # seeds 8-19, forward grids 4-7): 73 -> 91 %, wrong models 3 -> 2. Inside the pair check's repair
+    # mapping the attempts are ranked by the check (_map_with_retry's check_db): there the global
+    # mapper's 23 photos with 2 strongest pairs contradicted (wrong poses) lost to relaxed's 9 (right).
+    # It costs a mapping where the others fell short (0.1-0.3 s there).
     retry_global: bool = True
     seed: int = 0  # pycolmap's random seed (RANSAC, mapper)
     num_threads: int = -1  # feature extraction, matching, undistortion; -1 = all cores
@@ -164,6 +168,7 @@ class SfmParams:
     # contradicted pairs first) holds on these data: a first model that registered all 24 with 2 of its
     # 24 checked pairs contradicted had its centres off by 47 % of the radius (median), and the
     # repair's 12 were right; a model is not kept for registering more while it contradicts more.
+    # The repair's own mapping ranks its attempts (held distortion, relaxed, global) the same way.
     pair_check: Literal["off", "warn", "repair"] = "repair"
     # COLMAP's guided matching: after a pair's geometric verification, its features are matched again
     # along the epipolar lines of the verified geometry, which finds the matches the ratio test lost.
@@ -505,16 +510,29 @@ ATTEMPT_NOTES = {"held_distortion": "the lens distortion held at 0",
 
 
 def _map_with_retry(db: Path, image_dir: Path, work: Path, params: SfmParams, n_images: int, timings: Timings,
-                    step: str = "map", note: str = "") -> tuple[dict[int, Any], dict[str, Any] | None]:
+                    step: str = "map", note: str = "", check_db: Path | None = None,
+                    ) -> tuple[dict[int, Any], dict[str, Any] | None]:
     """Mapping, and again with each further attempt of :func:`mapping_attempts` while the best model so
     far registers fewer than ``min_registered_fraction`` of the images; keeps the models of the
     attempt that registers the most (the earlier on a tie) and returns them with the retry's numbers
-    (None when the first mapping was enough). Models go to ``work/models_<step>[_<attempt>]``."""
+    (None when the first mapping was enough). Models go to ``work/models_<step>[_<attempt>]``.
+
+    With ``check_db`` (the pair check's repair mapping) the attempts are ranked as the repair ranks
+    models: fewer strongest pairs of ``check_db`` contradicted first, then more images registered; the
+    retry's numbers then also hold each attempt's contradicted pairs."""
     attempts = mapping_attempts(params)
     with timings.step(step, f"sfm: {params.mapper} mapping{note}"):
         models = _map(db, image_dir, work / f"models_{step}", params)
     registered = {"default": _most_registered(models)}
-    kept = "default"
+    contradicted: dict[str, int] = {}
+
+    def rank(attempt: str, found: dict[int, Any]) -> tuple[int, int]:
+        if check_db is None or not found:
+            return (0, -registered[attempt])
+        contradicted[attempt] = len(check_model_pairs(check_db, _largest_model(found)).contradicted)
+        return (contradicted[attempt], -registered[attempt])
+
+    kept, kept_rank = "default", rank("default", models)
     for attempt in attempts[1:]:
         best = registered[kept]
         if best >= params.min_registered_fraction * n_images:
@@ -523,11 +541,15 @@ def _map_with_retry(db: Path, image_dir: Path, work: Path, params: SfmParams, n_
                                                f"{ATTEMPT_NOTES[attempt]}"):
             candidate = _map(db, image_dir, work / f"models_{step}_{attempt}", params, attempt)
         registered[attempt] = _most_registered(candidate)
-        if registered[attempt] > best:
-            models, kept = candidate, attempt
+        candidate_rank = rank(attempt, candidate)
+        if registered[attempt] > 0 and (not models or candidate_rank < kept_rank):
+            models, kept, kept_rank = candidate, attempt, candidate_rank
     if len(registered) == 1:
         return models, None
-    return models, {"registered": registered, "kept": kept}
+    retry: dict[str, Any] = {"registered": registered, "kept": kept}
+    if contradicted:
+        retry["contradicted"] = contradicted
+    return models, retry
 
 
 def _largest_model(models: dict[int, Any]) -> Any:
@@ -849,7 +871,7 @@ def estimate_cameras(ingest_dir: Path, views: Sequence[View], out_dir: Path, par
                 shutil.copyfile(db, strong_db)
                 kept_pairs = keep_strongest_pairs(strong_db)
                 strong_models, strong_retry = _map_with_retry(
-                    strong_db, image_dir, work, params, n, timings, step="map_strongest",
+                    strong_db, image_dir, work, params, n, timings, step="map_strongest", check_db=db,
                     note=f" again on each image's {PAIR_CHECK_TOP} strongest pairs only ({kept_pairs} pairs): the "
                          f"model contradicts {len(check.contradicted)} of the {check.checked} checked")
                 repair = {"first": {"registered": best.num_reg_images(), "contradicted": len(check.contradicted)},

@@ -620,6 +620,29 @@ def test_mapping_retry_keeps_the_attempt_that_registers_most(monkeypatch, tmp_pa
     ran, kept, retry = run({"default": 0, "held_distortion": 24}, SfmParams(mapper="global"))
     assert ran == ["default", "held_distortion"] and kept == 24 and retry["kept"] == "held_distortion"
 
+    # the repair's mapping (check_db given) ranks the attempts as the repair ranks models: fewer
+    # contradicted strongest pairs first (a generated ring: relaxed 9 right, global 23 at wrong poses)
+    contradicting = {2: 0, 9: 0, 23: 2}
+    monkeypatch.setattr(sfm_module, "check_model_pairs", lambda db, model: sfm_module.PairCheck(
+        24, [("a", "b", 50, 0.1)] * contradicting[model.registered]))
+
+    def run_checked(counts: dict[str, int]):
+        ran = []
+        monkeypatch.setattr(sfm_module, "_map", lambda db, image_dir, out, params, attempt="default":
+                            ran.append(attempt) or ({0: Model(counts[attempt])} if counts[attempt] else {}))
+        models, retry = sfm_module._map_with_retry(tmp_path / "db", tmp_path, tmp_path, SfmParams(), 24,
+                                                   sfm_module.Timings(logging.getLogger("test")),
+                                                   check_db=tmp_path / "full.db")
+        return ran, models[0].registered, retry
+
+    ran, kept, retry = run_checked({"default": 2, "held_distortion": 2, "relaxed": 9, "global": 23})
+    assert ran == ["default", "held_distortion", "relaxed", "global"] and kept == 9
+    assert retry["kept"] == "relaxed" and retry["contradicted"] == {"default": 0, "held_distortion": 0,
+                                                                    "relaxed": 0, "global": 2}
+    contradicting[23] = 0  # agreeing with its strongest pairs, the model with more photos is kept
+    _, kept, retry = run_checked({"default": 2, "held_distortion": 2, "relaxed": 9, "global": 23})
+    assert kept == 23 and retry["kept"] == "global"
+
 
 def test_choose_matcher_and_params():
     p = SfmParams()

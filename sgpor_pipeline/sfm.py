@@ -2,8 +2,8 @@
 
 Two paths write the same output folder (the layout is documented in :mod:`sgpor_pipeline.stages.sfm`):
 
-- :func:`estimate_cameras`: SIFT extraction, matching (exhaustive or sequential), global (or
-  incremental) mapping, the largest model kept, undistortion to PINHOLE with ``pycolmap.undistort_images``.
+- :func:`estimate_cameras`: SIFT extraction, matching (exhaustive or sequential), incremental (or
+  global) mapping, the largest model kept, undistortion to PINHOLE with ``pycolmap.undistort_images``.
 - :func:`import_known_cameras`: the user's cameras (ingest's ``cameras.json``) are kept as they are;
   distorted images are undistorted, and 3D points for the Gaussian initialisation are triangulated
   from matched SIFT features with the poses held fixed (``pycolmap.triangulate_points``).
@@ -159,10 +159,10 @@ class SfmParams:
     # matches within PAIR_CHECK_TOL_PX of the epipolar line). "warn" names the contradicted pairs;
     # "repair" also maps again on only those strongest pairs, keeps the model that contradicts fewer
     # of them (then the one registering more photos), and warns about what remains; "off" skips it.
-    # 12 generated scenes (benchmarks/sfm.py --scenes synthetic), global mapper: 5 of the 8 inward rings
-    # come out wrong (camera centres off by 0.1-10x the ring's radius, every photo registered); the
-    # check flags all 5 and the repair fixes 4 (all 24 photos registered at right poses); the fifth is
-    # warned about. (Incremental mapper: 5 such, flagged; 4 fixed, one of them to 12 of 24 photos.)
+    # 12 generated scenes (benchmarks/sfm.py --scenes synthetic): 5 of the 8 inward rings come out
+    # wrong (camera centres off by 0.1-10x the ring's radius, every photo registered); the check flags
+    # all 5 and the repair fixes 4 (all 24 photos registered at right poses; with the global retry off,
+    # one of them 12); the fifth is warned about. The global mapper: the same 5 flagged, 4 fixed.
     # The 4 forward grids, the 3 right rings, statue, lund, mip360 room and kitchen pass unchanged
     # (their checked pairs agree to 92 % or more; the wrong models' to 3-49 %). The order (fewer
     # contradicted pairs first) holds on these data: a first model that registered all 24 with 2 of its

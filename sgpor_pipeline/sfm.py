@@ -131,8 +131,8 @@ class SfmParams:
     # The global mapper registers photos that no incremental attempt reaches: of the generated rings,
     # one registered 12 of 24 (after the pair check's repair) and one 6 of 24 with incremental mapping,
     # 24 and 9 with it, at right poses. benchmarks/sfm.py --scenes synthetic, without -> with it: 90 ->
-    # 92 % of the photos registered, wrong models 2 -> 1; 16 further generated scenes (inward rings of
-    # seeds 8-19, forward grids 4-7): 73 -> 91 %, wrong models 3 -> 2. Inside the pair check's repair
+    # 92 % of the photos registered, wrong models 2 -> 1; --scenes synthetic-extra (16 further generated
+    # scenes, chosen on by nothing): 73 -> 91 %, wrong models 3 -> 2. Inside the pair check's repair
     # mapping the attempts are ranked by the check (_map_with_retry's check_db): there the global
     # mapper's 23 photos with 2 strongest pairs contradicted (wrong poses) lost to relaxed's 9 (right).
     # It costs a mapping where the others fell short (0.1-0.3 s there).

@@ -42,7 +42,14 @@ from pathlib import Path
 
 from sgpor_pipeline.dag import Stage, StageContext
 from sgpor_pipeline.scene import load_cameras
-from sgpor_pipeline.sfm import KNOWN_CAMERAS_MODE, PairCheck, SfmParams, estimate_cameras, import_known_cameras
+from sgpor_pipeline.sfm import (
+    KNOWN_CAMERAS_MODE,
+    PairCheck,
+    SfmParams,
+    estimate_cameras,
+    global_fallback,
+    import_known_cameras,
+)
 from sgpor_pipeline.views import load_views
 
 __all__ = ["SfmParams", "SfmStage"]
@@ -84,6 +91,13 @@ class SfmStage(Stage):
                 hint += "; for an unordered set use --set sfm.matcher=exhaustive"
             ctx.log.warning(f"sfm: only {registered} of {total} images registered; later stages ignore the "
                             f"others: {', '.join(missing)} ({hint})")
+        fallback = global_fallback(summary)
+        if fallback is not None:
+            ctx.log.warning(f"sfm: the incremental mapper registered at most {fallback[0]} of {total} images; the "
+                            f"kept model ({fallback[1]} registered) comes from the global mapper, its last retry "
+                            f"(sfm.retry_global). Where the incremental attempts fall short, repeated textures or "
+                            f"small photos can make such a model wrong although it passes the checks: look at the "
+                            f"report's renders, use larger photos, or pass known cameras with --cameras")
         if check and check.get("repair") and check["repair"]["kept"] == "strongest_pairs":
             first = check["repair"]["first"]
             ctx.log.info(f"sfm: the first model contradicted {first['contradicted']} of the images' strongest "

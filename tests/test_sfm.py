@@ -644,6 +644,26 @@ def test_mapping_retry_keeps_the_attempt_that_registers_most(monkeypatch, tmp_pa
     assert kept == 23 and retry["kept"] == "global"
 
 
+def test_global_fallback_names_a_model_of_the_global_retry():
+    from sgpor_pipeline.sfm import global_fallback
+
+    base = {"mapper": "incremental", "registered": 29, "pair_check": None}
+    kept_global = {"registered": {"default": 4, "held_distortion": 5, "relaxed": 15, "global": 29}, "kept": "global"}
+    assert global_fallback({**base, "mapping_retry": kept_global}) == (15, 29)
+    # not from the global retry: no note
+    assert global_fallback({**base, "mapping_retry": None}) is None
+    assert global_fallback({**base, "mapping_retry": {**kept_global, "kept": "relaxed"}}) is None
+    assert global_fallback({**base, "mapper": "global", "mapping_retry": kept_global}) is None
+    # the pair check's repair kept its own mapping: that mapping's retry decides
+    repair = {"first": {"registered": 29, "contradicted": 3}, "kept": "strongest_pairs",
+              "strongest_pairs": {"registered": 29, "contradicted": 0,
+                                  "mapping_retry": {"registered": {"default": 12, "held_distortion": 20,
+                                                                   "relaxed": 6, "global": 29}, "kept": "global"}}}
+    assert global_fallback({**base, "mapping_retry": None, "pair_check": {"repair": repair}}) == (20, 29)
+    repair_first = {**repair, "kept": "first"}
+    assert global_fallback({**base, "mapping_retry": kept_global, "pair_check": {"repair": repair_first}}) == (15, 29)
+
+
 def test_choose_matcher_and_params():
     p = SfmParams()
     assert (p.matcher, p.mapper, p.max_image_size, p.min_registered_fraction) == ("auto", "incremental", 1600, 0.8)

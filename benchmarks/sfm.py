@@ -13,9 +13,13 @@ similarity that best maps the true camera centres onto the estimated ones: centr
 RMS radius of the true centres, rotation error in degrees; a model is counted wrong when a centre is
 off by more than 10 % of that radius or a rotation by more than 5 degrees. ``--scenes
 synthetic-extra`` adds 16 more (inward rings of seeds 8-19, forward grids of seeds 4-7): scenes no
-SfM setting was chosen on, to check a change beyond the 12.
+SfM setting was chosen on, to check a change beyond the 12. ``--scenes synthetic-large``: more photos
+than exhaustive matching is chosen for, a ring of 120 generated views at 640x480 with its photos named
+in ring order and in a shuffled order (``sfm.matcher=auto``: retrieval matching), and the shuffled one
+matched exhaustively as the reference; a line gives the matching time against the reference's
+(``synthetic_large_match_time_ratio``).
 
-    python benchmarks/sfm.py [--data DIR] [--out DIR] [--scenes lund,statue,synthetic,synthetic-extra]
+    python benchmarks/sfm.py [--data DIR] [--out DIR] [--scenes lund,statue,synthetic,synthetic-extra,synthetic-large]
                              [--set sfm.pair_check=off] [--json]
 
 Prints a table; with ``--json`` the last line is one JSON object (``lund_registered``, ``lund_images``,
@@ -27,8 +31,10 @@ where the truth is known, ``synthetic_wrong_models``). Other benchmarks import :
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
+import shutil
 import sys
 import tempfile
 import time
@@ -43,7 +49,7 @@ from sgpor_pipeline.demo import ensure_demo_scene
 from sgpor_pipeline.imageio import IMAGE_EXTENSIONS, read_rgb8
 from sgpor_pipeline.orientation import rotation_angle_deg, umeyama
 from sgpor_pipeline.runner import run_pipeline
-from sgpor_pipeline.scene import Camera, load_cameras
+from sgpor_pipeline.scene import Camera, load_cameras, save_cameras
 from sgpor_pipeline.sfm import load_sfm
 from sgpor_pipeline.synthetic import SceneParams
 
@@ -53,6 +59,12 @@ SCENES = ("lund", "statue")
 SYNTHETIC = tuple(("inward", seed) for seed in range(8)) + tuple(("forward", seed) for seed in range(4))
 SYNTHETIC_EXTRA = tuple(("inward", seed) for seed in range(8, 20)) + tuple(("forward", seed) for seed in range(4, 8))
 SYNTHETIC_GROUPS = {"synthetic": SYNTHETIC, "synthetic-extra": SYNTHETIC_EXTRA}
+# More photos than exhaustive matching is chosen for (auto: retrieval matching beyond 50): a ring of
+# 120 views at 640x480, its photos named in ring order and in shuffled order (a photo folder's names need
+# not follow the capture), and the shuffled one matched exhaustively as the reference.
+LARGE = SceneParams(seed=0, n_views=120, width=640, height=480, texture_size=1024)
+LARGE_RUNS = (("synthetic-large", False, ()), ("synthetic-large-shuffled", True, ()),
+              ("synthetic-large-shuffled-exh", True, ("sfm.matcher=exhaustive",)))
 WRONG_CENTRE = 0.10  # of the true centres' RMS radius
 WRONG_ROTATION_DEG = 5.0
 
@@ -92,6 +104,29 @@ def synthetic_images(root: Path, rig: str, seed: int) -> Path:
     return ensure_demo_scene(root / f"synthetic-{rig}{seed}", SceneParams(seed=seed, rig=rig)) / "images"
 
 
+def large_images(root: Path, shuffled: bool) -> Path:
+    """The LARGE scene's photos (generated once into ``root/synthetic-large``), in ring order or renamed in
+    a shuffled order (with cameras.json renamed alike, so the pose errors still find their truth)."""
+    scene = ensure_demo_scene(root / "synthetic-large", LARGE)
+    if not shuffled:
+        return scene / "images"
+    folder = root / "synthetic-large-shuffled"
+    images = folder / "images"
+    if not (folder / "scene_params.json").is_file():
+        shutil.rmtree(folder, ignore_errors=True)
+        images.mkdir(parents=True)
+        cameras = load_cameras(scene / "cameras.json")
+        order = np.random.default_rng(1).permutation(len(cameras))
+        renamed = []
+        for k, i in enumerate(order):
+            src = next((scene / "images").glob(f"{cameras[i].image}.*"))
+            shutil.copyfile(src, images / f"photo_{k:03d}{src.suffix}")
+            renamed.append(dataclasses.replace(cameras[i], name=f"photo_{k:03d}", image=f"photo_{k:03d}"))
+        save_cameras(folder / "cameras.json", renamed)
+        (folder / "scene_params.json").write_text((scene / "scene_params.json").read_text())
+    return images
+
+
 def run_scene(name: str, data_dir: Path, out_dir: Path, overrides: list[str] | tuple[str, ...] = (),
               images: Path | None = None) -> dict[str, Any]:
     """Run ingest + sfm on ``<data_dir>/<name>/images`` (or ``images``) into ``out_dir``; returns the
@@ -125,6 +160,7 @@ def run_scene(name: str, data_dir: Path, out_dir: Path, overrides: list[str] | t
         "steps": s["seconds"],
         "sfm_dir": str(outcome.path),
         "pose": pose_errors(truth, sfm.cameras) if truth else None,
+        "matcher": s["matcher"],
         "contradicted": None if check is None else len(check["contradicted"]),
         "repaired": bool(check and check.get("repair") and check["repair"]["kept"] == "strongest_pairs"),
     }
@@ -139,11 +175,12 @@ def run_lund(data_dir: Path = DEFAULT_DATA, out_dir: Path | None = None,
 
 
 def format_table(rows: list[dict[str, Any]]) -> str:
-    lines = [f"{'scene':<18} {'images':>6} {'registered':>10} {'seconds':>8} {'reproj px':>9} {'points':>7} "
+    w = max([18, *(len(r["scene"]) for r in rows)])
+    lines = [f"{'scene':<{w}} {'images':>6} {'registered':>10} {'seconds':>8} {'reproj px':>9} {'points':>7} "
              f"{'centre err':>14} {'rot err':>12} {'check':>13}  steps (s)"]
     for r in rows:
         if "skipped" in r:
-            lines.append(f"{r['scene']:<18} skipped: {r['skipped']}")
+            lines.append(f"{r['scene']:<{w}} skipped: {r['skipped']}")
             continue
         err = "-" if r["reprojection_error"] is None else f"{r['reprojection_error']:.3f}"
         steps = ", ".join(f"{k} {v:.1f}" for k, v in r["steps"].items())
@@ -156,10 +193,10 @@ def format_table(rows: list[dict[str, Any]]) -> str:
         check = "-" if r["contradicted"] is None else f"{r['contradicted']} contra"
         if r["repaired"]:
             check += ", rep"
-        lines.append(f"{r['scene']:<18} {r['images']:>6} {r['registered']:>10} {r['seconds']:>8.1f} {err:>9} "
+        lines.append(f"{r['scene']:<{w}} {r['images']:>6} {r['registered']:>10} {r['seconds']:>8.1f} {err:>9} "
                      f"{r['points']:>7} {centre:>14} {rot:>12} {check:>13}  {steps}{hit}")
         if r["unregistered"]:
-            lines.append(f"{'':<18} not registered: {', '.join(r['unregistered'])}")
+            lines.append(f"{'':<{w}} not registered: {', '.join(r['unregistered'])}")
     lines.append("centre err: median/max over the true centres' RMS radius; rot err: median/max degrees; "
                  "! = a wrong model; check: strongest pairs the model contradicts (rep = mapped again)")
     return "\n".join(lines)
@@ -172,7 +209,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="run folder root (one sub-folder per scene; reruns are cache hits); default: a temp folder")
     ap.add_argument("--scenes", default=",".join(SCENES),
                     help="comma-separated scene names; 'synthetic' = 12 generated scenes with true cameras, "
-                         "'synthetic-extra' = 16 more")
+                         "'synthetic-extra' = 16 more, 'synthetic-large' = a ring of 120 photos (names in order, "
+                         "shuffled, shuffled and matched exhaustively)")
     ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="STAGE.FIELD=VALUE",
                     help="parameter override, e.g. sfm.matcher=sequential")
     ap.add_argument("--json", action="store_true", help="print one JSON object as the last line")
@@ -192,6 +230,11 @@ def main(argv: list[str] | None = None) -> int:
                 images = synthetic_images(root / "scenes", rig, seed)
                 rows.append(run_scene(scene, args.data, root / scene, args.overrides, images=images))
                 groups.setdefault(name, []).append(rows[-1])
+        elif name == "synthetic-large":
+            for scene, shuffled, extra in LARGE_RUNS:
+                images = large_images(root / "scenes", shuffled)
+                rows.append(run_scene(scene, args.data, root / scene, [*args.overrides, *extra], images=images))
+                groups.setdefault(name, []).append(rows[-1])
         elif name:
             rows.append(run_scene(name, args.data, root / name, args.overrides))
     print(format_table(rows))
@@ -204,6 +247,13 @@ def main(argv: list[str] | None = None) -> int:
         key = group.replace("-", "_")
         summary[f"{key}_wrong_models"] = wrong
         summary[f"{key}_registered_fraction"] = round(registered, 4)
+    large = {r["scene"]: r for r in groups.get("synthetic-large", []) if "skipped" not in r}
+    if {"synthetic-large-shuffled", "synthetic-large-shuffled-exh"} <= large.keys():
+        auto, exh = large["synthetic-large-shuffled"], large["synthetic-large-shuffled-exh"]
+        ratio = auto["steps"]["match"] / exh["steps"]["match"]
+        print(f"synthetic-large, shuffled names: matching {auto['steps']['match']:.1f} s ({auto['matcher']}) against "
+              f"{exh['steps']['match']:.1f} s (exhaustive, the reference): {ratio:.2f}x")
+        summary["synthetic_large_match_time_ratio"] = round(ratio, 3)
     if args.json:
         flat: dict[str, Any] = {}
         for r in rows:

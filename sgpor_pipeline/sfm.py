@@ -26,6 +26,7 @@ import json
 import logging
 import os
 import shutil
+import sys
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -61,8 +62,21 @@ RAW_CAMERAS_FILE = "raw_cameras.json"
 COLMAP_DIR = "colmap"  # database and raw (distorted) models; removed unless keep_database
 
 # With up to this many images, exhaustive matching (every pair) is affordable and the most robust;
-# beyond it the pair count grows quadratically and sequential matching is the sane default.
+# beyond it the pair count grows quadratically, and each image is matched only to the images most
+# like it (retrieval matching), whatever order the photos' names give.
 EXHAUSTIVE_MAX_IMAGES = 50
+# Retrieval matching's vocabulary tree is built from this scene's own SIFT descriptors (no downloaded
+# tree): a random subset of at most RETRIEVAL_DESCRIPTORS, clustered into RETRIEVAL_WORDS visual words
+# (fewer for few descriptors: RETRIEVAL_DESCRIPTORS_PER_WORD each) in RETRIEVAL_ITERATIONS k-means
+# iterations. Lund's 29 photos, each with its 10 most similar: of the 55 pairs exhaustive matching
+# verifies with 100+ inliers, 78 / 86 / 93 % are among them with 1024 / 2048 / 4096 words (10
+# iterations: a tree built in 1.3 / 4.7 / 17 s on 2 cores), 96 / 93 % with 4096 words in 5 / 3
+# iterations (10 / 7 s); matching one pair of those 1024x768 photos takes about 0.1 s.
+RETRIEVAL_WORDS = 4096
+RETRIEVAL_DESCRIPTORS_PER_WORD = 40  # faiss's k-means (inside pycolmap) warns below 39
+RETRIEVAL_DESCRIPTORS = RETRIEVAL_WORDS * RETRIEVAL_DESCRIPTORS_PER_WORD
+RETRIEVAL_ITERATIONS = 5
+VOCAB_TREE_FILE = "vocab_tree.bin"
 # COLMAP's default minimum of verified inlier matches for an image pair to count as connected.
 MIN_PAIR_INLIERS = 15
 # The model check (SfmParams.pair_check): each image's strongest pairs, the share of a pair's inlier
@@ -87,9 +101,13 @@ class SfmParams:
     """Parameters of the ``sfm`` stage (``--set sfm.<name>=<value>``)."""
 
     # "exhaustive" matches every image pair; "sequential" only neighbours in file-name order (for
-    # videos / ordered walks); "auto" = exhaustive up to 50 images, sequential beyond.
-    matcher: Literal["auto", "exhaustive", "sequential"] = "auto"
+    # videos / ordered walks: no loop is closed); "retrieval" each image with its retrieval_neighbours
+    # most similar images by a vocabulary tree of this scene's own features (any order, loops closed);
+    # "auto" = exhaustive up to 50 images, retrieval beyond. Sequential used to be auto's choice beyond
+    # 50: 96 photos of a generated ring in shuffled name order registered 11 (retrieval: 96).
+    matcher: Literal["auto", "exhaustive", "sequential", "retrieval"] = "auto"
     sequential_overlap: int = 10  # sequential matcher: how many following images each image is matched to
+    retrieval_neighbours: int = 25  # retrieval matcher: how many most similar images each image is matched to
     # "incremental" (COLMAP's: one photo after another from a first pair) or "global" (GLOMAP's method in
     # pycolmap: every pair's rotation at once, then the positions). benchmarks/sfm.py, session 80,
     # incremental -> global: lund 28 -> 29 of 29 registered; statue 29 both at the same pose errors;
@@ -340,7 +358,17 @@ def colmap_image_name(view: View) -> str:
 def choose_matcher(params: SfmParams, n_images: int) -> str:
     if params.matcher != "auto":
         return params.matcher
-    return "exhaustive" if n_images <= EXHAUSTIVE_MAX_IMAGES else "sequential"
+    return "exhaustive" if n_images <= EXHAUSTIVE_MAX_IMAGES else "retrieval"
+
+
+def matching_note(matcher: str, n_images: int, params: SfmParams) -> str:
+    """The log line of the matching step."""
+    if matcher == "exhaustive":
+        return f"sfm: exhaustive matching ({n_images * (n_images - 1) // 2} pairs)"
+    if matcher == "retrieval":
+        return (f"sfm: retrieval matching (each image with its {params.retrieval_neighbours} most similar, "
+                "by a vocabulary tree of this scene's features)")
+    return f"sfm: sequential matching (each image with its {params.sequential_overlap} next in name order)"
 
 
 def _check_camera_model(name: str) -> None:
@@ -456,7 +484,9 @@ def _extract(db: Path, image_dir: Path, names: list[str], camera_mode: str, came
                               extraction_options=extraction, device=pycolmap.Device.cpu)
 
 
-def _match(db: Path, matcher: str, params: SfmParams) -> None:
+def _match(db: Path, matcher: str, params: SfmParams) -> dict[str, Any] | None:
+    """Match the images' features in ``db`` and verify the pairs. Returns, for retrieval matching, the
+    vocabulary tree's numbers (descriptors, words, seconds: sfm.json's ``retrieval``); else None."""
     import pycolmap
 
     matching = pycolmap.FeatureMatchingOptions()
@@ -467,12 +497,82 @@ def _match(db: Path, matcher: str, params: SfmParams) -> None:
     if matcher == "exhaustive":
         pycolmap.match_exhaustive(db, matching_options=matching, verification_options=verification,
                                   device=pycolmap.Device.cpu)
+    elif matcher == "retrieval":
+        t0 = time.perf_counter()
+        tree = build_vocab_tree(db, db.parent / VOCAB_TREE_FILE, params)
+        pairing = pycolmap.VocabTreePairingOptions()
+        pairing.vocab_tree_path = str(tree.path)
+        pairing.num_images = params.retrieval_neighbours + 1  # the query image is its own best match
+        pairing.num_threads = params.num_threads
+        pycolmap.match_vocabtree(db, matching_options=matching, pairing_options=pairing,
+                                 verification_options=verification, device=pycolmap.Device.cpu)
+        return {"neighbours": params.retrieval_neighbours, "descriptors": tree.descriptors, "words": tree.words,
+                "tree_seconds": round(tree.seconds, 3), "seconds": round(time.perf_counter() - t0, 3)}
     else:
         pairing = pycolmap.SequentialPairingOptions()
         pairing.overlap = params.sequential_overlap
         pairing.num_threads = params.num_threads
         pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing,
                                   verification_options=verification, device=pycolmap.Device.cpu)
+    return None
+
+
+@dataclass
+class VocabTree:
+    path: Path
+    descriptors: int  # how many descriptors it was built from
+    words: int
+    seconds: float
+
+
+def build_vocab_tree(db: Path, out: Path, params: SfmParams) -> VocabTree:
+    """A vocabulary tree (COLMAP's visual index) built from the SIFT descriptors in ``db``, written to
+    ``out``: what retrieval matching ranks each image's most similar images by. A random subset of at most
+    RETRIEVAL_DESCRIPTORS descriptors (seeded by ``params.seed``) is clustered into RETRIEVAL_WORDS visual
+    words, fewer where there are few descriptors."""
+    import pycolmap
+
+    t0 = time.perf_counter()
+    database = pycolmap.Database.open(db)
+    try:
+        blocks = [np.asarray(database.read_descriptors(im.image_id).data)
+                  for im in sorted(database.read_all_images(), key=lambda im: im.image_id)]
+    finally:
+        database.close()
+    descriptors = np.concatenate([b for b in blocks if len(b)]) if any(len(b) for b in blocks) else None
+    if descriptors is None:
+        raise PipelineError("no image has SIFT features: nothing to match", path=db,
+                            fix="check the photos (blank, tiny or out of focus?)")
+    if len(descriptors) > RETRIEVAL_DESCRIPTORS:
+        pick = np.random.default_rng(params.seed).choice(len(descriptors), RETRIEVAL_DESCRIPTORS, replace=False)
+        descriptors = descriptors[np.sort(pick)]
+    options = pycolmap.VisualIndex.BuildOptions()
+    options.num_visual_words = int(max(16, min(RETRIEVAL_WORDS, len(descriptors) // RETRIEVAL_DESCRIPTORS_PER_WORD)))
+    options.num_iterations = RETRIEVAL_ITERATIONS
+    options.num_rounds = 1
+    options.num_threads = params.num_threads
+    index = pycolmap.VisualIndex.create(128, 64)  # SIFT's 128 dimensions; 64: the one embedding pycolmap has
+    pycolmap.set_random_seed(params.seed)  # the k-means starts: without it each build gives another tree
+    with _native_stderr_silenced():
+        index.build(options, pycolmap.FeatureDescriptorsFloat(pycolmap.FeatureExtractorType.SIFT,
+                                                              np.ascontiguousarray(descriptors, np.float32)))
+    index.write(str(out))
+    return VocabTree(out, len(descriptors), options.num_visual_words, time.perf_counter() - t0)
+
+
+@contextlib.contextmanager
+def _native_stderr_silenced() -> Iterator[None]:
+    """Mute what native code writes to the process's stderr (faiss's k-means warns when a level of the
+    tree has fewer than 39 training points per centre, as the tree's coarse level always has: harmless)."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as devnull:
+            os.dup2(devnull.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 # COLMAP's defaults: init_min_num_inliers 100, abs_pose_min_num_inliers 30, init_min_tri_angle 16 deg
@@ -658,8 +758,13 @@ def no_model_fix(params: SfmParams, stats: DatabaseStats) -> str:
         return (f"the photos match, the {params.mapper} mapping failed: try --set sfm.mapper={other}, or "
                 "--set sfm.camera_model=SIMPLE_PINHOLE for small or narrow-angle photos; or pass known cameras "
                 "with --cameras")
-    return ("photograph with more overlap (every spot in 3+ photos) and textured surfaces in view; for an "
-            "ordered capture try --set sfm.matcher=sequential; or pass known cameras with --cameras")
+    if choose_matcher(params, stats.images) == "retrieval":  # pairs the retrieval missed
+        other = (f"try --set sfm.retrieval_neighbours={2 * params.retrieval_neighbours}, or sfm.matcher=exhaustive "
+                 "(slow: every pair), or sfm.matcher=sequential for an ordered capture")
+    else:
+        other = "for an ordered capture try --set sfm.matcher=sequential"
+    return ("photograph with more overlap (every spot in 3+ photos) and textured surfaces in view; "
+            f"{other}; or pass known cameras with --cameras")
 
 
 @dataclass
@@ -868,9 +973,8 @@ def estimate_cameras(ingest_dir: Path, views: Sequence[View], out_dir: Path, par
         size_note = "full size" if params.max_image_size <= 0 else f"max {params.max_image_size} px"
         with timings.step("extract", f"sfm: SIFT features of {n} images ({size_note}, {camera_mode} camera)"):
             _extract(db, image_dir, names, camera_mode, params.camera_model, params)
-        pairs = n * (n - 1) // 2 if matcher == "exhaustive" else None
-        with timings.step("match", f"sfm: {matcher} matching" + (f" ({pairs} pairs)" if pairs else "")):
-            _match(db, matcher, params)
+        with timings.step("match", matching_note(matcher, n, params)):
+            retrieval = _match(db, matcher, params)
         models, retry = _map_with_retry(db, image_dir, work, params, n, timings)
         if not models:
             stats = database_stats(db)
@@ -945,6 +1049,7 @@ def estimate_cameras(ingest_dir: Path, views: Sequence[View], out_dir: Path, par
     summary = {
         "mode": "sfm",
         "matcher": matcher,
+        "retrieval": retrieval,
         "mapper": params.mapper,
         "camera_mode": camera_mode,
         "images": n,
@@ -1040,9 +1145,8 @@ def import_known_cameras(ingest_dir: Path, views: Sequence[View], cameras: Seque
         with timings.step("extract", f"sfm: SIFT features of {n} images for triangulation"):
             # PER_IMAGE with PINHOLE: each image's database camera is overwritten with the known one below
             _extract(db, image_dir, names, "per_image", "PINHOLE", params)
-        pairs = n * (n - 1) // 2 if matcher == "exhaustive" else None
-        with timings.step("match", f"sfm: {matcher} matching" + (f" ({pairs} pairs)" if pairs else "")):
-            _match(db, matcher, params)
+        with timings.step("match", matching_note(matcher, n, params)):
+            retrieval = _match(db, matcher, params)
         with timings.step("triangulate", "sfm: triangulating points with the known poses"):
             rec = _known_reconstruction(db, posed_out)
             tri_dir = work / "triangulated"
@@ -1065,6 +1169,7 @@ def import_known_cameras(ingest_dir: Path, views: Sequence[View], cameras: Seque
     summary = {
         "mode": KNOWN_CAMERAS_MODE,
         "matcher": matcher,
+        "retrieval": retrieval,
         "images": len(views),
         "registered": len(posed_out),
         "unregistered": [],

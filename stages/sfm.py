@@ -1,6 +1,7 @@
 """sfm: camera poses and sparse 3D points, by structure from motion (pycolmap) or from known cameras.
 
-Without ``--cameras``: SIFT features, exhaustive or sequential matching, incremental (or global)
+Without ``--cameras``: SIFT features, exhaustive matching (up to 50 photos; beyond, each photo with its most
+similar ones by a vocabulary tree of the scene's own features; or sequential), incremental (or global)
 mapping; the largest model is kept, checked against each image's strongest verified pairs (mapped
 again on only those pairs when it contradicts them: repeated textures) and undistorted to PINHOLE.
 With ``--cameras`` (ingest wrote ``cameras.json``): no pose estimation; distorted images are
@@ -27,7 +28,8 @@ Out (read them with :func:`sgpor_pipeline.sfm.load_sfm`):
 - ``raw_cameras.json``: the registered views' cameras before undistortion (SfM's model, or the given
   cameras), at ingest's image size: :func:`sgpor_pipeline.sfm.photo_to_view` maps another image of a
   view (its ground truth) as its photo was mapped.
-- ``sfm.json``: mode (sfm / known_cameras), matcher, registered count, unregistered views, seconds
+- ``sfm.json``: mode (sfm / known_cameras), matcher (and ``retrieval``: the vocabulary tree's descriptors,
+  words and seconds, for retrieval matching), registered count, unregistered views, seconds
   per sub-step, point count, mean reprojection error, ``pair_check`` (pairs checked, those the model
   contradicts, the repair's numbers), ``sfm_from_input`` (only where the given cameras were moved: the
   similarity as :meth:`~sgpor_pipeline.orientation.Similarity.to_dict` writes it, and why) (also in
@@ -59,8 +61,9 @@ class SfmStage(Stage):
     name = "sfm"
     # 2: the model checked against each image's strongest pairs (SfmParams.pair_check); 3: given cameras
     # in a frame far from its origin or at an extreme scale are moved (sfm.conditioning_frame); 4: too
-    # few registered -> mapped again with the distortion held at 0 before relaxing (retry_held_distortion)
-    VERSION = 4
+    # few registered -> mapped again with the distortion held at 0 before relaxing (retry_held_distortion);
+    # 5: beyond 50 photos, sfm.matcher=auto is retrieval matching (was sequential)
+    VERSION = 5
     Params = SfmParams
     inputs = ("ingest",)
     libraries = ("pycolmap",)
@@ -88,7 +91,10 @@ class SfmStage(Stage):
         if missing and registered < params.min_registered_fraction * total:
             hint = "photos overlapping the registered ones help"
             if summary.get("matcher") == "sequential":
-                hint += "; for an unordered set use --set sfm.matcher=exhaustive"
+                hint += "; for an unordered set use --set sfm.matcher=retrieval (or exhaustive)"
+            elif summary.get("matcher") == "retrieval":
+                hint += (f"; each was matched to its {params.retrieval_neighbours} most similar photos: try --set "
+                         f"sfm.retrieval_neighbours={2 * params.retrieval_neighbours} or sfm.matcher=exhaustive")
             ctx.log.warning(f"sfm: only {registered} of {total} images registered; later stages ignore the "
                             f"others: {', '.join(missing)} ({hint})")
         fallback = global_fallback(summary)

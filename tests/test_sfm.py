@@ -24,8 +24,11 @@ from sgpor_pipeline.runner import run_pipeline
 from sgpor_pipeline.scene import Camera, load_cameras, save_cameras
 from sgpor_pipeline.sfm import (
     RAW_CAMERAS_FILE,
+    RETRIEVAL_DESCRIPTORS,
+    RETRIEVAL_DESCRIPTORS_PER_WORD,
     SfmParams,
     choose_matcher,
+    database_stats,
     has_distortion,
     load_sfm,
     photo_to_view,
@@ -204,6 +207,58 @@ def test_sfm_masks_undistorted_and_aligned(sfm_run):
         ious.append(iou(mask, expect))
         assert ious[-1] > 0.9, (cam.image, ious[-1])
     assert len(ious) >= len(sfm.cameras) // 2 and np.mean(ious) > 0.95
+
+
+def test_retrieval_matching_any_name_order(scene_dir, tmp_path):
+    """Retrieval matching (auto's choice beyond 50 photos) pairs each photo with its most similar ones by a
+    vocabulary tree built from the scene's own features: the photos' names in shuffled order register at
+    the right poses from a fraction of the pairs."""
+    scene, folder = scene_dir
+    images = tmp_path / "shuffled"
+    images.mkdir()
+    order = np.random.default_rng(3).permutation(len(scene.names))
+    renamed = {}  # new view name -> true view name
+    for k, i in enumerate(order):
+        src = next((folder / "images").glob(f"{scene.names[i]}.*"))
+        renamed[f"p{k:02d}"] = scene.names[i]
+        (images / f"p{k:02d}{src.suffix}").write_bytes(src.read_bytes())
+    k_near = 4
+    result, sfm = run_sfm(tmp_path / "out", ("sfm.matcher=retrieval", f"sfm.retrieval_neighbours={k_near}",
+                                             "sfm.keep_database=true"), images=images)
+    assert sfm.summary["matcher"] == "retrieval" and sfm.summary["registered"] == len(scene.names)
+    assert sfm.summary["retrieval"]["neighbours"] == k_near and sfm.summary["retrieval"]["words"] >= 16
+    work = result.path("sfm") / "colmap"
+    assert (work / "vocab_tree.bin").is_file()
+    stats = database_stats(work / "database.db")
+    n = len(scene.names)
+    assert stats.with_matches == n and stats.verified_pairs <= n * k_near < n * (n - 1) // 2
+    true = {c.name: c for c in scene.cameras}
+    est = np.array([c.center for c in sfm.cameras])
+    gt = np.array([true[renamed[c.image]].center for c in sfm.cameras])
+    sim = umeyama(est, gt)
+    err = np.linalg.norm(sim.s * est @ sim.R.T + sim.t - gt, axis=1)
+    assert err.max() < 0.01 * scene_extent(scene), (err.max(), scene_extent(scene))
+
+
+def test_vocab_tree_is_seeded(sfm_run, tmp_path):
+    """The tree (its random subset and k-means) depends on the seed only: two builds give one file."""
+    _, folder, _, _, _ = sfm_run
+    from sgpor_pipeline.sfm import build_vocab_tree
+
+    db = tmp_path / "db.db"
+    import pycolmap
+
+    pycolmap.Database.open(db).close()
+    pycolmap.import_images(db, folder / "images")
+    pycolmap.extract_features(db, folder / "images", device=pycolmap.Device.cpu)
+    tree = build_vocab_tree(db, tmp_path / "a.bin", SfmParams(num_threads=2))
+    a = tree.path.read_bytes()
+    b = build_vocab_tree(db, tmp_path / "b.bin", SfmParams(num_threads=2)).path.read_bytes()
+    assert a == b and len(a) > 1000
+    # few descriptors (16 small photos): fewer words, each trained on RETRIEVAL_DESCRIPTORS_PER_WORD at least
+    assert tree.descriptors < RETRIEVAL_DESCRIPTORS and tree.words == tree.descriptors // RETRIEVAL_DESCRIPTORS_PER_WORD
+    c = build_vocab_tree(db, tmp_path / "c.bin", SfmParams(num_threads=2, seed=1)).path.read_bytes()
+    assert c != a
 
 
 def test_rerun_is_cache_hit(sfm_run):
@@ -667,8 +722,14 @@ def test_global_fallback_names_a_model_of_the_global_retry():
 def test_choose_matcher_and_params():
     p = SfmParams()
     assert (p.matcher, p.mapper, p.max_image_size, p.min_registered_fraction) == ("auto", "incremental", 1600, 0.8)
-    assert choose_matcher(p, 50) == "exhaustive" and choose_matcher(p, 51) == "sequential"
+    assert choose_matcher(p, 50) == "exhaustive" and choose_matcher(p, 51) == "retrieval"
     assert choose_matcher(SfmParams(matcher="sequential"), 10) == "sequential"
+    # too few photos matched: beyond 50 photos the fix names the retrieval's reach and exhaustive matching
+    from sgpor_pipeline.sfm import DatabaseStats, no_model_fix
+
+    fix = no_model_fix(p, DatabaseStats(images=60, with_features=60, with_matches=12, verified_pairs=9))
+    assert "sfm.retrieval_neighbours=50" in fix and "sfm.matcher=exhaustive" in fix
+    assert "sfm.retrieval_neighbours" not in no_model_fix(p, DatabaseStats(30, 30, 6, 4))
 
 
 def test_colmap_camera_conversion_and_mask_undistortion():

@@ -76,6 +76,7 @@ RETRIEVAL_WORDS = 4096
 RETRIEVAL_DESCRIPTORS_PER_WORD = 40  # faiss's k-means (inside pycolmap) warns below 39
 RETRIEVAL_DESCRIPTORS = RETRIEVAL_WORDS * RETRIEVAL_DESCRIPTORS_PER_WORD
 RETRIEVAL_ITERATIONS = 5
+RETRIEVAL_MIN_WORDS = 64  # fewer descriptors than this many words' worth: every pair is matched instead
 VOCAB_TREE_FILE = "vocab_tree.bin"
 # COLMAP's default minimum of verified inlier matches for an image pair to count as connected.
 MIN_PAIR_INLIERS = 15
@@ -494,27 +495,32 @@ def _match(db: Path, matcher: str, params: SfmParams) -> dict[str, Any] | None:
     matching.guided_matching = params.guided_matching
     verification = pycolmap.TwoViewGeometryOptions()
     verification.ransac.random_seed = params.seed
+    retrieval = None
+    if matcher == "retrieval":
+        t0 = time.perf_counter()
+        tree = build_vocab_tree(db, db.parent / VOCAB_TREE_FILE, params)
+        if tree is not None:
+            pairing = pycolmap.VocabTreePairingOptions()
+            pairing.vocab_tree_path = str(tree.path)
+            pairing.num_images = params.retrieval_neighbours + 1  # the query image is its own best match
+            pairing.num_threads = params.num_threads
+            pycolmap.match_vocabtree(db, matching_options=matching, pairing_options=pairing,
+                                     verification_options=verification, device=pycolmap.Device.cpu)
+            return {"neighbours": params.retrieval_neighbours, "descriptors": tree.descriptors, "words": tree.words,
+                    "tree_seconds": round(tree.seconds, 3), "seconds": round(time.perf_counter() - t0, 3)}
+        # too few features for a tree (blank or tiny photos): every pair, which costs little then
+        retrieval = {"neighbours": params.retrieval_neighbours, "words": 0, "exhaustive_instead": True}
+        matcher = "exhaustive"
     if matcher == "exhaustive":
         pycolmap.match_exhaustive(db, matching_options=matching, verification_options=verification,
                                   device=pycolmap.Device.cpu)
-    elif matcher == "retrieval":
-        t0 = time.perf_counter()
-        tree = build_vocab_tree(db, db.parent / VOCAB_TREE_FILE, params)
-        pairing = pycolmap.VocabTreePairingOptions()
-        pairing.vocab_tree_path = str(tree.path)
-        pairing.num_images = params.retrieval_neighbours + 1  # the query image is its own best match
-        pairing.num_threads = params.num_threads
-        pycolmap.match_vocabtree(db, matching_options=matching, pairing_options=pairing,
-                                 verification_options=verification, device=pycolmap.Device.cpu)
-        return {"neighbours": params.retrieval_neighbours, "descriptors": tree.descriptors, "words": tree.words,
-                "tree_seconds": round(tree.seconds, 3), "seconds": round(time.perf_counter() - t0, 3)}
     else:
         pairing = pycolmap.SequentialPairingOptions()
         pairing.overlap = params.sequential_overlap
         pairing.num_threads = params.num_threads
         pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing,
                                   verification_options=verification, device=pycolmap.Device.cpu)
-    return None
+    return retrieval
 
 
 @dataclass
@@ -525,11 +531,11 @@ class VocabTree:
     seconds: float
 
 
-def build_vocab_tree(db: Path, out: Path, params: SfmParams) -> VocabTree:
+def build_vocab_tree(db: Path, out: Path, params: SfmParams) -> VocabTree | None:
     """A vocabulary tree (COLMAP's visual index) built from the SIFT descriptors in ``db``, written to
     ``out``: what retrieval matching ranks each image's most similar images by. A random subset of at most
     RETRIEVAL_DESCRIPTORS descriptors (seeded by ``params.seed``) is clustered into RETRIEVAL_WORDS visual
-    words, fewer where there are few descriptors."""
+    words, fewer where there are few descriptors; None where there are too few for RETRIEVAL_MIN_WORDS."""
     import pycolmap
 
     t0 = time.perf_counter()
@@ -539,15 +545,14 @@ def build_vocab_tree(db: Path, out: Path, params: SfmParams) -> VocabTree:
                   for im in sorted(database.read_all_images(), key=lambda im: im.image_id)]
     finally:
         database.close()
-    descriptors = np.concatenate([b for b in blocks if len(b)]) if any(len(b) for b in blocks) else None
-    if descriptors is None:
-        raise PipelineError("no image has SIFT features: nothing to match", path=db,
-                            fix="check the photos (blank, tiny or out of focus?)")
+    descriptors = np.concatenate([np.zeros((0, 128), np.uint8), *blocks])
+    if len(descriptors) < RETRIEVAL_MIN_WORDS * RETRIEVAL_DESCRIPTORS_PER_WORD:
+        return None
     if len(descriptors) > RETRIEVAL_DESCRIPTORS:
         pick = np.random.default_rng(params.seed).choice(len(descriptors), RETRIEVAL_DESCRIPTORS, replace=False)
         descriptors = descriptors[np.sort(pick)]
     options = pycolmap.VisualIndex.BuildOptions()
-    options.num_visual_words = int(max(16, min(RETRIEVAL_WORDS, len(descriptors) // RETRIEVAL_DESCRIPTORS_PER_WORD)))
+    options.num_visual_words = int(min(RETRIEVAL_WORDS, len(descriptors) // RETRIEVAL_DESCRIPTORS_PER_WORD))
     options.num_iterations = RETRIEVAL_ITERATIONS
     options.num_rounds = 1
     options.num_threads = params.num_threads

@@ -284,6 +284,10 @@ def test_blank_images_raise_clear_error(tmp_path):
     assert "could not reconstruct" in err.message and "0 had features" in err.message
     assert err.path == str(images) and "--cameras" in err.fix and "sfm.matcher=sequential" in err.fix
     assert not list((tmp_path / "out" / "cache" / "sfm").glob("*/manifest.json"))  # nothing published
+    # retrieval matching (auto's choice beyond 50 photos) with no features for its tree: the same error
+    with pytest.raises(PipelineError) as info:
+        run_pipeline(tmp_path / "out", RunInputs(images=images), until="sfm", overrides=["sfm.matcher=retrieval"])
+    assert "0 had features" in info.value.message and "sfm.retrieval_neighbours" in info.value.fix
 
 
 def test_warns_when_few_images_register(scene_dir, tmp_path, caplog):

@@ -112,7 +112,8 @@ def large_images(root: Path, shuffled: bool) -> Path:
         return scene / "images"
     folder = root / "synthetic-large-shuffled"
     images = folder / "images"
-    if not (folder / "scene_params.json").is_file():
+    stamp, wanted = folder / "scene_params.json", (scene / "scene_params.json").read_text()
+    if not stamp.is_file() or stamp.read_text() != wanted:  # not yet made, or of another LARGE
         shutil.rmtree(folder, ignore_errors=True)
         images.mkdir(parents=True)
         cameras = load_cameras(scene / "cameras.json")
@@ -123,7 +124,7 @@ def large_images(root: Path, shuffled: bool) -> Path:
             shutil.copyfile(src, images / f"photo_{k:03d}{src.suffix}")
             renamed.append(dataclasses.replace(cameras[i], name=f"photo_{k:03d}", image=f"photo_{k:03d}"))
         save_cameras(folder / "cameras.json", renamed)
-        (folder / "scene_params.json").write_text((scene / "scene_params.json").read_text())
+        stamp.write_text(wanted)
     return images
 
 

@@ -102,13 +102,19 @@ class SfmParams:
     """Parameters of the ``sfm`` stage (``--set sfm.<name>=<value>``)."""
 
     # "exhaustive" matches every image pair; "sequential" only neighbours in file-name order (for
-    # videos / ordered walks: no loop is closed); "retrieval" each image with its retrieval_neighbours
+    # videos / ordered walks; loops closed by sequential_loops); "retrieval" each image with its retrieval_neighbours
     # most similar images by a vocabulary tree of this scene's own features (any order, loops closed);
     # "auto" = exhaustive up to 50 images, retrieval beyond. Sequential used to be auto's choice beyond
     # 50: 96 photos of a generated ring in shuffled name order registered 11 (retrieval: 96).
     matcher: Literal["auto", "exhaustive", "sequential", "retrieval"] = "auto"
     sequential_overlap: int = 10  # sequential matcher: how many following images each image is matched to
     retrieval_neighbours: int = 25  # retrieval matcher: how many most similar images each image is matched to
+    # Sequential matching alone never matches a walk's last photos with its first: with this, every 10th
+    # photo is also matched with its retrieval_neighbours most similar (COLMAP's loop detection, on the
+    # vocabulary tree of the scene's own features), so a 360-degree walk closes its loop. 96 photos of
+    # a generated ring in name order: rotation errors median / max 0.49 / 0.85 -> 0.23 / 0.51 degrees,
+    # matching 1.2 -> 2.3 s; 120 at 640x480: 0.10 / 0.18 -> 0.05 / 0.15 degrees, 8.9 -> 23.2 s.
+    sequential_loops: bool = True
     # "incremental" (COLMAP's: one photo after another from a first pair) or "global" (GLOMAP's method in
     # pycolmap: every pair's rotation at once, then the positions). benchmarks/sfm.py, session 80,
     # incremental -> global: lund 28 -> 29 of 29 registered; statue 29 both at the same pose errors;
@@ -518,6 +524,16 @@ def _match(db: Path, matcher: str, params: SfmParams) -> dict[str, Any] | None:
         pairing = pycolmap.SequentialPairingOptions()
         pairing.overlap = params.sequential_overlap
         pairing.num_threads = params.num_threads
+        if params.sequential_loops:
+            t0 = time.perf_counter()
+            tree = build_vocab_tree(db, db.parent / VOCAB_TREE_FILE, params)
+            if tree is not None:
+                # every loop_detection_period-th photo is also matched with its most similar photos
+                pairing.loop_detection = True
+                pairing.vocab_tree_path = str(tree.path)
+                pairing.loop_detection_num_images = params.retrieval_neighbours + 1
+                retrieval = {"neighbours": params.retrieval_neighbours, "descriptors": tree.descriptors,
+                             "words": tree.words, "tree_seconds": round(tree.seconds, 3), "loop_detection": True}
         pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing,
                                   verification_options=verification, device=pycolmap.Device.cpu)
     return retrieval

@@ -240,6 +240,29 @@ def test_retrieval_matching_any_name_order(scene_dir, tmp_path):
     assert err.max() < 0.01 * scene_extent(scene), (err.max(), scene_extent(scene))
 
 
+def test_sequential_matching_closes_loops(scene_dir, tmp_path):
+    """Sequential matching pairs each photo with its next in name order; with ``sequential_loops`` (the
+    default) every 10th photo is also matched with its most similar ones, however far in name order."""
+    _, folder = scene_dir
+
+    def largest_gap(loops: bool) -> int:
+        result, sfm = run_sfm(tmp_path / f"out_{loops}", ("sfm.matcher=sequential", "sfm.sequential_overlap=2",
+                                                          f"sfm.sequential_loops={str(loops).lower()}",
+                                                          "sfm.keep_database=true"), images=folder / "images")
+        assert (sfm.summary["retrieval"] or {}).get("loop_detection", False) == loops
+        import pycolmap
+
+        database = pycolmap.Database.open(result.path("sfm") / "colmap" / "database.db")
+        try:
+            order = {im.image_id: i for i, im in enumerate(sorted(database.read_all_images(), key=lambda im: im.name))}
+            pair_ids, _ = database.read_two_view_geometries()
+        finally:
+            database.close()
+        return max(abs(order[a] - order[b]) for a, b in map(pycolmap.pair_id_to_image_pair, pair_ids))
+
+    assert largest_gap(False) <= 2 < 4 < largest_gap(True)
+
+
 def test_vocab_tree_is_seeded(sfm_run, tmp_path):
     """The tree (its random subset and k-means) depends on the seed only: two builds give one file."""
     _, folder, _, _, _ = sfm_run

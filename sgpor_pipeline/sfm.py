@@ -492,8 +492,9 @@ def _extract(db: Path, image_dir: Path, names: list[str], camera_mode: str, came
 
 
 def _match(db: Path, matcher: str, params: SfmParams) -> dict[str, Any] | None:
-    """Match the images' features in ``db`` and verify the pairs. Returns, for retrieval matching, the
-    vocabulary tree's numbers (descriptors, words, seconds: sfm.json's ``retrieval``); else None."""
+    """Match the images' features in ``db`` and verify the pairs. Returns, where a vocabulary tree was
+    built or wanted (retrieval matching, sequential matching's loop detection), its numbers (sfm.json's
+    ``retrieval``); else None."""
     import pycolmap
 
     matching = pycolmap.FeatureMatchingOptions()
@@ -512,8 +513,7 @@ def _match(db: Path, matcher: str, params: SfmParams) -> dict[str, Any] | None:
             pairing.num_threads = params.num_threads
             pycolmap.match_vocabtree(db, matching_options=matching, pairing_options=pairing,
                                      verification_options=verification, device=pycolmap.Device.cpu)
-            return {"neighbours": params.retrieval_neighbours, "descriptors": tree.descriptors, "words": tree.words,
-                    "tree_seconds": round(tree.seconds, 3), "seconds": round(time.perf_counter() - t0, 3)}
+            return {**tree.numbers(params), "seconds": round(time.perf_counter() - t0, 3)}
         # too few features for a tree (blank or tiny photos): every pair, which costs little then
         retrieval = {"neighbours": params.retrieval_neighbours, "words": 0, "exhaustive_instead": True}
         matcher = "exhaustive"
@@ -524,16 +524,13 @@ def _match(db: Path, matcher: str, params: SfmParams) -> dict[str, Any] | None:
         pairing = pycolmap.SequentialPairingOptions()
         pairing.overlap = params.sequential_overlap
         pairing.num_threads = params.num_threads
-        if params.sequential_loops:
-            t0 = time.perf_counter()
-            tree = build_vocab_tree(db, db.parent / VOCAB_TREE_FILE, params)
-            if tree is not None:
-                # every loop_detection_period-th photo is also matched with its most similar photos
-                pairing.loop_detection = True
-                pairing.vocab_tree_path = str(tree.path)
-                pairing.loop_detection_num_images = params.retrieval_neighbours + 1
-                retrieval = {"neighbours": params.retrieval_neighbours, "descriptors": tree.descriptors,
-                             "words": tree.words, "tree_seconds": round(tree.seconds, 3), "loop_detection": True}
+        tree = build_vocab_tree(db, db.parent / VOCAB_TREE_FILE, params) if params.sequential_loops else None
+        if tree is not None:
+            # every loop_detection_period-th photo is also matched with its most similar photos
+            pairing.loop_detection = True
+            pairing.vocab_tree_path = str(tree.path)
+            pairing.loop_detection_num_images = params.retrieval_neighbours + 1
+            retrieval = {**tree.numbers(params), "loop_detection": True}
         pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing,
                                   verification_options=verification, device=pycolmap.Device.cpu)
     return retrieval
@@ -545,6 +542,11 @@ class VocabTree:
     descriptors: int  # how many descriptors it was built from
     words: int
     seconds: float
+
+    def numbers(self, params: SfmParams) -> dict[str, Any]:
+        """What sfm.json's ``retrieval`` says of the tree and its use."""
+        return {"neighbours": params.retrieval_neighbours, "descriptors": self.descriptors, "words": self.words,
+                "tree_seconds": round(self.seconds, 3)}
 
 
 def build_vocab_tree(db: Path, out: Path, params: SfmParams) -> VocabTree | None:
@@ -767,6 +769,12 @@ def database_stats(db: Path) -> DatabaseStats:
         database.close()
 
 
+def wider_matching(params: SfmParams) -> str:
+    """The settings that match each photo with more others than retrieval matching did."""
+    return (f"--set sfm.retrieval_neighbours={2 * params.retrieval_neighbours} or sfm.matcher=exhaustive "
+            "(slow: every pair)")
+
+
 def no_model_fix(params: SfmParams, stats: DatabaseStats) -> str:
     """What to try when mapping gave no model: where most images matched, the mapping is at fault, not
     the photos (the other mapper, a camera model without distortion); otherwise the capture."""
@@ -780,8 +788,7 @@ def no_model_fix(params: SfmParams, stats: DatabaseStats) -> str:
                 "--set sfm.camera_model=SIMPLE_PINHOLE for small or narrow-angle photos; or pass known cameras "
                 "with --cameras")
     if choose_matcher(params, stats.images) == "retrieval":  # pairs the retrieval missed
-        other = (f"try --set sfm.retrieval_neighbours={2 * params.retrieval_neighbours}, or sfm.matcher=exhaustive "
-                 "(slow: every pair), or sfm.matcher=sequential for an ordered capture")
+        other = f"try {wider_matching(params)}, or sfm.matcher=sequential for an ordered capture"
     else:
         other = "for an ordered capture try --set sfm.matcher=sequential"
     return ("photograph with more overlap (every spot in 3+ photos) and textured surfaces in view; "

@@ -51,6 +51,7 @@ from sgpor_pipeline.sfm import (
     estimate_cameras,
     global_fallback,
     import_known_cameras,
+    wider_matching,
 )
 from sgpor_pipeline.views import load_views
 
@@ -93,8 +94,8 @@ class SfmStage(Stage):
             if summary.get("matcher") == "sequential":
                 hint += "; for an unordered set use --set sfm.matcher=retrieval (or exhaustive)"
             elif summary.get("matcher") == "retrieval":
-                hint += (f"; each was matched to its {params.retrieval_neighbours} most similar photos: try --set "
-                         f"sfm.retrieval_neighbours={2 * params.retrieval_neighbours} or sfm.matcher=exhaustive")
+                hint += (f"; each was matched to its {params.retrieval_neighbours} most similar photos: try "
+                         f"{wider_matching(params)}")
             ctx.log.warning(f"sfm: only {registered} of {total} images registered; later stages ignore the "
                             f"others: {', '.join(missing)} ({hint})")
         fallback = global_fallback(summary)

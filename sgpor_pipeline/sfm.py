@@ -26,7 +26,9 @@ import json
 import logging
 import os
 import shutil
+import sqlite3
 import sys
+import threading
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -349,6 +351,84 @@ def _no_progress(iterable: Iterable, total: int | None = None, desc: str | None 
     return iterable
 
 
+#: how often a count of native work (database rows, files) is read for its progress bar
+PROGRESS_POLL_SECONDS = 0.5
+
+
+@contextlib.contextmanager
+def counted_progress(progress: Progress, total: int | None, desc: str, poll: Callable[[], int] | None = None,
+                     interval: float = PROGRESS_POLL_SECONDS) -> Iterator[Callable[[int], None]]:
+    """A progress bar for work done in pycolmap, which reports nothing while it runs.
+
+    The count is either read by ``poll`` (rows of a database table, files written) every ``interval``
+    seconds, or reported through the yielded ``add(n)`` (a pycolmap callback). A background thread draws
+    it through ``progress`` (a tqdm-like wrapper of iterables) while the calling thread stays in pycolmap,
+    which releases the GIL. The shown count never exceeds ``total``. A failed read keeps the last count:
+    a bar must not stop the work it shows."""
+    lock = threading.Lock()
+    state = {"count": 0}
+    finished = threading.Event()
+
+    def add(n: int = 1) -> None:
+        with lock:
+            state["count"] += n
+
+    def current() -> int:
+        if poll is not None:
+            try:
+                state["count"] = poll()
+            except (sqlite3.Error, OSError):
+                pass
+        with lock:
+            return state["count"] if total is None else min(state["count"], total)
+
+    def ticks() -> Iterator[int]:
+        shown = 0
+        while True:
+            done = finished.wait(interval)
+            target = current()
+            while shown < target:
+                shown += 1
+                yield shown
+            if done:
+                return
+
+    def draw() -> None:
+        for _ in progress(ticks(), total=total, desc=desc):
+            pass
+
+    thread = threading.Thread(target=draw, name=f"progress: {desc}", daemon=True)
+    thread.start()
+    try:
+        yield add
+    finally:
+        finished.set()
+        thread.join()
+
+
+def table_rows(db: Path, table: str) -> Callable[[], int]:
+    """Reads how many rows ``table`` of the COLMAP database ``db`` has, from another connection while
+    pycolmap writes it (COLMAP keeps its database in WAL mode, where a reader never blocks the writer)."""
+    uri = f"{Path(db).resolve().as_uri()}?mode=ro"
+
+    def rows() -> int:
+        connection = sqlite3.connect(uri, uri=True, timeout=0.1)
+        try:
+            return int(connection.execute(f"SELECT count(*) FROM {table}").fetchone()[0])
+        finally:
+            connection.close()
+
+    return rows
+
+
+def files_in(folder: Path) -> Callable[[], int]:
+    """Counts the files written so far into ``folder`` (0 while it does not exist)."""
+    def count() -> int:
+        return sum(1 for _ in os.scandir(folder)) if folder.is_dir() else 0
+
+    return count
+
+
 def _link_or_copy(src: Path, dst: Path) -> None:
     # Hard links save disk between cache folders; published cache files are never modified in place.
     try:
@@ -474,7 +554,7 @@ def pinhole_K(camera: Any) -> np.ndarray:
 
 
 def _extract(db: Path, image_dir: Path, names: list[str], camera_mode: str, camera_model: str,
-             params: SfmParams) -> None:
+             params: SfmParams, progress: Progress = _no_progress) -> None:
     import pycolmap
 
     mode = {"single": pycolmap.CameraMode.SINGLE, "per_image": pycolmap.CameraMode.PER_IMAGE}[camera_mode]
@@ -487,15 +567,22 @@ def _extract(db: Path, image_dir: Path, names: list[str], camera_mode: str, came
     # order its threads finish, and image ids decide pair order and so the matches and the model.
     pycolmap.Database.open(db).close()
     pycolmap.import_images(db, image_dir, camera_mode=mode, image_names=names, options=reader)
-    pycolmap.extract_features(db, image_dir, image_names=names, camera_mode=mode, reader_options=reader,
-                              extraction_options=extraction, device=pycolmap.Device.cpu)
+    with counted_progress(progress, len(names), "sfm: features", poll=table_rows(db, "keypoints")):
+        pycolmap.extract_features(db, image_dir, image_names=names, camera_mode=mode, reader_options=reader,
+                                  extraction_options=extraction, device=pycolmap.Device.cpu)
 
 
-def _match(db: Path, matcher: str, params: SfmParams) -> dict[str, Any] | None:
+def _match(db: Path, matcher: str, params: SfmParams, progress: Progress = _no_progress) -> dict[str, Any] | None:
     """Match the images' features in ``db`` and verify the pairs. Returns, where a vocabulary tree was
     built or wanted (retrieval matching, sequential matching's loop detection), its numbers (sfm.json's
-    ``retrieval``); else None."""
+    ``retrieval``); else None. The pairs matched so far are shown through ``progress``."""
     import pycolmap
+
+    def shown(total: int | None) -> contextlib.AbstractContextManager:
+        return counted_progress(progress, total, "sfm: matched pairs", poll=table_rows(db, "matches"))
+
+    with pycolmap.Database.open(db) as database:
+        n_images = database.num_images()
 
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = params.num_threads
@@ -511,19 +598,23 @@ def _match(db: Path, matcher: str, params: SfmParams) -> dict[str, Any] | None:
             pairing.vocab_tree_path = str(tree.path)
             pairing.num_images = params.retrieval_neighbours + 1  # the query image is its own best match
             pairing.num_threads = params.num_threads
-            pycolmap.match_vocabtree(db, matching_options=matching, pairing_options=pairing,
-                                     verification_options=verification, device=pycolmap.Device.cpu)
+            with shown(None):  # how many distinct pairs the retrieval gives is known only once it ran
+                pycolmap.match_vocabtree(db, matching_options=matching, pairing_options=pairing,
+                                         verification_options=verification, device=pycolmap.Device.cpu)
             return {**tree.numbers(params), "seconds": round(time.perf_counter() - t0, 3)}
         # too few features for a tree (blank or tiny photos): every pair, which costs little then
         retrieval = {"neighbours": params.retrieval_neighbours, "words": 0, "exhaustive_instead": True}
         matcher = "exhaustive"
     if matcher == "exhaustive":
-        pycolmap.match_exhaustive(db, matching_options=matching, verification_options=verification,
-                                  device=pycolmap.Device.cpu)
+        with shown(n_images * (n_images - 1) // 2):
+            pycolmap.match_exhaustive(db, matching_options=matching, verification_options=verification,
+                                      device=pycolmap.Device.cpu)
     else:
         pairing = pycolmap.SequentialPairingOptions()
         pairing.overlap = params.sequential_overlap
         pairing.num_threads = params.num_threads
+        with pycolmap.Database.open(db) as database:
+            total = len(pycolmap.SequentialPairGenerator(pairing, database).all_pairs())
         tree = build_vocab_tree(db, db.parent / VOCAB_TREE_FILE, params) if params.sequential_loops else None
         if tree is not None:
             # every loop_detection_period-th photo is also matched with its most similar photos
@@ -531,8 +622,11 @@ def _match(db: Path, matcher: str, params: SfmParams) -> dict[str, Any] | None:
             pairing.vocab_tree_path = str(tree.path)
             pairing.loop_detection_num_images = params.retrieval_neighbours + 1
             retrieval = {**tree.numbers(params), "loop_detection": True}
-        pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing,
-                                  verification_options=verification, device=pycolmap.Device.cpu)
+            # at most this many more pairs (most are usually sequential pairs already)
+            total += len(range(0, n_images, pairing.loop_detection_period)) * params.retrieval_neighbours
+        with shown(total):
+            pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing,
+                                      verification_options=verification, device=pycolmap.Device.cpu)
     return retrieval
 
 
@@ -603,7 +697,9 @@ RELAXED_MAPPER = {"init_min_num_inliers": 30, "abs_pose_min_num_inliers": 15, "i
 UNDISTORTED_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")  # COLMAP camera models without distortion terms
 
 
-def _map(db: Path, image_dir: Path, out: Path, params: SfmParams, attempt: str = "default") -> dict[int, Any]:
+def _map(db: Path, image_dir: Path, out: Path, params: SfmParams, attempt: str = "default",
+         registered: Callable[[int], None] | None = None) -> dict[int, Any]:
+    """One mapping; the incremental mapper reports each image it registers to ``registered(n)``."""
     import pycolmap
 
     out.mkdir(parents=True, exist_ok=True)
@@ -611,7 +707,10 @@ def _map(db: Path, image_dir: Path, out: Path, params: SfmParams, attempt: str =
         return pycolmap.global_mapping(db, image_dir, out, options=global_options(params))
     if params.mapper == "global":
         return pycolmap.global_mapping(db, image_dir, out, options=global_options(params, attempt))
-    return pycolmap.incremental_mapping(db, image_dir, out, options=incremental_options(params, attempt))
+    callbacks = {} if registered is None else {"initial_image_pair_callback": lambda: registered(2),
+                                               "next_image_callback": lambda: registered(1)}
+    return pycolmap.incremental_mapping(db, image_dir, out, options=incremental_options(params, attempt),
+                                        **callbacks)
 
 
 def mapping_attempts(params: SfmParams) -> list[str]:
@@ -634,7 +733,7 @@ ATTEMPT_NOTES = {"held_distortion": "the lens distortion held at 0",
 
 def _map_with_retry(db: Path, image_dir: Path, work: Path, params: SfmParams, n_images: int, timings: Timings,
                     step: str = "map", note: str = "", check_db: Path | None = None,
-                    ) -> tuple[dict[int, Any], dict[str, Any] | None]:
+                    progress: Progress = _no_progress) -> tuple[dict[int, Any], dict[str, Any] | None]:
     """Mapping, and again with each further attempt of :func:`mapping_attempts` while the best model so
     far registers fewer than ``min_registered_fraction`` of the images; keeps the models of the
     attempt that registers the most (the earlier on a tie) and returns them with the retry's numbers
@@ -644,8 +743,15 @@ def _map_with_retry(db: Path, image_dir: Path, work: Path, params: SfmParams, n_
     models: fewer strongest pairs of ``check_db`` contradicted first, then more images registered; the
     retry's numbers then also hold each attempt's contradicted pairs."""
     attempts = mapping_attempts(params)
+
+    def mapped(attempt: str = "default") -> dict[int, Any]:
+        folder = work / (f"models_{step}" if attempt == "default" else f"models_{step}_{attempt}")
+        # an image the mapper drops and registers again counts twice: the bar stops at n_images
+        with counted_progress(progress, n_images, "sfm: registered images") as registered:
+            return _map(db, image_dir, folder, params, attempt, registered=registered)
+
     with timings.step(step, f"sfm: {params.mapper} mapping{note}"):
-        models = _map(db, image_dir, work / f"models_{step}", params)
+        models = mapped()
     registered = {"default": _most_registered(models)}
     contradicted: dict[str, int] = {}
 
@@ -662,7 +768,7 @@ def _map_with_retry(db: Path, image_dir: Path, work: Path, params: SfmParams, n_
             break
         with timings.step(f"{step}_{attempt}", f"sfm: {best}/{n_images} registered; mapping again with "
                                                f"{ATTEMPT_NOTES[attempt]}"):
-            candidate = _map(db, image_dir, work / f"models_{step}_{attempt}", params, attempt)
+            candidate = mapped(attempt)
         registered[attempt] = _most_registered(candidate)
         candidate_rank = rank(attempt, candidate)
         if registered[attempt] > 0 and (not models or candidate_rank < kept_rank):
@@ -1000,10 +1106,10 @@ def estimate_cameras(ingest_dir: Path, views: Sequence[View], out_dir: Path, par
         pycolmap.set_random_seed(params.seed)
         size_note = "full size" if params.max_image_size <= 0 else f"max {params.max_image_size} px"
         with timings.step("extract", f"sfm: SIFT features of {n} images ({size_note}, {camera_mode} camera)"):
-            _extract(db, image_dir, names, camera_mode, params.camera_model, params)
+            _extract(db, image_dir, names, camera_mode, params.camera_model, params, progress)
         with timings.step("match", matching_note(matcher, n, params)):
-            retrieval = _match(db, matcher, params)
-        models, retry = _map_with_retry(db, image_dir, work, params, n, timings)
+            retrieval = _match(db, matcher, params, progress)
+        models, retry = _map_with_retry(db, image_dir, work, params, n, timings, progress=progress)
         if not models:
             stats = database_stats(db)
             raise PipelineError(
@@ -1023,7 +1129,8 @@ def estimate_cameras(ingest_dir: Path, views: Sequence[View], out_dir: Path, par
                 strong_models, strong_retry = _map_with_retry(
                     strong_db, image_dir, work, params, n, timings, step="map_strongest", check_db=db,
                     note=f" again on each image's {PAIR_CHECK_TOP} strongest pairs only ({kept_pairs} pairs): the "
-                         f"model contradicts {len(check.contradicted)} of the {check.checked} checked")
+                         f"model contradicts {len(check.contradicted)} of the {check.checked} checked",
+                    progress=progress)
                 repair = {"first": {"registered": best.num_reg_images(), "contradicted": len(check.contradicted)},
                           "strongest_pairs": {"pairs": kept_pairs, "registered": 0, "contradicted": None,
                                               "mapping_retry": strong_retry},
@@ -1046,8 +1153,10 @@ def estimate_cameras(ingest_dir: Path, views: Sequence[View], out_dir: Path, par
         save_cameras(out_dir / RAW_CAMERAS_FILE, read_colmap_model(raw))
         with timings.step("undistort", f"sfm: undistorting {len(registered_names)} registered images"):
             options = undistort_options()
-            pycolmap.undistort_images(out_dir, raw, image_dir, undistort_options=options,
-                                      num_threads=params.num_threads)
+            with counted_progress(progress, len(registered_names), "sfm: undistorted images",
+                                  poll=files_in(out_dir / IMAGES_DIR)):
+                pycolmap.undistort_images(out_dir, raw, image_dir, undistort_options=options,
+                                          num_threads=params.num_threads)
             # stereo/ and the run-colmap-*.sh scripts are for COLMAP's dense MVS, which we do not run
             shutil.rmtree(out_dir / "stereo", ignore_errors=True)
             for script in out_dir.glob("run-colmap-*.sh"):
@@ -1172,9 +1281,9 @@ def import_known_cameras(ingest_dir: Path, views: Sequence[View], cameras: Seque
         pycolmap.set_random_seed(params.seed)
         with timings.step("extract", f"sfm: SIFT features of {n} images for triangulation"):
             # PER_IMAGE with PINHOLE: each image's database camera is overwritten with the known one below
-            _extract(db, image_dir, names, "per_image", "PINHOLE", params)
+            _extract(db, image_dir, names, "per_image", "PINHOLE", params, progress)
         with timings.step("match", matching_note(matcher, n, params)):
-            retrieval = _match(db, matcher, params)
+            retrieval = _match(db, matcher, params, progress)
         with timings.step("triangulate", "sfm: triangulating points with the known poses"):
             rec = _known_reconstruction(db, posed_out)
             tri_dir = work / "triangulated"

@@ -296,6 +296,82 @@ def test_rerun_is_cache_hit(sfm_run):
     assert load_sfm(changed.path("sfm")).summary["matcher"] == "sequential"
 
 
+class RecordedProgress:
+    """A ``progress`` for the sfm functions that records each bar's total and how far it got."""
+
+    def __init__(self):
+        self.bars: dict[str, dict] = {}
+
+    def __call__(self, iterable, total=None, desc=None):
+        bar = self.bars.setdefault(desc, {"total": total, "count": 0})
+        for item in iterable:
+            bar["count"] += 1
+            yield item
+
+
+@pytest.mark.parametrize("matcher", ["exhaustive", "sequential"])
+def test_sfm_shows_progress_of_pycolmaps_work(sfm_run, tmp_path, matcher):
+    """Features, matched pairs, registered and undistorted images are counted while pycolmap works (from
+    its database, its mapper's callbacks and the files it writes), each bar to its exact total here."""
+    from sgpor_pipeline.sfm import estimate_cameras
+    from sgpor_pipeline.views import load_views
+
+    _, _, _, result, _ = sfm_run
+    ingest = result.path("ingest")
+    views = load_views(ingest)
+    n = len(views)
+    recorded = RecordedProgress()
+    params = SfmParams(matcher=matcher, sequential_overlap=3, sequential_loops=False)
+    summary = estimate_cameras(ingest, views, tmp_path / "sfm", params, progress=recorded)
+    assert summary["registered"] == n
+    bars = recorded.bars
+    pairs = n * (n - 1) // 2 if matcher == "exhaustive" else None
+    assert bars["sfm: features"] == {"total": n, "count": n}
+    assert bars["sfm: matched pairs"]["count"] == bars["sfm: matched pairs"]["total"] > 0
+    if pairs is not None:
+        assert bars["sfm: matched pairs"]["total"] == pairs
+    else:
+        assert bars["sfm: matched pairs"]["total"] < n * (n - 1) // 2
+    assert bars["sfm: registered images"] == {"total": n, "count": n}
+    assert bars["sfm: undistorted images"] == {"total": n, "count": n}
+
+
+def test_counted_progress_polls_adds_and_survives_failed_reads(tmp_path):
+    import sqlite3
+    import time
+
+    from sgpor_pipeline.sfm import counted_progress, table_rows
+
+    recorded = RecordedProgress()
+    with counted_progress(recorded, 5, "added", interval=0.01) as add:
+        for _ in range(7):
+            add(1)
+    assert recorded.bars["added"] == {"total": 5, "count": 5}  # never beyond the total
+    # a database in a folder with a space, written by another connection in WAL mode (as COLMAP does)
+    db = tmp_path / "a folder" / "database.db"
+    db.parent.mkdir()
+    writer = sqlite3.connect(db, check_same_thread=False)
+    writer.execute("PRAGMA journal_mode=WAL")
+    writer.execute("CREATE TABLE matches (pair_id INTEGER PRIMARY KEY)")
+    writer.commit()
+    reads = []
+    rows = table_rows(db, "matches")
+
+    def flaky() -> int:
+        reads.append(1)
+        if len(reads) == 2:
+            raise sqlite3.OperationalError("database is locked")
+        return rows()
+
+    with counted_progress(recorded, None, "polled", poll=flaky, interval=0.01):
+        for i in range(3):
+            writer.execute("INSERT INTO matches VALUES (?)", (i,))
+            writer.commit()
+            time.sleep(0.1)  # a few reads between the writes, the second of them failing
+    writer.close()
+    assert recorded.bars["polled"] == {"total": None, "count": 3} and len(reads) >= 4
+
+
 def test_blank_images_raise_clear_error(tmp_path):
     images = tmp_path / "blank"
     images.mkdir()
@@ -665,7 +741,7 @@ def test_mapping_retry_keeps_the_attempt_that_registers_most(monkeypatch, tmp_pa
         params = params or SfmParams()
         ran = []
 
-        def fake_map(db, image_dir, out, params, attempt="default"):
+        def fake_map(db, image_dir, out, params, attempt="default", registered=None):
             ran.append(attempt)
             return {0: Model(counts[attempt])} if counts[attempt] else {}
 
@@ -710,7 +786,7 @@ def test_mapping_retry_keeps_the_attempt_that_registers_most(monkeypatch, tmp_pa
 
     def run_checked(counts: dict[str, int]):
         ran = []
-        monkeypatch.setattr(sfm_module, "_map", lambda db, image_dir, out, params, attempt="default":
+        monkeypatch.setattr(sfm_module, "_map", lambda db, image_dir, out, params, attempt="default", registered=None:
                             ran.append(attempt) or ({0: Model(counts[attempt])} if counts[attempt] else {}))
         models, retry = sfm_module._map_with_retry(tmp_path / "db", tmp_path, tmp_path, SfmParams(), 24,
                                                    sfm_module.Timings(logging.getLogger("test")),

@@ -26,7 +26,6 @@ import json
 import logging
 import os
 import shutil
-import sqlite3
 import sys
 import threading
 import time
@@ -166,9 +165,10 @@ class SfmParams:
     retry_global: bool = True
     seed: int = 0  # pycolmap's random seed (RANSAC, mapper)
     num_threads: int = -1  # feature extraction, matching, undistortion; -1 = all cores
-    # Mapping on one thread: multi-threaded bundle adjustment sums in a varying order, so poses differ
-    # run to run; single-threaded mapping with a fixed seed gives the same model every time (it is a
-    # small share of the time: extraction and matching dominate).
+    # Mapping and the vocabulary tree's k-means on one thread: multi-threaded bundle adjustment sums in a
+    # varying order, so poses differ run to run, and so does faiss's k-means on some CPUs; one thread with
+    # a fixed seed gives the same model every time (a small share of the time: extraction and matching
+    # dominate).
     deterministic: bool = True
     keep_database: bool = False  # keep colmap/ (database.db, raw models) for inspection in COLMAP's GUI
     # Known cameras: also triangulate points seen in only two images (COLMAP ignores two-view tracks
@@ -377,7 +377,7 @@ def counted_progress(progress: Progress, total: int | None, desc: str, poll: Cal
         if poll is not None:
             try:
                 state["count"] = poll()
-            except (sqlite3.Error, OSError):
+            except (RuntimeError, OSError):
                 pass
         with lock:
             return state["count"] if total is None else min(state["count"], total)
@@ -406,19 +406,31 @@ def counted_progress(progress: Progress, total: int | None, desc: str, poll: Cal
         thread.join()
 
 
-def table_rows(db: Path, table: str) -> Callable[[], int]:
-    """Reads how many rows ``table`` of the COLMAP database ``db`` has, from another connection while
-    pycolmap writes it (COLMAP keeps its database in WAL mode, where a reader never blocks the writer)."""
-    uri = f"{Path(db).resolve().as_uri()}?mode=ro"
+@contextlib.contextmanager
+def database_count(db: Path, count: Callable[[Any], int]) -> Iterator[Callable[[], int]]:
+    """A ``poll`` for :func:`counted_progress` that reads ``count(database)`` from the COLMAP database
+    ``db`` while pycolmap writes it. Open it before pycolmap starts writing and leave it after pycolmap
+    has finished.
 
-    def rows() -> int:
-        connection = sqlite3.connect(uri, uri=True, timeout=0.1)
-        try:
-            return int(connection.execute(f"SELECT count(*) FROM {table}").fetchone()[0])
-        finally:
-            connection.close()
+    The reading connection is pycolmap's own: a second copy of SQLite in the process (Python's sqlite3)
+    would share the file's POSIX locks without knowing the first copy's, and can reset the WAL index
+    under pycolmap's writer (SQLite's "how to corrupt" 2.2.1; seen here as a SIGBUS). COLMAP keeps its
+    database in WAL mode, where a reader never blocks the writer."""
+    import pycolmap
 
-    return rows
+    database = pycolmap.Database.open(db)
+    try:
+        yield lambda: count(database)
+    finally:
+        database.close()
+
+
+def images_with_keypoints(database: Any) -> int:
+    return sum(database.exists_keypoints(im.image_id) for im in database.read_all_images())
+
+
+def matched_pairs(database: Any) -> int:
+    return int(database.num_matched_image_pairs())
 
 
 def files_in(folder: Path) -> Callable[[], int]:
@@ -567,7 +579,8 @@ def _extract(db: Path, image_dir: Path, names: list[str], camera_mode: str, came
     # order its threads finish, and image ids decide pair order and so the matches and the model.
     pycolmap.Database.open(db).close()
     pycolmap.import_images(db, image_dir, camera_mode=mode, image_names=names, options=reader)
-    with counted_progress(progress, len(names), "sfm: features", poll=table_rows(db, "keypoints")):
+    with (database_count(db, images_with_keypoints) as poll,
+          counted_progress(progress, len(names), "sfm: features", poll=poll)):
         pycolmap.extract_features(db, image_dir, image_names=names, camera_mode=mode, reader_options=reader,
                                   extraction_options=extraction, device=pycolmap.Device.cpu)
 
@@ -578,8 +591,11 @@ def _match(db: Path, matcher: str, params: SfmParams, progress: Progress = _no_p
     ``retrieval``); else None. The pairs matched so far are shown through ``progress``."""
     import pycolmap
 
-    def shown(total: int | None) -> contextlib.AbstractContextManager:
-        return counted_progress(progress, total, "sfm: matched pairs", poll=table_rows(db, "matches"))
+    @contextlib.contextmanager
+    def shown(total: int | None) -> Iterator[None]:
+        with (database_count(db, matched_pairs) as poll,
+              counted_progress(progress, total, "sfm: matched pairs", poll=poll)):
+            yield
 
     with pycolmap.Database.open(db) as database:
         n_images = database.num_images()
@@ -667,7 +683,10 @@ def build_vocab_tree(db: Path, out: Path, params: SfmParams) -> VocabTree | None
     options.num_visual_words = int(min(RETRIEVAL_WORDS, len(descriptors) // RETRIEVAL_DESCRIPTORS_PER_WORD))
     options.num_iterations = RETRIEVAL_ITERATIONS
     options.num_rounds = 1
-    options.num_threads = params.num_threads
+    # deterministic: one thread. faiss's k-means on several threads gives another tree each build on some
+    # CPUs (AMD EPYC: three builds, three trees; one thread: one tree) and is not much faster (lund: 13 s
+    # against 15)
+    options.num_threads = 1 if params.deterministic else params.num_threads
     index = pycolmap.VisualIndex.create(128, 64)  # SIFT's 128 dimensions; 64: the one embedding pycolmap has
     pycolmap.set_random_seed(params.seed)  # the k-means starts: without it each build gives another tree
     with _native_stderr_silenced():

@@ -778,7 +778,7 @@ def _map_with_retry(db: Path, image_dir: Path, work: Path, params: SfmParams, n_
         if check_db is None or not found:
             return (0, -registered[attempt])
         contradicted[attempt] = len(check_model_pairs(check_db, _largest_model(found)).contradicted)
-        return (contradicted[attempt], -registered[attempt])
+        return repair_rank(contradicted[attempt], registered[attempt])
 
     kept, kept_rank = "default", rank("default", models)
     for attempt in attempts[1:]:
@@ -798,6 +798,13 @@ def _map_with_retry(db: Path, image_dir: Path, work: Path, params: SfmParams, n_
     if contradicted:
         retry["contradicted"] = contradicted
     return models, retry
+
+
+def repair_rank(contradicted: int, registered: int) -> tuple[int, int]:
+    """How the pair check's repair orders models, lower first: fewer contradicted strongest pairs, then
+    more images registered (a model that registers every photo at wrong poses is worth less than one
+    that registers fewer at right ones)."""
+    return (contradicted, -registered)
 
 
 def _largest_model(models: dict[int, Any]) -> Any:
@@ -1159,10 +1166,8 @@ def estimate_cameras(ingest_dir: Path, views: Sequence[View], out_dir: Path, par
                     candidate_check = check_model_pairs(db, candidate)
                     repair["strongest_pairs"].update(registered=candidate.num_reg_images(),
                                                      contradicted=len(candidate_check.contradicted))
-                    # fewer contradicted strongest pairs first: a model that registers every photo at
-                    # wrong poses is worth less than one that registers fewer at right ones
-                    if ((len(candidate_check.contradicted), -candidate.num_reg_images())
-                            < (len(check.contradicted), -best.num_reg_images())):
+                    if (repair_rank(len(candidate_check.contradicted), candidate.num_reg_images())
+                            < repair_rank(len(check.contradicted), best.num_reg_images())):
                         repair["kept"] = "strongest_pairs"
                         best, check, models = candidate, candidate_check, strong_models
         raw = work / "best"

@@ -376,9 +376,11 @@ def counted_progress(progress: Progress, total: int | None, desc: str, poll: Cal
     def current() -> int:
         if poll is not None:
             try:
-                state["count"] = poll()
+                value = poll()
             except (RuntimeError, OSError):
-                pass
+                value = state["count"]
+            with lock:
+                state["count"] = value
         with lock:
             return state["count"] if total is None else min(state["count"], total)
 
@@ -765,6 +767,8 @@ def _map_with_retry(db: Path, image_dir: Path, work: Path, params: SfmParams, n_
 
     def mapped(attempt: str = "default") -> dict[int, Any]:
         folder = work / (f"models_{step}" if attempt == "default" else f"models_{step}_{attempt}")
+        if attempt == "global" or params.mapper == "global":  # the global mapper reports nothing to count
+            return _map(db, image_dir, folder, params, attempt)
         # an image the mapper drops and registers again counts twice: the bar stops at n_images
         with counted_progress(progress, n_images, "sfm: registered images") as registered:
             return _map(db, image_dir, folder, params, attempt, registered=registered)
@@ -776,7 +780,7 @@ def _map_with_retry(db: Path, image_dir: Path, work: Path, params: SfmParams, n_
 
     def rank(attempt: str, found: dict[int, Any]) -> tuple[int, int]:
         if check_db is None or not found:
-            return (0, -registered[attempt])
+            return repair_rank(0, registered[attempt])
         contradicted[attempt] = len(check_model_pairs(check_db, _largest_model(found)).contradicted)
         return repair_rank(contradicted[attempt], registered[attempt])
 

@@ -127,7 +127,8 @@ def scene_mesh(ctx: StageContext, out_dir: Path, model: Any = None, cameras: lis
 def _make_mesh(ctx: StageContext, model, cameras) -> MeshData:
     cams = registered(cameras) or cameras
     return mesh_from_gaussians(model, cams, MeshSettings.from_params(ctx.params),
-                               scene_radius=scene_radius(ctx, model, cams), background=scene_background(ctx))
+                               scene_radius=scene_radius(ctx, model, cams), background=scene_background(ctx),
+                               progress=ctx.progress)
 
 
 class MeshExporter(Exporter):

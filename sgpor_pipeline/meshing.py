@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, fields, replace
 from typing import Any
 
@@ -424,12 +424,13 @@ def decimate(mesh: MeshData, target_faces: int) -> MeshData:
 
 def mesh_from_gaussians(model: Any, cameras: Sequence[Camera], settings: MeshSettings | None = None,
                         scene_radius: float | None = None, background: Sequence[float] | None = None,
-                        frames: Iterable[tuple[Camera, dict[str, np.ndarray]]] | None = None) -> MeshData:
+                        frames: Iterable[tuple[Camera, dict[str, np.ndarray]]] | None = None,
+                        progress: Callable[..., Iterable] | None = None) -> MeshData:
     """The cleaned, decimated, coloured mesh of a GaussianModel seen by ``cameras`` (their frame).
 
     ``frames``: already rendered (camera, :func:`render_view` result with depth) pairs to reuse
     instead of rendering ``cameras`` again. ``scene_radius`` defaults to the median camera distance
-    to the point they look at.
+    to the point they look at. ``progress`` (a tqdm-like wrapper of iterables) shows the views fused.
     """
     from .orientation import scene_center_radius
 
@@ -442,6 +443,8 @@ def mesh_from_gaussians(model: Any, cameras: Sequence[Camera], settings: MeshSet
     g = activated_tensors(model)
     t0 = time.perf_counter()
 
+    extra = interpolate_cameras(cams, s.extra_views)
+
     def all_frames() -> Iterable[tuple[Camera, dict[str, np.ndarray]]]:
         if frames is not None:
             yield from frames
@@ -449,12 +452,16 @@ def mesh_from_gaussians(model: Any, cameras: Sequence[Camera], settings: MeshSet
             for cam in cams:
                 cam = limit_size(cam, s.max_size)
                 yield cam, render_view(g, cam, background, depth_mode=s.depth_mode)
-        for cam in interpolate_cameras(cams, s.extra_views):
+        for cam in extra:
             cam = limit_size(cam, s.max_size)
             yield cam, render_view(g, cam, background, depth_mode=s.depth_mode)
 
     tsdf = TSDF(voxel, s.trunc_voxels, depth_max)
-    for cam, r in all_frames():
+    fused = all_frames()
+    if progress is not None:
+        total = None if frames is not None else len(cams) + len(extra)
+        fused = progress(fused, total=total, desc="mesh: views fused")
+    for cam, r in fused:
         tsdf.integrate(cam, clean_depth(r["depth"], r["alpha"], s.alpha_min, s.edge_rel, depth_max), r["rgb"])
     t1 = time.perf_counter()
     raw = tsdf.extract(s.weight_threshold)

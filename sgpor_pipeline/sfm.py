@@ -427,6 +427,14 @@ def database_count(db: Path, count: Callable[[Any], int]) -> Iterator[Callable[[
         database.close()
 
 
+def resumed_database(db: Path) -> dict[str, int] | None:
+    """What an interrupted run left in the COLMAP database ``db``: images with features and pairs matched
+    (None when it holds neither)."""
+    with database_count(db, lambda d: (images_with_keypoints(d), matched_pairs(d))) as read:
+        features, pairs = read()
+    return {"images_with_features": features, "matched_pairs": pairs} if features or pairs else None
+
+
 def images_with_keypoints(database: Any) -> int:
     return sum(database.exists_keypoints(im.image_id) for im in database.read_all_images())
 
@@ -1099,7 +1107,11 @@ def _write_outputs(out_dir: Path, cameras: list[Camera], rec: Any, summary: dict
     return points
 
 
-def _finish_colmap_dir(work: Path, params: SfmParams) -> None:
+def _finish_colmap_dir(work: Path, params: SfmParams, db: Path | None = None) -> None:
+    if params.keep_database and db is not None and db.parent != work:  # kept in the resume folder: publish it
+        for path in (db, db.parent / VOCAB_TREE_FILE):
+            if path.exists():
+                shutil.move(path, work / path.name)
     if not params.keep_database:
         # The database (features, matches: tens of MB for a few dozen photos) is not read by any later
         # stage; sparse/ and points.npz hold what they need.
@@ -1112,15 +1124,23 @@ def _finish_colmap_dir(work: Path, params: SfmParams) -> None:
 
 def estimate_cameras(ingest_dir: Path, views: Sequence[View], out_dir: Path, params: SfmParams,
                      logger: logging.Logger = log, progress: Progress = _no_progress, debug: bool = False,
-                     user_images: Path | None = None) -> dict[str, Any]:
-    """SfM on ingest's images; writes the stage outputs into ``out_dir`` and returns the summary."""
+                     user_images: Path | None = None, resume_dir: Path | None = None) -> dict[str, Any]:
+    """SfM on ingest's images; writes the stage outputs into ``out_dir`` and returns the summary.
+
+    ``resume_dir``: a folder that outlives an interrupted run (the stage's checkpoint folder). The COLMAP
+    database is kept there, so the next run of the same configuration keeps the features and matched
+    pairs it holds: COLMAP skips images that have features and pairs already matched and verified."""
     import pycolmap
 
     _check_camera_model(params.camera_model)
     image_dir = Path(ingest_dir) / IMAGES_DIR
     work = out_dir / COLMAP_DIR
     work.mkdir(parents=True, exist_ok=True)
-    db = work / "database.db"
+    db = (Path(resume_dir) if resume_dir is not None else work) / "database.db"
+    resumed = resumed_database(db) if db.exists() else None
+    if resumed:
+        logger.info(f"sfm: resuming an interrupted run: {resumed['images_with_features']} of {len(views)} images "
+                    f"have features, {resumed['matched_pairs']} pairs are matched")
     names = [colmap_image_name(v) for v in views]
     sizes = {(v.width, v.height) for v in views}
     camera_mode = params.camera_mode
@@ -1198,7 +1218,7 @@ def estimate_cameras(ingest_dir: Path, views: Sequence[View], out_dir: Path, par
                     mask = read_mask(Path(ingest_dir) / view.mask)
                     write_mask01(out_dir / MASKS_DIR / f"{view.name}.png",
                                  undistort_mask(mask, best.cameras[image.camera_id], options))
-    _finish_colmap_dir(work, params)
+    _finish_colmap_dir(work, params, db)
 
     rec = pycolmap.Reconstruction(out_dir / SPARSE_DIR)
     by_name = {im.name: im for im in rec.images.values()}
@@ -1215,6 +1235,7 @@ def estimate_cameras(ingest_dir: Path, views: Sequence[View], out_dir: Path, par
         "mode": "sfm",
         "matcher": matcher,
         "retrieval": retrieval,
+        "resumed": resumed,
         "mapper": params.mapper,
         "camera_mode": camera_mode,
         "images": n,

@@ -78,9 +78,10 @@ class SfmStage(Stage):
             summary = import_known_cameras(ingest, views, load_cameras(known), ctx.out_dir, params,
                                            logger=ctx.log, progress=ctx.progress, debug=ctx.debug)
         else:
+            # the database in the checkpoint folder: an interrupted run's features and matches are kept
             summary = estimate_cameras(ingest, views, ctx.out_dir, params, logger=ctx.log,
                                        progress=ctx.progress, debug=ctx.debug,
-                                       user_images=Path(ctx.run_inputs.images))
+                                       user_images=Path(ctx.run_inputs.images), resume_dir=ctx.checkpoint_dir)
         registered, total = summary["registered"], summary["images"]
         missing = summary["unregistered"]
         check = summary.get("pair_check")

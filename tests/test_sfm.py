@@ -336,6 +336,34 @@ def test_sfm_shows_progress_of_pycolmaps_work(sfm_run, tmp_path, matcher):
     assert bars["sfm: undistorted images"] == {"total": n, "count": n}
 
 
+def test_interrupted_sfm_keeps_its_features_and_matches(scene_dir, tmp_path, monkeypatch):
+    """Ctrl-C after matching (here: in the mapping) leaves the COLMAP database in the stage's checkpoint
+    folder; the same command again starts from its features and matched pairs (COLMAP skips them: a pair
+    matched twice would fail its database's unique key) and finishes the model."""
+    import sgpor_pipeline.sfm as sfm_module
+    from sgpor_pipeline.cache import CHECKPOINT, read_manifest
+
+    _, folder = scene_dir
+    n = len(list((folder / "images").iterdir()))
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    mapping = sfm_module._map_with_retry
+    monkeypatch.setattr(sfm_module, "_map_with_retry", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        run_sfm(tmp_path / "out", images=folder / "images")
+    kept = list((tmp_path / "out" / "cache" / "sfm").glob(f".tmp-*/{CHECKPOINT}/database.db"))
+    assert len(kept) == 1
+    monkeypatch.setattr(sfm_module, "_map_with_retry", mapping)
+    result, sfm = run_sfm(tmp_path / "out", images=folder / "images")
+    assert sfm.summary["resumed"] == {"images_with_features": n, "matched_pairs": n * (n - 1) // 2}
+    assert sfm.summary["registered"] == n
+    assert read_manifest(result.path("sfm"))["resumed_from_checkpoint"] is True
+    assert not (result.path("sfm") / CHECKPOINT).exists() and not (result.path("sfm") / "colmap").exists()
+    assert not list((tmp_path / "out" / "cache" / "sfm").glob(".tmp-*"))
+
+
 def test_counted_progress_polls_adds_and_survives_failed_reads():
     import time
 

@@ -185,6 +185,14 @@ class StageCache:
             shutil.rmtree(old, ignore_errors=True)
         return tmp
 
+    def checkpoint(self, stage: str, key: str) -> Path | None:
+        """The checkpoint a killed or interrupted build of ``key`` left (the newest), which the next build
+        of that key resumes; None when there is none."""
+        sdir = self.stage_dir(stage)
+        found = [p / CHECKPOINT for p in sdir.glob(f"{TMP_PREFIX}{key}-*") if (p / CHECKPOINT).is_dir()] \
+            if sdir.is_dir() else []
+        return max(found, key=lambda p: p.stat().st_mtime) if found else None
+
     def remove_leftovers(self, keep_checkpoints_of: dict[str, str]) -> list[Path]:
         """Delete leftover build folders (killed runs), except those holding a checkpoint of a key
         in ``keep_checkpoints_of`` (stage -> current key): the next build of that key resumes it."""

@@ -450,6 +450,10 @@ def pipeline_status(out: Path, stages: dict[str, type[Stage]] | None = None) -> 
                                     inputs_note or f"{len(others)} result(s) of another configuration"))
         else:
             why = inputs_note or ("" if name in in_last_run else "not part of the last run")
+            checkpoint = cache.checkpoint(name, key) if key else None
+            if checkpoint is not None:
+                why = (f"interrupted: the same command resumes it from its checkpoint "
+                       f"({format_size(folder_size(checkpoint), 1000)})")
             rows.append(StageStatus(name, "missing", key, None, 0, why))
     return rows
 

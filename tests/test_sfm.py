@@ -355,6 +355,10 @@ def test_interrupted_sfm_keeps_its_features_and_matches(scene_dir, tmp_path, mon
         run_sfm(tmp_path / "out", images=folder / "images")
     kept = list((tmp_path / "out" / "cache" / "sfm").glob(f".tmp-*/{CHECKPOINT}/database.db"))
     assert len(kept) == 1
+    from sgpor_pipeline.runner import pipeline_status
+
+    sfm_row = next(r for r in pipeline_status(tmp_path / "out") if r.name == "sfm")
+    assert sfm_row.state == "missing" and sfm_row.detail.startswith("interrupted: the same command resumes it")
     monkeypatch.setattr(sfm_module, "_map_with_retry", mapping)
     result, sfm = run_sfm(tmp_path / "out", images=folder / "images")
     assert sfm.summary["resumed"] == {"images_with_features": n, "matched_pairs": n * (n - 1) // 2}

@@ -427,6 +427,18 @@ def database_count(db: Path, count: Callable[[Any], int]) -> Iterator[Callable[[
         database.close()
 
 
+def _resumable_database(work: Path, resume_dir: Path | None, n_images: int, logger: logging.Logger,
+                        ) -> tuple[Path, dict[str, int] | None]:
+    """The COLMAP database's path (in ``resume_dir`` when given, else in ``work``) and what an interrupted
+    run left in it (:func:`resumed_database`), which is logged."""
+    db = (Path(resume_dir) if resume_dir is not None else work) / "database.db"
+    resumed = resumed_database(db) if db.exists() else None
+    if resumed:
+        logger.info(f"sfm: resuming an interrupted run: {resumed['images_with_features']} of {n_images} images "
+                    f"have features, {resumed['matched_pairs']} pairs are matched")
+    return db, resumed
+
+
 def resumed_database(db: Path) -> dict[str, int] | None:
     """What an interrupted run left in the COLMAP database ``db``: images with features and pairs matched
     (None when it holds neither)."""
@@ -1136,11 +1148,7 @@ def estimate_cameras(ingest_dir: Path, views: Sequence[View], out_dir: Path, par
     image_dir = Path(ingest_dir) / IMAGES_DIR
     work = out_dir / COLMAP_DIR
     work.mkdir(parents=True, exist_ok=True)
-    db = (Path(resume_dir) if resume_dir is not None else work) / "database.db"
-    resumed = resumed_database(db) if db.exists() else None
-    if resumed:
-        logger.info(f"sfm: resuming an interrupted run: {resumed['images_with_features']} of {len(views)} images "
-                    f"have features, {resumed['matched_pairs']} pairs are matched")
+    db, resumed = _resumable_database(work, resume_dir, len(views), logger)
     names = [colmap_image_name(v) for v in views]
     sizes = {(v.width, v.height) for v in views}
     camera_mode = params.camera_mode
@@ -1273,8 +1281,9 @@ def conditioning_frame(cameras: Sequence[Camera]) -> tuple[Similarity, str] | No
 
 def import_known_cameras(ingest_dir: Path, views: Sequence[View], cameras: Sequence[Camera], out_dir: Path,
                          params: SfmParams, logger: logging.Logger = log, progress: Progress = _no_progress,
-                         debug: bool = False) -> dict[str, Any]:
-    """Keep the user's cameras: undistort where needed and triangulate points with fixed poses."""
+                         debug: bool = False, resume_dir: Path | None = None) -> dict[str, Any]:
+    """Keep the user's cameras: undistort where needed and triangulate points with fixed poses.
+    ``resume_dir``: as for :func:`estimate_cameras` (the features and matches of an interrupted run)."""
     import pycolmap
 
     ingest_dir = Path(ingest_dir)
@@ -1320,7 +1329,7 @@ def import_known_cameras(ingest_dir: Path, views: Sequence[View], cameras: Seque
 
     work = out_dir / COLMAP_DIR
     work.mkdir(parents=True, exist_ok=True)
-    db = work / "database.db"
+    db, resumed = _resumable_database(work, resume_dir, len(views), logger)
     posed_out = [c for c in out_cams if c.image is not None]
     names = [f"{c.image}.png" for c in posed_out]
     matcher = choose_matcher(params, len(names))
@@ -1349,13 +1358,14 @@ def import_known_cameras(ingest_dir: Path, views: Sequence[View], cameras: Seque
                                        f"{PAIR_CHECK_TOP} strongest pairs"):
                 check = check_model_pairs(db, rec)
     stats = database_stats(db)
-    _finish_colmap_dir(work, params)
+    _finish_colmap_dir(work, params, db)
     (out_dir / SPARSE_DIR).mkdir()
     rec.write_binary(out_dir / SPARSE_DIR)
     summary = {
         "mode": KNOWN_CAMERAS_MODE,
         "matcher": matcher,
         "retrieval": retrieval,
+        "resumed": resumed,
         "images": len(views),
         "registered": len(posed_out),
         "unregistered": [],

@@ -74,11 +74,12 @@ class SfmStage(Stage):
         ingest = ctx.inputs["ingest"]
         views = load_views(ingest)
         known = ingest / "cameras.json"
+        # the COLMAP database in the checkpoint folder: an interrupted run's features and matches are kept
         if known.is_file():
             summary = import_known_cameras(ingest, views, load_cameras(known), ctx.out_dir, params,
-                                           logger=ctx.log, progress=ctx.progress, debug=ctx.debug)
+                                           logger=ctx.log, progress=ctx.progress, debug=ctx.debug,
+                                           resume_dir=ctx.checkpoint_dir)
         else:
-            # the database in the checkpoint folder: an interrupted run's features and matches are kept
             summary = estimate_cameras(ingest, views, ctx.out_dir, params, logger=ctx.log,
                                        progress=ctx.progress, debug=ctx.debug,
                                        user_images=Path(ctx.run_inputs.images), resume_dir=ctx.checkpoint_dir)

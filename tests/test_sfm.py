@@ -336,33 +336,38 @@ def test_sfm_shows_progress_of_pycolmaps_work(sfm_run, tmp_path, matcher):
     assert bars["sfm: undistorted images"] == {"total": n, "count": n}
 
 
-def test_interrupted_sfm_keeps_its_features_and_matches(scene_dir, tmp_path, monkeypatch):
-    """Ctrl-C after matching (here: in the mapping) leaves the COLMAP database in the stage's checkpoint
-    folder; the same command again starts from its features and matched pairs (COLMAP skips them: a pair
-    matched twice would fail its database's unique key) and finishes the model."""
+@pytest.mark.parametrize("cameras", ["estimated", "known"])
+def test_interrupted_sfm_keeps_its_features_and_matches(scene_dir, tmp_path, monkeypatch, cameras):
+    """Ctrl-C after matching (here: in the mapping, or the known cameras' triangulation) leaves the COLMAP
+    database in the stage's checkpoint folder; ``status`` says the stage will resume, and the same command
+    starts from its features and matched pairs (COLMAP skips them: a pair matched twice would fail its
+    database's unique key) and finishes the model."""
     import sgpor_pipeline.sfm as sfm_module
     from sgpor_pipeline.cache import CHECKPOINT, read_manifest
+    from sgpor_pipeline.runner import pipeline_status
 
     _, folder = scene_dir
     n = len(list((folder / "images").iterdir()))
+    inputs = {"images": folder / "images"}
+    if cameras == "known":
+        inputs["cameras"] = folder / "cameras.json"
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    mapping = sfm_module._map_with_retry
-    monkeypatch.setattr(sfm_module, "_map_with_retry", interrupted)
+    step = "_map_with_retry" if cameras == "estimated" else "_known_reconstruction"
+    original = getattr(sfm_module, step)
+    monkeypatch.setattr(sfm_module, step, interrupted)
     with pytest.raises(KeyboardInterrupt):
-        run_sfm(tmp_path / "out", images=folder / "images")
+        run_sfm(tmp_path / "out", **inputs)
     kept = list((tmp_path / "out" / "cache" / "sfm").glob(f".tmp-*/{CHECKPOINT}/database.db"))
     assert len(kept) == 1
-    from sgpor_pipeline.runner import pipeline_status
-
     sfm_row = next(r for r in pipeline_status(tmp_path / "out") if r.name == "sfm")
     assert sfm_row.state == "missing" and sfm_row.detail.startswith("interrupted: the same command resumes it")
-    monkeypatch.setattr(sfm_module, "_map_with_retry", mapping)
-    result, sfm = run_sfm(tmp_path / "out", images=folder / "images")
+    monkeypatch.setattr(sfm_module, step, original)
+    result, sfm = run_sfm(tmp_path / "out", **inputs)
     assert sfm.summary["resumed"] == {"images_with_features": n, "matched_pairs": n * (n - 1) // 2}
-    assert sfm.summary["registered"] == n
+    assert sfm.summary["registered"] == n and len(sfm.points) > 100
     assert read_manifest(result.path("sfm"))["resumed_from_checkpoint"] is True
     assert not (result.path("sfm") / CHECKPOINT).exists() and not (result.path("sfm") / "colmap").exists()
     assert not list((tmp_path / "out" / "cache" / "sfm").glob(".tmp-*"))

@@ -26,6 +26,7 @@ import json
 import logging
 import os
 import shutil
+import signal
 import sys
 import threading
 import time
@@ -409,6 +410,28 @@ def counted_progress(progress: Progress, total: int | None, desc: str, poll: Cal
 
 
 @contextlib.contextmanager
+def interrupt_notice(message: str, logger: logging.Logger = log) -> Iterator[None]:
+    """Log ``message`` as soon as Ctrl-C is pressed inside the block. pycolmap notices the interrupt
+    within a second but lets COLMAP finish its current batch of work first (exhaustive matching of up to
+    50 photos is one batch: a minute or more), so the user hears at once that it is coming. The
+    interrupt itself is unchanged. Only on the main thread, and only over Python's default handler."""
+    if (threading.current_thread() is not threading.main_thread()
+            or signal.getsignal(signal.SIGINT) is not signal.default_int_handler):
+        yield
+        return
+
+    def announce(signum: int, frame: Any) -> None:
+        logger.warning(message)
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGINT, announce)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+@contextlib.contextmanager
 def database_count(db: Path, count: Callable[[Any], int]) -> Iterator[Callable[[], int]]:
     """A ``poll`` for :func:`counted_progress` that reads ``count(database)`` from the COLMAP database
     ``db`` while pycolmap writes it. Open it before pycolmap starts writing and leave it after pycolmap
@@ -616,7 +639,10 @@ def _match(db: Path, matcher: str, params: SfmParams, progress: Progress = _no_p
     @contextlib.contextmanager
     def shown(total: int | None) -> Iterator[None]:
         with (database_count(db, matched_pairs) as poll,
-              counted_progress(progress, total, "sfm: matched pairs", poll=poll)):
+              counted_progress(progress, total, "sfm: matched pairs", poll=poll),
+              interrupt_notice("sfm: interrupted: COLMAP stops once its current batch of pairs is matched "
+                               "(up to a minute or more); the pairs matched so far are kept for the same "
+                               "command to resume")):
             yield
 
     with pycolmap.Database.open(db) as database:

@@ -373,6 +373,21 @@ def test_interrupted_sfm_keeps_its_features_and_matches(scene_dir, tmp_path, mon
     assert not list((tmp_path / "out" / "cache" / "sfm").glob(".tmp-*"))
 
 
+def test_interrupt_notice_logs_at_once_and_still_interrupts(caplog):
+    import signal
+
+    from sgpor_pipeline.sfm import interrupt_notice
+
+    outer = signal.signal(signal.SIGINT, signal.default_int_handler)  # (a test worker may have another)
+    try:
+        with caplog.at_level(logging.WARNING), pytest.raises(KeyboardInterrupt), interrupt_notice("stopping soon"):
+            signal.raise_signal(signal.SIGINT)
+        assert "stopping soon" in caplog.text
+        assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # the handler is put back
+    finally:
+        signal.signal(signal.SIGINT, outer)
+
+
 def test_counted_progress_polls_adds_and_survives_failed_reads():
     import time
 

@@ -173,25 +173,25 @@ class StageCache:
         """A fresh build folder; a checkpoint left by a killed build of the same key is carried over."""
         sdir = self.stage_dir(stage)
         sdir.mkdir(parents=True, exist_ok=True)
+        leftovers = self._leftover_builds(stage, key)
         tmp = sdir / f"{TMP_PREFIX}{key}-{secrets.token_hex(4)}"
         tmp.mkdir()
-        leftovers = sorted(sdir.glob(f"{TMP_PREFIX}{key}-*"), key=lambda p: p.stat().st_mtime)
-        for old in leftovers:
-            if old == tmp:
-                continue
+        for old in leftovers:  # (listed before tmp exists)
             ckpt = old / CHECKPOINT
             if ckpt.is_dir() and not (tmp / CHECKPOINT).exists():
                 os.replace(ckpt, tmp / CHECKPOINT)
             shutil.rmtree(old, ignore_errors=True)
         return tmp
 
-    def checkpoint(self, stage: str, key: str) -> Path | None:
-        """The checkpoint a killed or interrupted build of ``key`` left (the newest), which the next build
-        of that key resumes; None when there is none."""
+    def _leftover_builds(self, stage: str, key: str) -> list[Path]:
+        """Build folders of ``key`` left by killed or interrupted runs, oldest first."""
         sdir = self.stage_dir(stage)
-        found = [p / CHECKPOINT for p in sdir.glob(f"{TMP_PREFIX}{key}-*") if (p / CHECKPOINT).is_dir()] \
-            if sdir.is_dir() else []
-        return max(found, key=lambda p: p.stat().st_mtime) if found else None
+        return sorted(sdir.glob(f"{TMP_PREFIX}{key}-*"), key=lambda p: p.stat().st_mtime) if sdir.is_dir() else []
+
+    def checkpoint(self, stage: str, key: str) -> Path | None:
+        """The checkpoint the next build of ``key`` resumes (:meth:`new_build` adopts the oldest
+        leftover's); None when there is none."""
+        return next((p / CHECKPOINT for p in self._leftover_builds(stage, key) if (p / CHECKPOINT).is_dir()), None)
 
     def remove_leftovers(self, keep_checkpoints_of: dict[str, str]) -> list[Path]:
         """Delete leftover build folders (killed runs), except those holding a checkpoint of a key

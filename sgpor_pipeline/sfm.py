@@ -465,8 +465,10 @@ def _resumable_database(work: Path, resume_dir: Path | None, n_images: int, logg
 def resumed_database(db: Path) -> dict[str, int] | None:
     """What an interrupted run left in the COLMAP database ``db``: images with features and pairs matched
     (None when it holds neither)."""
-    with database_count(db, lambda d: (images_with_keypoints(d), matched_pairs(d))) as read:
-        features, pairs = read()
+    import pycolmap
+
+    with pycolmap.Database.open(db) as database:
+        features, pairs = images_with_keypoints(database), matched_pairs(database)
     return {"images_with_features": features, "matched_pairs": pairs} if features or pairs else None
 
 
@@ -645,9 +647,6 @@ def _match(db: Path, matcher: str, params: SfmParams, progress: Progress = _no_p
                                "command to resume")):
             yield
 
-    with pycolmap.Database.open(db) as database:
-        n_images = database.num_images()
-
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = params.num_threads
     matching.guided_matching = params.guided_matching
@@ -670,6 +669,8 @@ def _match(db: Path, matcher: str, params: SfmParams, progress: Progress = _no_p
         retrieval = {"neighbours": params.retrieval_neighbours, "words": 0, "exhaustive_instead": True}
         matcher = "exhaustive"
     if matcher == "exhaustive":
+        with pycolmap.Database.open(db) as database:
+            n_images = database.num_images()
         with shown(n_images * (n_images - 1) // 2):
             pycolmap.match_exhaustive(db, matching_options=matching, verification_options=verification,
                                       device=pycolmap.Device.cpu)
@@ -678,6 +679,7 @@ def _match(db: Path, matcher: str, params: SfmParams, progress: Progress = _no_p
         pairing.overlap = params.sequential_overlap
         pairing.num_threads = params.num_threads
         with pycolmap.Database.open(db) as database:
+            n_images = database.num_images()
             total = len(pycolmap.SequentialPairGenerator(pairing, database).all_pairs())
         tree = build_vocab_tree(db, db.parent / VOCAB_TREE_FILE, params) if params.sequential_loops else None
         if tree is not None:
